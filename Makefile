@@ -1,0 +1,48 @@
+# embedrl developer tasks. `make demo` and `make test` work on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+OUT ?= out
+
+.PHONY: setup demo test test-fast lint type format bench clean
+
+setup: $(STAMP)
+
+# torch first and pinned: an unpinned torch pulls several GB of CUDA wheels (platform notes).
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+# The main job: the potential-field baseline on seeded episodes, its table, JSON and pictures.
+demo: $(STAMP)
+	$(VENV)/bin/embedrl eval --controller potential-field --episodes 20 --seed 0 \
+	    --json $(OUT)/demo/eval.json --plot $(OUT)/demo/trajectories.png
+	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
+	@echo "demo: wrote $(OUT)/demo/eval.json, trajectories.png and episode.gif"
+
+test: $(STAMP)
+	$(PY) -m pytest
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -m "not slow"
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+type: $(STAMP)
+	$(VENV)/bin/mypy
+
+format: $(STAMP)
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
+
+bench: $(STAMP)
+	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
+
+clean:
+	rm -rf $(OUT) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
