@@ -14,8 +14,9 @@ from train import layout
 
 SAMPLE_TIME = 0.3
 """Control period [s]: one env step holds the wheel forces for this long."""
-PHYSICS_SUBSTEPS = 10
-"""pymunk steps per env step (0.03 s each): fine enough that no contact is missed."""
+PHYSICS_SUBSTEPS = 6
+"""pymunk steps per env step (0.05 s each): the robot moves at most 3.5 cm per physics
+step, well under the 0.1 m thinnest obstacle, so no contact is missed."""
 MAX_EPISODE_STEPS = 200
 """Episodes are truncated after this many steps (60 s)."""
 
@@ -111,6 +112,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     ## Starting State
     Uniformly random: |x| in [1.55, 1.8] m on a random side, y in [0.1, 1.1] m, heading in
     [-pi, pi), at rest. Only ``reset(seed=...)`` seeds it.
+    ``reset(options={"start_pose": (x, y, theta)})`` starts from a given pose instead; a pose
+    outside the arena or overlapping a shelf or wall raises ``ValueError``.
 
     ## Episode End
     - Terminated, success: the robot centre passes below y = -0.15 m (through the gap).
@@ -175,6 +178,21 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             a, b = arbiter.shapes
             self._hit = self._names.get(b, self._names.get(a, "obstacle"))
 
+    @staticmethod
+    def _checked_pose(pose: Any) -> tuple[float, float, float]:
+        try:
+            x, y, theta = (float(p) for p in pose)
+        except (TypeError, ValueError):
+            raise ValueError(f"start_pose must be three numbers (x, y, theta), got {pose!r}") from None
+        if not all(math.isfinite(p) for p in (x, y, theta)):
+            raise ValueError(f"start_pose must be finite, got {pose!r}")
+        if not (abs(x) < layout.ARENA_HALF_WIDTH and layout.GOAL_Y < y < layout.ARENA_TOP):
+            raise ValueError(
+                f"start_pose ({x}, {y}) is outside the arena: |x| < {layout.ARENA_HALF_WIDTH}, "
+                f"{layout.GOAL_Y} < y < {layout.ARENA_TOP}"
+            )
+        return x, y, theta
+
     def _observe(self) -> np.ndarray:
         assert self._robot is not None
         r = self._robot
@@ -190,11 +208,23 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
-        side = 1.0 if self.np_random.random() < 0.5 else -1.0
-        x = side * self.np_random.uniform(layout.START_X_MIN, layout.START_X_MAX)
-        y = self.np_random.uniform(layout.START_Y_MIN, layout.START_Y_MAX)
-        theta = self.np_random.uniform(-math.pi, math.pi)
+        unknown = set(options or {}) - {"start_pose"}
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; supported: ['start_pose']")
+        if options and options.get("start_pose") is not None:
+            x, y, theta = self._checked_pose(options["start_pose"])
+        else:
+            side = 1.0 if self.np_random.random() < 0.5 else -1.0
+            x = side * self.np_random.uniform(layout.START_X_MIN, layout.START_X_MAX)
+            y = self.np_random.uniform(layout.START_Y_MIN, layout.START_Y_MAX)
+            theta = self.np_random.uniform(-math.pi, math.pi)
         self._build_space(x, y, theta)
+        assert self._space is not None and self._robot is not None
+        overlaps = self._space.shape_query(next(iter(self._robot.shapes)))
+        if overlaps:
+            names = sorted({self._names.get(o.shape, "obstacle") for o in overlaps if o.shape is not None})
+            self._space = None
+            raise ValueError(f"start_pose ({x}, {y}, {theta}) overlaps {', '.join(names)}")
         self._steps = 0
         self.trajectory = [(x, y, theta)]
         return self._observe(), {"is_success": False, "collided": False, "collided_with": None}
@@ -205,19 +235,23 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         a = np.clip(np.asarray(action, dtype=np.float32).reshape(2), -1.0, 1.0)
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action must be finite, got {action!r}")
-        half_force_l = 0.5 * WHEEL_FORCE_SCALE * float(a[0])
-        half_force_r = 0.5 * WHEEL_FORCE_SCALE * float(a[1])
+        drive_l = 0.5 * WHEEL_FORCE_SCALE * float(a[0])
+        drive_r = 0.5 * WHEEL_FORCE_SCALE * float(a[1])
         robot, space = self._robot, self._space
         dt = SAMPLE_TIME / PHYSICS_SUBSTEPS
         made_it = False
         for _ in range(PHYSICS_SUBSTEPS):
-            c, s = math.cos(robot.angle), math.sin(robot.angle)
-            v = robot.velocity.x * c + robot.velocity.y * s
+            theta = robot.angle
+            c, s = math.cos(theta), math.sin(theta)
+            vx, vy = robot.velocity
+            v = vx * c + vy * s
             robot.velocity = (v * c, v * s)  # wheels do not slip sideways
-            robot.apply_force_at_local_point((half_force_l, 0.0), (0.0, WHEEL_HALF_TRACK))
-            robot.apply_force_at_local_point((half_force_r, 0.0), (0.0, -WHEEL_HALF_TRACK))
-            robot.apply_force_at_local_point((-LINEAR_FRICTION * v, 0.0), (0.0, 0.0))
-            robot.torque -= ANGULAR_FRICTION * robot.angular_velocity
+            # Friction acts at the wheels: the linear part splits evenly, the angular part
+            # is a force couple; together they give -LINEAR_FRICTION*v and -ANGULAR_FRICTION*w.
+            linear = 0.5 * LINEAR_FRICTION * v
+            couple = 0.5 * ANGULAR_FRICTION * robot.angular_velocity / WHEEL_HALF_TRACK
+            robot.apply_force_at_local_point((drive_l - linear + couple, 0.0), (0.0, WHEEL_HALF_TRACK))
+            robot.apply_force_at_local_point((drive_r - linear - couple, 0.0), (0.0, -WHEEL_HALF_TRACK))
             space.step(dt)
             if self._hit is not None:
                 break

@@ -1,0 +1,159 @@
+"""The ``embedrl`` command. Each package owns its subcommands; this module gathers them.
+
+``train`` contributes ``eval``, ``render`` and ``bench-env``; ``export`` and ``hil`` add theirs
+with a ``register(subparsers)`` function in their own ``cli`` module when they exist.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import sys
+import traceback
+from pathlib import Path
+
+from train.errors import TrainError, UsageError
+
+CONTROLLERS = ("potential-field",)
+"""Built-in scripted controllers, usable wherever a policy is expected."""
+OTHER_PACKAGES = ("export", "hil")
+
+
+def _controller(name: str):  # type: ignore[no-untyped-def]
+    from train.potential_field import PotentialFieldController
+
+    if name == "potential-field":
+        return PotentialFieldController()
+    raise UsageError(f"unknown controller {name!r}; available: {', '.join(CONTROLLERS)}")
+
+
+def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    if args.model is not None:
+        raise UsageError(
+            f"cannot evaluate {args.model}: evaluating trained models arrives with the training "
+            "subcommand (not built yet); use --controller potential-field"
+        )
+    return _controller(args.controller)
+
+
+def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("model", nargs="?", type=Path, help="trained model (arrives with training)")
+    src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
+
+
+def _positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from train.evaluate import evaluate, write_json
+
+    policy = _policy(args)
+    name = args.controller or str(args.model)
+    report = evaluate(policy, args.episodes, args.seed, name, progress=True)
+    print(report.table())
+    if args.json:
+        write_json(report.to_json(), args.json)
+        print(f"wrote {args.json}")
+    if args.plot:
+        from train.plots import plot_trajectories
+
+        plot_trajectories(report, args.plot)
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import gymnasium as gym
+
+    from train import ENV_ID
+    from train.rendering import save_episode
+    from train.warehouse_env import SAMPLE_TIME
+
+    if args.out.suffix.lower() not in (".gif", ".png"):
+        raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
+    policy = _policy(args)
+    env = gym.make(ENV_ID, render_mode="rgb_array")
+    obs, info = env.reset(seed=args.seed)
+    frames = [env.render()]
+    while True:
+        obs, _, terminated, truncated, info = env.step(policy(obs))
+        frames.append(env.render())
+        if terminated or truncated:
+            break
+    env.close()
+    save_episode(frames, args.out, SAMPLE_TIME)
+    outcome = "success" if info["is_success"] else "collision" if info["collided"] else "timeout"
+    print(f"wrote {args.out}: {len(frames) - 1} steps, {outcome}")
+    return 0
+
+
+def cmd_bench_env(args: argparse.Namespace) -> int:
+    from train.bench_env import run
+    from train.evaluate import provenance, write_json
+
+    result = run(args.steps, args.seed)
+    width = max(len(k) for k in result)
+    for key, value in result.items():
+        print(f"{key:<{width}}  {value}")
+    if args.json:
+        write_json({**result, "provenance": provenance()}, args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="embedrl", description=__doc__.splitlines()[0] if __doc__ else None)
+    parser.add_argument("--debug", action="store_true", help="show tracebacks")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
+    _add_policy_arguments(p)
+    p.add_argument("--episodes", type=_positive, default=200)
+    p.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    p.add_argument("--json", type=Path, help="write the JSON report here")
+    p.add_argument("--plot", type=Path, help="write the trajectories over the map here (PNG)")
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("render", help="write one episode as an animated GIF or a PNG strip")
+    _add_policy_arguments(p)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
+    p.add_argument("--steps", type=_positive, default=50_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the measurement here")
+    p.set_defaults(func=cmd_bench_env)
+
+    for name in OTHER_PACKAGES:
+        try:
+            module = importlib.import_module(f"{name}.cli")
+        except ModuleNotFoundError as exc:
+            if exc.name != f"{name}.cli":
+                raise
+            continue
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args))
+    except (TrainError, OSError, ValueError, json.JSONDecodeError) as exc:
+        if args.debug:
+            traceback.print_exc()
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

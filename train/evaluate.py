@@ -1,0 +1,183 @@
+"""Seeded evaluation episodes and the report format every later evaluation shares.
+
+Episode ``i`` of an evaluation with seed ``S`` is reset with seed ``S + i``, so any two
+policies evaluated with the same seed meet the same start poses episode by episode
+(the exported C policy and the HIL run are compared with the Python policy this way).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from tqdm import tqdm
+
+from train import ENV_ID
+from train.warehouse_env import SAMPLE_TIME
+
+Policy = Callable[[np.ndarray], np.ndarray]
+"""Observation (float32[6]) in, action (float32[2]) out."""
+
+REPORT_KEYS = ("episodes", "successes", "collisions", "timeouts", "success_rate", "mean_return", "mean_time_s")
+"""Keys every evaluation report carries (later reports add their own after these)."""
+
+Pose = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """One evaluation episode."""
+
+    seed: int
+    """Seed passed to ``reset``."""
+    outcome: str
+    """``"success"``, ``"collision"`` or ``"timeout"``."""
+    steps: int
+    episode_return: float
+    time_s: float
+    """Simulated time: steps x sample time."""
+    collided_with: str | None
+    trajectory: list[Pose] = field(repr=False, default_factory=list)
+    """(x, y, theta) after reset and after every step."""
+
+
+@dataclass(frozen=True)
+class EvalReport:
+    """Summary of an evaluation; ``to_json`` gives the shared report format."""
+
+    episodes: int
+    successes: int
+    collisions: int
+    timeouts: int
+    success_rate: float
+    mean_return: float
+    mean_time_s: float | None
+    """Mean simulated time of the successful episodes (None if there were none)."""
+    std_return: float
+    mean_steps: float
+    seed: int
+    policy: str
+    results: list[EpisodeResult]
+
+    @classmethod
+    def from_results(cls, results: list[EpisodeResult], seed: int, policy: str) -> EvalReport:
+        if not results:
+            raise ValueError("an evaluation needs at least one episode")
+        returns = np.array([r.episode_return for r in results])
+        wins = [r for r in results if r.outcome == "success"]
+        return cls(
+            episodes=len(results),
+            successes=len(wins),
+            collisions=sum(r.outcome == "collision" for r in results),
+            timeouts=sum(r.outcome == "timeout" for r in results),
+            success_rate=len(wins) / len(results),
+            mean_return=float(returns.mean()),
+            mean_time_s=float(np.mean([r.time_s for r in wins])) if wins else None,
+            std_return=float(returns.std()),
+            mean_steps=float(np.mean([r.steps for r in results])),
+            seed=seed,
+            policy=policy,
+            results=results,
+        )
+
+    def to_json(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """The report as JSON-ready data: summary keys, provenance, then one row per episode."""
+        out: dict[str, Any] = {k: getattr(self, k) for k in REPORT_KEYS}
+        out.update(std_return=self.std_return, mean_steps=self.mean_steps, seed=self.seed,
+                   policy=self.policy, env_id=ENV_ID, sample_time_s=SAMPLE_TIME,
+                   provenance=provenance())
+        out.update(extra or {})
+        out["per_episode"] = [
+            {k: v for k, v in asdict(r).items() if k != "trajectory"} for r in self.results
+        ]
+        return out
+
+    def table(self) -> str:
+        """A human-readable summary table."""
+        mean_time = "-" if self.mean_time_s is None else f"{self.mean_time_s:.2f}"
+        rows = [
+            ("policy", self.policy),
+            ("episodes (seeds)", f"{self.episodes} ({self.seed}..{self.seed + self.episodes - 1})"),
+            ("successes / collisions / timeouts", f"{self.successes} / {self.collisions} / {self.timeouts}"),
+            ("success rate", f"{100 * self.success_rate:.1f}%"),
+            ("mean return (std)", f"{self.mean_return:.4f} ({self.std_return:.4f})"),
+            ("mean time of successes [s]", mean_time),
+            ("mean steps", f"{self.mean_steps:.1f}"),
+        ]
+        width = max(len(k) for k, _ in rows)
+        return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+def run_episode(env: gym.Env[np.ndarray, np.ndarray], policy: Policy, seed: int) -> EpisodeResult:
+    """Run one episode from ``reset(seed=seed)`` until it terminates or is truncated."""
+    obs, info = env.reset(seed=seed)
+    total, steps = 0.0, 0
+    while True:
+        obs, reward, terminated, truncated, info = env.step(policy(obs))
+        total += float(reward)
+        steps += 1
+        if terminated or truncated:
+            break
+    if info["is_success"]:
+        outcome = "success"
+    elif info["collided"]:
+        outcome = "collision"
+    else:
+        outcome = "timeout"
+    trajectory = list(getattr(env.unwrapped, "trajectory", []))
+    return EpisodeResult(seed, outcome, steps, total, steps * SAMPLE_TIME, info["collided_with"], trajectory)
+
+
+def evaluate(policy: Policy, episodes: int, seed: int, name: str, progress: bool = False) -> EvalReport:
+    """Evaluate ``policy`` on ``episodes`` episodes seeded ``seed, seed + 1, ...``."""
+    if episodes < 1:
+        raise ValueError(f"episodes must be at least 1, got {episodes}")
+    env = gym.make(ENV_ID)
+    try:
+        results = [
+            run_episode(env, policy, seed + i)
+            for i in tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
+        ]
+    finally:
+        env.close()
+    return EvalReport.from_results(results, seed, name)
+
+
+def provenance() -> dict[str, Any]:
+    """What produced a result: the command line and the versions of the packages that matter."""
+    versions = {}
+    for pkg in ("embedrl", "gymnasium", "pymunk", "numpy", "stable-baselines3", "torch"):
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return {"command": sys.argv, "python": sys.version.split()[0], "versions": versions}
+
+
+def write_json(data: dict[str, Any], path: Path) -> None:
+    """Write JSON atomically: the file is complete or absent, never half-written."""
+    text = json.dumps(_finite(data), indent=2) + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _finite(value: Any) -> Any:
+    """Replace non-finite floats by None: JSON has no NaN."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value

@@ -1,0 +1,43 @@
+"""Pictures for people: evaluation trajectories over the warehouse map."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+
+from train import layout  # noqa: E402
+from train.evaluate import EvalReport  # noqa: E402
+
+OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
+
+
+def plot_trajectories(report: EvalReport, path: Path) -> None:
+    """Draw every episode's path over the map, coloured by outcome; write a PNG atomically."""
+    fig, ax = plt.subplots(figsize=(9, 4.8))
+    for rect in layout.OBSTACLES:
+        colour = "saddlebrown" if rect in layout.SHELVES else "dimgray"
+        ax.add_patch(Rectangle((rect.x0, rect.y0), rect.x1 - rect.x0, rect.y1 - rect.y0, color=colour))
+    ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3)
+    for r in report.results:
+        xs = [p[0] for p in r.trajectory]
+        ys = [p[1] for p in r.trajectory]
+        colour = OUTCOME_COLOURS[r.outcome]
+        ax.plot(xs, ys, "-", color=colour, lw=1, alpha=0.7)
+        ax.plot(xs[:1], ys[:1], "o", color=colour, ms=3)
+    for outcome, colour in OUTCOME_COLOURS.items():
+        ax.plot([], [], color=colour, label=outcome)
+    v = layout.VIEW
+    ax.set(xlim=(v.x0, v.x1), ylim=(v.y0, v.y1), aspect="equal", xlabel="x [m]", ylabel="y [m]")
+    ax.set_title(f"{report.policy}: {report.successes}/{report.episodes} successes, "
+                 f"mean return {report.mean_return:.3f} (seeds {report.seed}..{report.seed + report.episodes - 1})")
+    ax.legend(loc="upper right", fontsize="small")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
+    plt.close(fig)
+    tmp.replace(path)

@@ -1,0 +1,84 @@
+"""Top-down frames of the warehouse (``render_mode="rgb_array"``) and episode animations."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from train import layout
+from train.warehouse_env import ROBOT_LENGTH, ROBOT_WIDTH
+
+PIXELS_PER_METRE = 160
+"""Frame resolution: the 3.8 m x 1.9 m view becomes 608 x 304 pixels."""
+STRIP_FRAMES = 6
+"""Frames in a PNG strip: evenly spaced from the start to the end of the episode."""
+
+_BACKGROUND = (245, 245, 240)
+_SHELF = (150, 110, 70)
+_WALL = (90, 90, 90)
+_GOAL = (40, 160, 70)
+_ROBOT = (40, 90, 200)
+_TRACE = (120, 150, 220)
+
+Pose = tuple[float, float, float]
+
+
+def _to_pixel(x: float, y: float) -> tuple[float, float]:
+    v = layout.VIEW
+    return (x - v.x0) * PIXELS_PER_METRE, (v.y1 - y) * PIXELS_PER_METRE
+
+
+def draw_frame(trajectory: Sequence[Pose]) -> np.ndarray:
+    """An RGB frame (uint8, H x W x 3) of the map, the path so far and the robot at its last pose."""
+    v = layout.VIEW
+    size = (round((v.x1 - v.x0) * PIXELS_PER_METRE), round((v.y1 - v.y0) * PIXELS_PER_METRE))
+    image = Image.new("RGB", size, _BACKGROUND)
+    draw = ImageDraw.Draw(image)
+    for rect in layout.OBSTACLES:
+        colour = _SHELF if rect in layout.SHELVES else _WALL
+        draw.polygon([_to_pixel(*c) for c in rect.corners], fill=colour)
+    gy = _to_pixel(0.0, layout.GOAL_Y)[1]
+    draw.line([_to_pixel(-layout.GAP_WIDTH / 2, layout.GOAL_Y)[0], gy,
+               _to_pixel(layout.GAP_WIDTH / 2, layout.GOAL_Y)[0], gy], fill=_GOAL, width=3)
+    if len(trajectory) > 1:
+        draw.line([_to_pixel(x, y) for x, y, _ in trajectory], fill=_TRACE, width=2)
+    if trajectory:
+        x, y, theta = trajectory[-1]
+        c, s = math.cos(theta), math.sin(theta)
+        hl, hw = ROBOT_LENGTH / 2, ROBOT_WIDTH / 2
+        body = [(x + c * px - s * py, y + s * px + c * py)
+                for px, py in ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))]
+        draw.polygon([_to_pixel(*p) for p in body], fill=_ROBOT)
+        draw.line([_to_pixel(x, y), _to_pixel(x + c * hl, y + s * hl)], fill=(255, 255, 255), width=3)
+    return np.asarray(image)
+
+
+def save_episode(frames: Sequence[np.ndarray], path: Path, frame_seconds: float) -> None:
+    """Write frames as an animated GIF (``.gif``) or a PNG strip of ``STRIP_FRAMES`` frames (``.png``).
+
+    The file appears complete or not at all (written beside it, then renamed).
+    """
+    if not frames:
+        raise ValueError("no frames to save")
+    suffix = path.suffix.lower()
+    if suffix not in (".gif", ".png"):
+        raise ValueError(f"cannot write {path}: use a .gif (animation) or .png (strip) file name")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    images = [Image.fromarray(f) for f in frames]
+    if suffix == ".gif":
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                       duration=round(frame_seconds * 1000), loop=0)
+    else:
+        count = min(STRIP_FRAMES, len(images))
+        picks = [images[round(i * (len(images) - 1) / max(count - 1, 1))] for i in range(count)]
+        w, h = picks[0].size
+        strip = Image.new("RGB", (w * count, h), _BACKGROUND)
+        for i, im in enumerate(picks):
+            strip.paste(im, (i * w, 0))
+        strip.save(tmp, format="PNG")
+    tmp.replace(path)
