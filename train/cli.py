@@ -70,6 +70,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def cmd_render(args: argparse.Namespace) -> int:
     import gymnasium as gym
+    import numpy as np
 
     from train import ENV_ID
     from train.rendering import save_episode
@@ -80,10 +81,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     policy = _policy(args)
     env = gym.make(ENV_ID, render_mode="rgb_array")
     obs, info = env.reset(seed=args.seed)
-    frames = [env.render()]
+    frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]
     while True:
         obs, _, terminated, truncated, info = env.step(policy(obs))
-        frames.append(env.render())
+        frames.append(env.unwrapped.render())  # type: ignore[arg-type]
         if terminated or truncated:
             break
     env.close()

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -22,12 +21,21 @@ import numpy as np
 from tqdm import tqdm
 
 from train import ENV_ID
+from train.files import atomic_write
 from train.warehouse_env import SAMPLE_TIME
 
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (float32[6]) in, action (float32[2]) out."""
 
-REPORT_KEYS = ("episodes", "successes", "collisions", "timeouts", "success_rate", "mean_return", "mean_time_s")
+REPORT_KEYS = (
+    "episodes",
+    "successes",
+    "collisions",
+    "timeouts",
+    "success_rate",
+    "mean_return",
+    "mean_time_s",
+)
 """Keys every evaluation report carries (later reports add their own after these)."""
 
 Pose = tuple[float, float, float]
@@ -92,13 +100,17 @@ class EvalReport:
     def to_json(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """The report as JSON-ready data: summary keys, provenance, then one row per episode."""
         out: dict[str, Any] = {k: getattr(self, k) for k in REPORT_KEYS}
-        out.update(std_return=self.std_return, mean_steps=self.mean_steps, seed=self.seed,
-                   policy=self.policy, env_id=ENV_ID, sample_time_s=SAMPLE_TIME,
-                   provenance=provenance())
+        out.update(
+            std_return=self.std_return,
+            mean_steps=self.mean_steps,
+            seed=self.seed,
+            policy=self.policy,
+            env_id=ENV_ID,
+            sample_time_s=SAMPLE_TIME,
+            provenance=provenance(),
+        )
         out.update(extra or {})
-        out["per_episode"] = [
-            {k: v for k, v in asdict(r).items() if k != "trajectory"} for r in self.results
-        ]
+        out["per_episode"] = [{k: v for k, v in asdict(r).items() if k != "trajectory"} for r in self.results]
         return out
 
     def table(self) -> str:
@@ -154,7 +166,7 @@ def evaluate(policy: Policy, episodes: int, seed: int, name: str, progress: bool
 
 def provenance() -> dict[str, Any]:
     """What produced a result: the command line and the versions of the packages that matter."""
-    versions = {}
+    versions: dict[str, str | None] = {}
     for pkg in ("embedrl", "gymnasium", "pymunk", "numpy", "stable-baselines3", "torch"):
         try:
             versions[pkg] = metadata.version(pkg)
@@ -165,11 +177,8 @@ def provenance() -> dict[str, Any]:
 
 def write_json(data: dict[str, Any], path: Path) -> None:
     """Write JSON atomically: the file is complete or absent, never half-written."""
-    text = json.dumps(_finite(data), indent=2) + "\n"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    text = json.dumps(_finite(data), indent=2, allow_nan=False) + "\n"
+    atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
 def _finite(value: Any) -> Any:

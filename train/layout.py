@@ -84,8 +84,12 @@ class Rect:
         if d > 0.0:
             return d, dx / d, dy / d
         # Inside: leave through the nearest side.
-        exits = ((x - self.x0, -1.0, 0.0), (self.x1 - x, 1.0, 0.0),
-                 (y - self.y0, 0.0, -1.0), (self.y1 - y, 0.0, 1.0))
+        exits = (
+            (x - self.x0, -1.0, 0.0),
+            (self.x1 - x, 1.0, 0.0),
+            (y - self.y0, 0.0, -1.0),
+            (self.y1 - y, 0.0, 1.0),
+        )
         _, ux, uy = min(exits)
         return 0.0, ux, uy
 
@@ -99,8 +103,9 @@ _H = ARENA_HALF_WIDTH
 SHELVES: tuple[Rect, ...] = (
     Rect("left shelf", -_LOWER_OUTER, GOAL_Y, -_HALF_GAP, 0.0),
     Rect("right shelf", _HALF_GAP, GOAL_Y, _LOWER_OUTER, 0.0),
-    Rect("upper shelf", -UPPER_SHELF_WIDTH / 2, _UPPER_Y0,
-         UPPER_SHELF_WIDTH / 2, _UPPER_Y0 + UPPER_SHELF_DEPTH),
+    Rect(
+        "upper shelf", -UPPER_SHELF_WIDTH / 2, _UPPER_Y0, UPPER_SHELF_WIDTH / 2, _UPPER_Y0 + UPPER_SHELF_DEPTH
+    ),
 )
 """The three shelves: two lower ones with the gap between them, one upper one."""
 

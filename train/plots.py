@@ -7,11 +7,12 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
+import matplotlib.pyplot as plt
+from matplotlib.patches import Rectangle
 
-from train import layout  # noqa: E402
-from train.evaluate import EvalReport  # noqa: E402
+from train import layout
+from train.evaluate import EvalReport
+from train.files import atomic_write
 
 OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
 
@@ -33,11 +34,13 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
         ax.plot([], [], color=colour, label=outcome)
     v = layout.VIEW
     ax.set(xlim=(v.x0, v.x1), ylim=(v.y0, v.y1), aspect="equal", xlabel="x [m]", ylabel="y [m]")
-    ax.set_title(f"{report.policy}: {report.successes}/{report.episodes} successes, "
-                 f"mean return {report.mean_return:.3f} (seeds {report.seed}..{report.seed + report.episodes - 1})")
+    last_seed = report.seed + report.episodes - 1
+    ax.set_title(
+        f"{report.policy}: {report.successes}/{report.episodes} successes, "
+        f"mean return {report.mean_return:.3f} (seeds {report.seed}..{last_seed})"
+    )
     ax.legend(loc="upper right", fontsize="small")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
-    fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png")
-    plt.close(fig)
-    tmp.replace(path)
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
+    finally:
+        plt.close(fig)

@@ -10,6 +10,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from train import layout
+from train.files import atomic_write
 from train.warehouse_env import ROBOT_LENGTH, ROBOT_WIDTH
 
 PIXELS_PER_METRE = 160
@@ -42,16 +43,26 @@ def draw_frame(trajectory: Sequence[Pose]) -> np.ndarray:
         colour = _SHELF if rect in layout.SHELVES else _WALL
         draw.polygon([_to_pixel(*c) for c in rect.corners], fill=colour)
     gy = _to_pixel(0.0, layout.GOAL_Y)[1]
-    draw.line([_to_pixel(-layout.GAP_WIDTH / 2, layout.GOAL_Y)[0], gy,
-               _to_pixel(layout.GAP_WIDTH / 2, layout.GOAL_Y)[0], gy], fill=_GOAL, width=3)
+    draw.line(
+        [
+            _to_pixel(-layout.GAP_WIDTH / 2, layout.GOAL_Y)[0],
+            gy,
+            _to_pixel(layout.GAP_WIDTH / 2, layout.GOAL_Y)[0],
+            gy,
+        ],
+        fill=_GOAL,
+        width=3,
+    )
     if len(trajectory) > 1:
         draw.line([_to_pixel(x, y) for x, y, _ in trajectory], fill=_TRACE, width=2)
     if trajectory:
         x, y, theta = trajectory[-1]
         c, s = math.cos(theta), math.sin(theta)
         hl, hw = ROBOT_LENGTH / 2, ROBOT_WIDTH / 2
-        body = [(x + c * px - s * py, y + s * px + c * py)
-                for px, py in ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))]
+        body = [
+            (x + c * px - s * py, y + s * px + c * py)
+            for px, py in ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))
+        ]
         draw.polygon([_to_pixel(*p) for p in body], fill=_ROBOT)
         draw.line([_to_pixel(x, y), _to_pixel(x + c * hl, y + s * hl)], fill=(255, 255, 255), width=3)
     return np.asarray(image)
@@ -67,18 +78,25 @@ def save_episode(frames: Sequence[np.ndarray], path: Path, frame_seconds: float)
     suffix = path.suffix.lower()
     if suffix not in (".gif", ".png"):
         raise ValueError(f"cannot write {path}: use a .gif (animation) or .png (strip) file name")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial")
     images = [Image.fromarray(f) for f in frames]
     if suffix == ".gif":
-        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
-                       duration=round(frame_seconds * 1000), loop=0)
-    else:
-        count = min(STRIP_FRAMES, len(images))
-        picks = [images[round(i * (len(images) - 1) / max(count - 1, 1))] for i in range(count)]
-        w, h = picks[0].size
-        strip = Image.new("RGB", (w * count, h), _BACKGROUND)
-        for i, im in enumerate(picks):
-            strip.paste(im, (i * w, 0))
-        strip.save(tmp, format="PNG")
-    tmp.replace(path)
+        first, rest = images[0], images[1:]
+        atomic_write(
+            path,
+            lambda tmp: first.save(
+                tmp,
+                format="GIF",
+                save_all=True,
+                append_images=rest,
+                duration=round(frame_seconds * 1000),
+                loop=0,
+            ),
+        )
+        return
+    count = min(STRIP_FRAMES, len(images))
+    picks = [images[round(i * (len(images) - 1) / max(count - 1, 1))] for i in range(count)]
+    w, h = picks[0].size
+    strip = Image.new("RGB", (w * count, h), _BACKGROUND)
+    for i, im in enumerate(picks):
+        strip.paste(im, (i * w, 0))
+    atomic_write(path, lambda tmp: strip.save(tmp, format="PNG"))

@@ -130,7 +130,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     - v0: initial version (static scenario).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012 (gymnasium API)
 
     def __init__(self, render_mode: str | None = None) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -139,10 +139,13 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             )
         self.render_mode = render_mode
         self.action_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
-        high = np.array([layout.ARENA_HALF_WIDTH, layout.ARENA_TOP, 1.0, 1.0, MAX_SPEED, MAX_TURN_RATE],
-                        dtype=np.float32)
-        low = np.array([-layout.ARENA_HALF_WIDTH, layout.GOAL_Y, -1.0, -1.0, -MAX_SPEED, -MAX_TURN_RATE],
-                       dtype=np.float32)
+        high = np.array(
+            [layout.ARENA_HALF_WIDTH, layout.ARENA_TOP, 1.0, 1.0, MAX_SPEED, MAX_TURN_RATE], dtype=np.float32
+        )
+        low = np.array(
+            [-layout.ARENA_HALF_WIDTH, layout.GOAL_Y, -1.0, -1.0, -MAX_SPEED, -MAX_TURN_RATE],
+            dtype=np.float32,
+        )
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self._low, self._high = low, high
         self._space: pymunk.Space | None = None
@@ -269,7 +272,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         info = {"is_success": made_it, "collided": collided, "collided_with": self._hit}
         return obs, r, terminated, truncated, info
 
-    def render(self) -> np.ndarray | None:  # type: ignore[override]
+    def render(self) -> np.ndarray | None:
         if self.render_mode is None:
             gym.logger.warn("render() called without render_mode; use render_mode='rgb_array'")
             return None
