@@ -1,0 +1,18 @@
+"""Shared fixtures: a fresh registered environment per test."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import train
+
+
+@pytest.fixture
+def env() -> Iterator[gym.Env[np.ndarray, np.ndarray]]:
+    e = gym.make(train.ENV_ID)
+    yield e
+    e.close()
