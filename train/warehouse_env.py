@@ -68,8 +68,9 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Description
     A top-down warehouse (pymunk physics, no gravity, metres and seconds). Two lower shelves
-    stand on the bottom wall with a 0.6 m gap between them; a third shelf stands 0.6 m above
-    them. The robot (0.25 m x 0.2 m, 10 kg) starts to the left or the right of the shelves
+    (0.8 m x 0.15 m) stand on the bottom wall with a 0.6 m gap between them; a third shelf
+    (2.2 m x 0.3 m) stands 0.6 m above them; walls close the 3.6 m x 1.45 m arena except
+    under the gap. The robot (0.25 m x 0.2 m, 10 kg) starts to the left or the right of the shelves
     and must pass down through the gap without touching a shelf or a wall. The map is in
     :mod:`train.layout`. This reproduces the warehouse-robot task of the reference study.
 
@@ -82,10 +83,10 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     | 1   | right wheel force ``F_R`` | -1  | 1   |
 
     Each wheel pushes ``WHEEL_FORCE_SCALE * F / 2`` newtons along the heading at its own
-    position, so the body feels a translational force ``24 N * (F_R + F_L) / 2`` and a
-    torque ``24 N * 0.1 m * (F_R - F_L) / 2``. Linear (40 N s/m) and angular (1 N m s)
-    friction give a top speed of 0.6 m/s and a top turn rate of 2.4 rad/s. The wheels
-    do not slip sideways. Actions outside [-1, 1] are clipped.
+    position, so the body feels a translational force ``28 N * (F_R + F_L) / 2`` and a
+    torque ``28 N * 0.1 m * (F_R - F_L) / 2``. Linear (40 N s/m) and angular (1.4 N m s)
+    friction, acting at the wheels, give a top speed of 0.7 m/s and a top turn rate of
+    2 rad/s. The wheels do not slip sideways. Actions outside [-1, 1] are clipped.
 
     ## Observation Space
     ``Box(float32, (6,))``, shelf-aligned coordinates, origin in the middle of the gap at the
@@ -93,24 +94,25 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     | Num | Observation                        | Min   | Max  | Unit  |
     |-----|------------------------------------|-------|------|-------|
-    | 0   | x, position along the shelves      | -2.0  | 2.0  | m     |
+    | 0   | x, position along the shelves      | -1.8  | 1.8  | m     |
     | 1   | y, position across the shelves     | -0.15 | 1.3  | m     |
     | 2   | sin(theta), heading (0 = along +x) | -1    | 1    |       |
     | 3   | cos(theta)                         | -1    | 1    |       |
-    | 4   | v, forward speed                   | -0.6  | 0.6  | m/s   |
-    | 5   | w, turn rate (counter-clockwise)   | -2.4  | 2.4  | rad/s |
+    | 4   | v, forward speed                   | -0.7  | 0.7  | m/s   |
+    | 5   | w, turn rate (counter-clockwise)   | -2.0  | 2.0  | rad/s |
 
     ## Rewards
     The reference study's reward, on the state after the step:
     ``0.06*exp(-3y) + 0.05*exp(-8x^2) - 0.14 - 0.001*w^2 - 0.01*(F_L^2 + F_R^2)
     + 5*made_it - 2*collided``.
-    Every step costs between 0.004 and 0.166 before the terminal terms: the -0.14 outweighs
-    the shaping everywhere the robot can be (y >= -0.15), so short successful episodes earn
-    most. A successful episode of ~15 steps returns ~3; a collision costs 2 plus the steps
-    driven; a timeout costs ~25. Range per step: about [-2.17, 5.01].
+    Before the terminal terms a step earns between -0.164 and +0.004: the -0.14 outweighs
+    the shaping almost everywhere the robot can be (y >= -0.15), so short successful episodes
+    earn most. A good successful episode (~18 steps) returns ~+3; a collision returns less
+    than -2; a timeout about -25. Waiting in the gap earns at most +0.004 per step, far less
+    than the +5 for passing through. Range per step: [-2.164, 5.004].
 
     ## Starting State
-    Uniformly random: |x| in [1.55, 1.8] m on a random side, y in [0.1, 1.1] m, heading in
+    Uniformly random: |x| in [1.35, 1.6] m on a random side, y in [0.1, 1.0] m, heading in
     [-pi, pi), at rest. Only ``reset(seed=...)`` seeds it.
     ``reset(options={"start_pose": (x, y, theta)})`` starts from a given pose instead; a pose
     outside the arena or overlapping a shelf or wall raises ``ValueError``.
