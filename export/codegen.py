@@ -1,0 +1,249 @@
+"""IR -> C99: a pure function, graph in, ``{filename: text}`` out. Only the CLI writes files.
+
+The generated code has no malloc and no stdio; it needs ``<math.h>`` (link with ``-lm``).
+Weights are ``static const`` arrays whose literals round-trip exactly. Intermediate values live
+in file-scope ``static float`` buffers, reused across layers by a liveness plan: the RAM is the
+sum of those buffers, printed in the header. ``<name>_step`` is therefore not reentrant: one
+call at a time per policy (two policies with different names have separate buffers).
+Output is deterministic: no timestamps; provenance is hashes and the tool version.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from export.errors import ExportError
+from export.ir import Graph
+from export.ops import EMITTERS
+
+NAME_PATTERN = re.compile(r"[a-z_][a-z0-9_]{0,30}")
+"""Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol."""
+VALUES_PER_LINE = 6
+
+
+def c_float(value: float) -> str:
+    """A C float literal that round-trips the float32 value exactly (9 significant digits)."""
+    v = np.float32(value)
+    if not np.isfinite(v):
+        raise ExportError(f"cannot write non-finite constant {value!r} as C")
+    text = f"{float(v):.9g}"
+    if not any(c in text for c in ".en"):
+        text += ".0"
+    return text + "f"
+
+
+def _sanitize(name: str) -> str:
+    s = re.sub(r"[^A-Za-z0-9_]", "_", name).strip("_")
+    return s[:40] or "v"
+
+
+@dataclass
+class _Plan:
+    """Where every runtime value lives: the input parameter or a scratch buffer index."""
+
+    storage: dict[str, str] = field(default_factory=dict)
+    buffer_sizes: list[int] = field(default_factory=list)
+
+
+def plan_buffers(graph: Graph, input_ref: str) -> _Plan:
+    """Assign scratch buffers by liveness; element-wise ops run in place when their input dies."""
+    last_use: dict[str, int] = {}
+    for index, node in enumerate(graph.nodes):
+        for i in node.inputs:
+            if i and not graph.is_constant(i):
+                last_use[i] = index
+    last_use[graph.output] = len(graph.nodes)
+    plan = _Plan()
+    plan.storage[graph.input] = input_ref
+    storage_end: dict[str, int] = {input_ref: len(graph.nodes) + 1}  # the input is never overwritten
+    free: list[str] = []
+
+    def end(value: str) -> int:
+        return last_use.get(value, -1)
+
+    for index, node in enumerate(graph.nodes):
+        emitter = EMITTERS[node.op]
+        out = node.outputs[0]
+        src = plan.storage.get(node.inputs[0], "")
+        if emitter.alias:
+            plan.storage[out] = src
+            storage_end[src] = max(storage_end[src], end(out))
+        elif emitter.in_place and src != input_ref and storage_end.get(src, -1) == index:
+            plan.storage[out] = src
+            storage_end[src] = end(out)
+        else:
+            if free:
+                buf = free.pop(0)
+            else:
+                buf = str(len(plan.buffer_sizes))
+                plan.buffer_sizes.append(0)
+            plan.storage[out] = buf
+            storage_end[buf] = end(out)
+        buf = plan.storage[out]
+        if buf != input_ref:
+            plan.buffer_sizes[int(buf)] = max(plan.buffer_sizes[int(buf)], graph.size(out))
+        for s, e in list(storage_end.items()):
+            if e == index and s != input_ref and s not in free:
+                free.append(s)
+                free.sort(key=int)
+    return plan
+
+
+class _Context:
+    """The :class:`export.ops.EmitContext` the emitters write through."""
+
+    def __init__(self, graph: Graph, prefix: str, plan: _Plan) -> None:
+        self.graph, self.prefix, self.plan = graph, prefix, plan
+        self.declarations: list[str] = []
+        self._symbols: dict[str, str] = {}
+        self.const_bytes = 0
+
+    def ref(self, value: str) -> str:
+        if self.graph.is_constant(value):
+            array = self.graph.constants[value]
+            return self.const(value, array.reshape(-1), "constant")
+        where = self.plan.storage[value]
+        return where if not where.isdigit() else f"{self.prefix}_buf{where}"
+
+    def const(self, key: str, array: np.ndarray, comment: str) -> str:
+        if key in self._symbols:
+            return self._symbols[key]
+        symbol = f"{self.prefix}_w{len(self._symbols)}_{_sanitize(key.split('#')[0])}"
+        self._symbols[key] = symbol
+        a = np.asarray(array, dtype=np.float32)
+        self.const_bytes += a.size * 4
+        dims = "".join(f"[{d}]" for d in a.shape)
+        lines = [f"/* {comment} */", f"static const float {symbol}{dims} = {{"]
+        rows = a.reshape(1, -1) if a.ndim == 1 else a
+        for r, row in enumerate(rows):
+            items = [c_float(v) for v in row]
+            chunks = [", ".join(items[i : i + VALUES_PER_LINE]) for i in range(0, len(items), VALUES_PER_LINE)]
+            sep = "," if r < len(rows) - 1 else ""
+            if a.ndim == 1:
+                lines += [f"    {chunk}," if i < len(chunks) - 1 else f"    {chunk}" for i, chunk in enumerate(chunks)]
+            else:
+                lines.append("    {")
+                lines += [f"        {chunk}," if i < len(chunks) - 1 else f"        {chunk}" for i, chunk in enumerate(chunks)]
+                lines.append(f"    }}{sep}")
+        lines.append("};")
+        self.declarations.append("\n".join(lines))
+        return symbol
+
+    def literal(self, value: float) -> str:
+        return c_float(value)
+
+    def constant(self, value: str) -> np.ndarray | None:
+        return self.graph.constants.get(value)
+
+    def size(self, value: str) -> int:
+        return self.graph.size(value)
+
+
+def generate(
+    graph: Graph,
+    name: str = "policy",
+    safe_action: Sequence[float] | None = None,
+    provenance: Mapping[str, str] | None = None,
+) -> dict[str, str]:
+    """Generate ``{name}.h`` and ``{name}.c`` for ``graph``.
+
+    ``safe_action`` is written instead of the action when the observation or the result is not
+    finite (default zeros). ``provenance`` lines (e.g. hashes) go into both file headers.
+    """
+    if not NAME_PATTERN.fullmatch(name):
+        raise ExportError(f"name {name!r} is not a valid prefix: use a lower-case C identifier (a-z, 0-9, _)")
+    obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
+    safe = [0.0] * act_dim if safe_action is None else [float(v) for v in safe_action]
+    if len(safe) != act_dim:
+        raise ExportError(f"safe action has {len(safe)} values but the policy outputs {act_dim}")
+    up = name.upper()
+    plan = plan_buffers(graph, "obs")
+    ctx = _Context(graph, name, plan)
+    body: list[str] = []
+    for node in graph.nodes:
+        emitter = EMITTERS[node.op]
+        shape_in = "x".join(str(d) for d in graph.shapes[node.inputs[0]])
+        shape_out = "x".join(str(d) for d in graph.shapes[node.outputs[0]])
+        attrs = ", ".join(f"{k}={v}" for k, v in sorted(node.attrs.items()))
+        note = " (no code: same data)" if emitter.alias else ""
+        body.append(f"/* {node.op} '{node.name}' [{shape_in}] -> [{shape_out}]{' ' + attrs if attrs else ''}{note} */")
+        body += emitter.emit(node, ctx, graph.size(node.outputs[0]))
+    out_ref = ctx.ref(graph.output)
+    ram = sum(plan.buffer_sizes) * 4
+    header_lines = [f" * {k}: {v}" for k, v in (provenance or {}).items()]
+    banner = "\n".join(
+        [
+            "/*",
+            f" * {name}: policy generated by embedrl. Do not edit: regenerate with `embedrl export`.",
+            *header_lines,
+            f" * observation [{obs_dim}] -> action [{act_dim}], {len(graph.nodes)} ops",
+            f" * RAM: {len(plan.buffer_sizes)} static buffer(s), {ram} bytes; weights: {ctx.const_bytes} bytes of const data",
+            f" * Not reentrant: {name}_step uses file-scope buffers (one call at a time).",
+            " */",
+        ]
+    )
+    header = f"""{banner}
+#ifndef {up}_H
+#define {up}_H
+
+#define {up}_OBS_DIM {obs_dim}
+#define {up}_ACT_DIM {act_dim}
+
+/* Return codes of {name}_step. */
+#define {up}_OK 0
+#define {up}_ERR_OBS_NOT_FINITE 1 /* an observation was NaN or infinite: safe action written */
+#define {up}_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
+
+/* Run the policy on one observation. Writes {up}_ACT_DIM actions and returns {up}_OK, or writes the
+ * safe action ({", ".join(c_float(v) for v in safe)}) and returns an error code: no NaN ever leaves it. */
+int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
+
+#endif /* {up}_H */
+"""
+    buffers = [f"static float {name}_buf{i}[{size}];" for i, size in enumerate(plan.buffer_sizes)]
+    safe_decl = f"static const float {name}_safe_action[{up}_ACT_DIM] = {{{', '.join(c_float(v) for v in safe)}}};"
+    indented = "\n".join(("    " + line) if line else "" for line in body)
+    source = f"""{banner}
+#include "{name}.h"
+
+#include <math.h>
+
+{chr(10).join(ctx.declarations)}
+
+{safe_decl}
+
+/* Scratch buffers ({ram} bytes). */
+{chr(10).join(buffers) if buffers else "/* none */"}
+
+static int {name}_safe(float act[{up}_ACT_DIM], int code)
+{{
+    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+        act[i] = {name}_safe_action[i];
+    }}
+    return code;
+}}
+
+int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
+{{
+    for (int i = 0; i < {up}_OBS_DIM; ++i) {{
+        if (!isfinite(obs[i])) {{
+            return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
+        }}
+    }}
+{indented}
+    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+        if (!isfinite({out_ref}[i])) {{
+            return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
+        }}
+    }}
+    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+        act[i] = {out_ref}[i];
+    }}
+    return {up}_OK;
+}}
+"""
+    return {f"{name}.h": header, f"{name}.c": source}

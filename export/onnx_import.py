@@ -1,0 +1,159 @@
+"""ONNX -> IR: validate everything at the boundary so the code generator can run blindly.
+
+Accepted: one float32 input and one float32 output, static shapes except a dynamic batch
+(first) dimension, which is fixed to 1; ops from :data:`export.ops.EMITTERS` in the default
+domain; float32 weights (int64 only for Reshape shapes), all finite.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+from google.protobuf.message import DecodeError
+from onnx import numpy_helper
+
+from export.errors import InvalidModelError, UnsupportedOpError
+from export.ir import AttrValue, Graph, Node
+from export.ops import EMITTERS
+
+MIN_OPSET = 13
+"""Oldest default-domain opset accepted (Clip bounds as inputs, Softplus/Gemm semantics fixed)."""
+_COMMUTATIVE = frozenset({"Add", "Mul", "Max", "Min"})
+
+
+def load_onnx(path: Path) -> onnx.ModelProto:
+    """Read and check an ONNX file; any problem is an :class:`InvalidModelError` naming the file."""
+    if not path.is_file():
+        raise InvalidModelError(f"{path}: no such file")
+    try:
+        model = onnx.load(str(path))
+    except (DecodeError, ValueError, RuntimeError, OSError) as exc:
+        raise InvalidModelError(f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {exc})") from None
+    if not model.graph.node and not model.graph.output:
+        raise InvalidModelError(f"{path}: not an ONNX model (empty graph)")
+    try:
+        onnx.checker.check_model(model)
+    except onnx.checker.ValidationError as exc:
+        first = str(exc).strip().splitlines()[0]
+        raise InvalidModelError(f"{path}: invalid ONNX model: {first}") from None
+    return model
+
+
+def _attr(attribute: onnx.AttributeProto) -> AttrValue | np.ndarray:
+    value = onnx.helper.get_attribute_value(attribute)
+    if isinstance(value, bytes):
+        return value.decode()
+    if isinstance(value, onnx.TensorProto):
+        return numpy_helper.to_array(value)
+    if isinstance(value, list):
+        return tuple(value)
+    if isinstance(value, int | float | str):
+        return value
+    raise UnsupportedOpError(f"attribute '{attribute.name}' of type {type(value).__name__} is not supported")
+
+
+def _static_shape(value: onnx.ValueInfoProto, role: str) -> tuple[int, ...]:
+    t = value.type.tensor_type
+    if t.elem_type != onnx.TensorProto.FLOAT:
+        dtype = onnx.TensorProto.DataType.Name(t.elem_type)
+        raise UnsupportedOpError(f"graph {role} '{value.name}' has dtype {dtype}; only FLOAT (float32) is supported")
+    dims = []
+    for axis, d in enumerate(t.shape.dim):
+        if d.HasField("dim_value") and d.dim_value > 0:
+            dims.append(int(d.dim_value))
+        elif axis == 0 and len(t.shape.dim) > 1:
+            dims.append(1)  # dynamic batch: the C function handles one observation
+        else:
+            raise UnsupportedOpError(
+                f"graph {role} '{value.name}' has a dynamic dimension {axis} "
+                f"('{d.dim_param or '?'}'); only the batch (first) dimension may be dynamic"
+            )
+    if not dims:
+        raise UnsupportedOpError(f"graph {role} '{value.name}' has no shape")
+    return tuple(dims)
+
+
+def _constant(name: str, array: np.ndarray, where: str) -> np.ndarray:
+    if array.dtype == np.int64:
+        return array
+    if array.dtype not in (np.float32, np.float64):
+        raise UnsupportedOpError(f"{where} '{name}' has dtype {array.dtype}; only float32 is supported")
+    if array.dtype == np.float64:
+        raise UnsupportedOpError(f"{where} '{name}' is float64; only float32 is supported")
+    if not np.isfinite(array).all():
+        bad = int(np.size(array) - np.count_nonzero(np.isfinite(array)))
+        raise InvalidModelError(f"{where} '{name}' contains {bad} NaN/Inf value(s)")
+    return array
+
+
+def to_ir(model: onnx.ModelProto) -> Graph:
+    """Convert a checked ONNX model into a validated, frozen :class:`Graph`."""
+    opset = {o.domain: o.version for o in model.opset_import}.get("", 0)
+    if opset < MIN_OPSET:
+        raise UnsupportedOpError(f"default-domain opset {opset} is not supported; need >= {MIN_OPSET}")
+    g = model.graph
+    constants: dict[str, np.ndarray] = {}
+    for init in g.initializer:
+        constants[init.name] = _constant(init.name, numpy_helper.to_array(init), "initializer")
+    inputs = [v for v in g.input if v.name not in constants]
+    if len(inputs) != 1 or len(g.output) != 1:
+        raise UnsupportedOpError(
+            f"the graph must have exactly one input and one output, got {len(inputs)} and {len(g.output)}"
+        )
+    shapes: dict[str, tuple[int, ...]] = {inputs[0].name: _static_shape(inputs[0], "input")}
+    shapes.update({k: tuple(int(d) for d in v.shape) for k, v in constants.items()})
+
+    nodes = []
+    for index, proto in enumerate(g.node):
+        name = proto.name or f"{proto.op_type}_{index}"
+        if proto.domain not in ("", "ai.onnx"):
+            raise UnsupportedOpError(f"node '{name}': op {proto.domain}.{proto.op_type} is not supported")
+        emitter = EMITTERS.get(proto.op_type)
+        if emitter is None:
+            raise UnsupportedOpError(
+                f"node '{name}': op {proto.op_type} is not supported; supported ops: {', '.join(sorted(EMITTERS))}"
+            )
+        attrs = {a.name: _attr(a) for a in proto.attribute}
+        ins = tuple(proto.input)
+        if proto.op_type == "Constant":
+            value = attrs.get("value")
+            if set(attrs) != {"value"} or not isinstance(value, np.ndarray):
+                raise UnsupportedOpError(f"node '{name}': Constant supports only the 'value' tensor attribute")
+            constants[proto.output[0]] = _constant(proto.output[0], value, f"Constant node '{name}'")
+            shapes[proto.output[0]] = tuple(int(d) for d in value.shape)
+            continue
+        for i in ins:
+            if i and i not in shapes:
+                raise UnsupportedOpError(f"node '{name}': input '{i}' is not produced before it is used")
+        if (
+            proto.op_type in _COMMUTATIVE
+            and len(ins) == 2
+            and ins[0] in constants
+            and ins[1] not in constants
+        ):
+            ins = (ins[1], ins[0])
+        node = Node(proto.op_type, name, ins, tuple(proto.output), {k: v for k, v in attrs.items()})  # type: ignore[misc]
+        shapes[node.outputs[0]] = emitter.check(node, shapes, constants)
+        nodes.append(node)
+
+    output = g.output[0].name
+    if output not in shapes or output in constants:
+        raise UnsupportedOpError(f"graph output '{output}' is not computed from the input")
+    declared = g.output[0].type.tensor_type
+    if declared.elem_type != onnx.TensorProto.FLOAT:
+        raise UnsupportedOpError(f"graph output '{output}' must be FLOAT (float32)")
+    used_nodes = _live_nodes(nodes, output)
+    return Graph.freeze(inputs[0].name, output, used_nodes, shapes, constants)
+
+
+def _live_nodes(nodes: list[Node], output: str) -> list[Node]:
+    """Drop nodes whose results never reach the output (e.g. a value head in the same file)."""
+    needed = {output}
+    keep = []
+    for node in reversed(nodes):
+        if needed & set(node.outputs):
+            keep.append(node)
+            needed.update(i for i in node.inputs if i)
+    return list(reversed(keep))

@@ -1,0 +1,241 @@
+"""SB3 model (.zip, optional VecNormalize statistics) -> ONNX: the deterministic actor with
+observation normalisation and action post-processing inside the graph.
+
+The ONNX graph is built directly from the policy's layers (no torch tracing): raw observation
+in, final action in the environment's units out, exactly what ``predict(deterministic=True)``
+returns after the same normalisation.
+
+Supported: ``TD3Policy`` (TD3, DDPG), ``SACPolicy`` (SAC, without gSDE) and
+``ActorCriticPolicy`` with a diagonal Gaussian (PPO, A2C, without gSDE), MLP layers
+(Linear, ReLU, Tanh, LeakyReLU, Sigmoid, Softplus, Identity) after a flatten extractor, on
+1-D Box observation and action spaces.
+"""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+from gymnasium import spaces
+from onnx import TensorProto, helper, numpy_helper
+from stable_baselines3.common.distributions import DiagGaussianDistribution
+from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
+from stable_baselines3.common.save_util import load_from_zip_file
+from stable_baselines3.common.torch_layers import FlattenExtractor
+from stable_baselines3.sac.policies import SACPolicy
+from stable_baselines3.td3.policies import TD3Policy
+from torch import nn
+
+from export.errors import InvalidModelError, UnsupportedModelError
+
+OPSET = 17
+IR_VERSION = 8
+"""ONNX IR version written (opset 17's); newer IR versions are rejected by onnxruntime 1.31."""
+INPUT_NAME = "obs"
+OUTPUT_NAME = "action"
+SUPPORTED_LAYERS = "Linear, ReLU, Tanh, LeakyReLU, Sigmoid, Softplus(beta=1), Identity"
+
+
+@dataclass(frozen=True)
+class ObsNormalization:
+    """VecNormalize's observation transform: ``clip((obs - mean) / sqrt(var + eps), -clip, clip)``."""
+
+    mean: np.ndarray
+    var: np.ndarray
+    epsilon: float
+    clip: float
+
+    def apply(self, obs: np.ndarray) -> np.ndarray:
+        """Exactly what VecNormalize.normalize_obs computes (float64), as float32."""
+        out = np.clip((obs - self.mean) / np.sqrt(self.var + self.epsilon), -self.clip, self.clip)
+        return out.astype(np.float32)
+
+
+@dataclass(frozen=True)
+class LoadedPolicy:
+    """An SB3 policy ready for export and for reference predictions."""
+
+    policy: BasePolicy
+    observation_space: spaces.Box
+    action_space: spaces.Box
+    normalization: ObsNormalization | None
+
+    @property
+    def kind(self) -> str:
+        return type(self.policy).__name__
+
+    def predict(self, obs: np.ndarray) -> np.ndarray:
+        """``predict(deterministic=True)`` on a batch of raw observations, normalised as in training."""
+        x = obs if self.normalization is None else self.normalization.apply(obs)
+        actions, _ = self.policy.predict(x, deterministic=True)
+        return np.asarray(actions, dtype=np.float32)
+
+
+def load_sb3(path: Path, vecnormalize: Path | None = None) -> LoadedPolicy:
+    """Load the policy of an SB3 ``.zip`` (any algorithm) without its algorithm or environment."""
+    if not path.is_file():
+        raise InvalidModelError(f"{path}: no such file")
+    try:
+        data, params, _ = load_from_zip_file(path, device="cpu", print_system_info=False)
+    except (zipfile.BadZipFile, KeyError, ValueError, EOFError, RuntimeError, pickle.UnpicklingError) as exc:
+        raise InvalidModelError(f"{path}: not a readable Stable-Baselines3 model ({exc})") from None
+    if data is None or params is None or "policy" not in params:
+        raise InvalidModelError(f"{path}: the archive has no policy parameters")
+    cls = data.get("policy_class")
+    if not isinstance(cls, type) or not issubclass(cls, (TD3Policy, SACPolicy, ActorCriticPolicy)):
+        name = getattr(cls, "__name__", repr(cls))
+        raise UnsupportedModelError(
+            f"{path}: policy class {name} is not supported; supported: TD3Policy (TD3, DDPG), "
+            "SACPolicy (SAC), ActorCriticPolicy (PPO, A2C)"
+        )
+    obs_space, act_space = data.get("observation_space"), data.get("action_space")
+    for role, space in (("observation", obs_space), ("action", act_space)):
+        if not isinstance(space, spaces.Box) or len(space.shape) != 1:
+            raise UnsupportedModelError(f"{path}: {role} space {space} is not supported; need a 1-D Box")
+    assert isinstance(obs_space, spaces.Box) and isinstance(act_space, spaces.Box)
+    kwargs = dict(data.get("policy_kwargs", {}))
+    if data.get("use_sde") or kwargs.get("use_sde"):
+        raise UnsupportedModelError(f"{path}: policies with gSDE (use_sde=True) are not supported")
+    policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
+    try:
+        policy.load_state_dict(params["policy"])
+    except RuntimeError as exc:
+        raise InvalidModelError(f"{path}: policy parameters do not match the policy ({exc})") from None
+    policy.set_training_mode(False)
+    normalization = _load_vecnormalize(vecnormalize, obs_space) if vecnormalize else None
+    return LoadedPolicy(policy, obs_space, act_space, normalization)
+
+
+def _load_vecnormalize(path: Path, obs_space: spaces.Box) -> ObsNormalization | None:
+    if not path.is_file():
+        raise InvalidModelError(f"{path}: no such file (VecNormalize statistics)")
+    try:
+        with path.open("rb") as f:
+            stats: Any = pickle.load(f)
+        rms, enabled = stats.obs_rms, bool(stats.norm_obs)
+        mean, var = np.asarray(rms.mean, np.float64), np.asarray(rms.var, np.float64)
+        epsilon, clip = float(stats.epsilon), float(stats.clip_obs)
+    except (pickle.UnpicklingError, EOFError, AttributeError, ValueError, TypeError) as exc:
+        raise InvalidModelError(f"{path}: not VecNormalize statistics saved by SB3 ({exc})") from None
+    if not enabled:
+        return None
+    if mean.shape != obs_space.shape or var.shape != obs_space.shape:
+        raise InvalidModelError(f"{path}: statistics of shape {mean.shape} do not fit observations {obs_space.shape}")
+    return ObsNormalization(mean, var, epsilon, clip)
+
+
+class _GraphBuilder:
+    """Accumulates ONNX nodes and initializers with deterministic names."""
+
+    def __init__(self) -> None:
+        self.nodes: list[onnx.NodeProto] = []
+        self.initializers: list[onnx.TensorProto] = []
+        self.last = INPUT_NAME
+
+    def const(self, name: str, value: np.ndarray | float) -> str:
+        self.initializers.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
+        return name
+
+    def add(self, op: str, name: str, *extra_inputs: str, **attrs: Any) -> None:
+        out = f"{name}_out"
+        self.nodes.append(helper.make_node(op, [self.last, *extra_inputs], [out], name=name, **attrs))
+        self.last = out
+
+    def module(self, module: nn.Module, prefix: str) -> None:
+        """Append one torch layer (or a Sequential of them)."""
+        if isinstance(module, nn.Sequential):
+            for i, child in enumerate(module):
+                self.module(child, f"{prefix}.{i}")
+        elif isinstance(module, nn.Linear):
+            w = self.const(f"{prefix}.weight", module.weight.detach().numpy())
+            extra = [w] if module.bias is None else [w, self.const(f"{prefix}.bias", module.bias.detach().numpy())]
+            self.add("Gemm", prefix, *extra, transB=1)
+        elif isinstance(module, nn.ReLU):
+            self.add("Relu", prefix)
+        elif isinstance(module, nn.Tanh):
+            self.add("Tanh", prefix)
+        elif isinstance(module, nn.Sigmoid):
+            self.add("Sigmoid", prefix)
+        elif isinstance(module, nn.LeakyReLU):
+            self.add("LeakyRelu", prefix, alpha=float(module.negative_slope))
+        elif isinstance(module, nn.Softplus) and module.beta == 1:
+            self.add("Softplus", prefix)
+        elif isinstance(module, nn.Identity | nn.Flatten | FlattenExtractor):
+            pass
+        else:
+            raise UnsupportedModelError(
+                f"layer '{prefix}' ({type(module).__name__}) is not supported; supported layers: {SUPPORTED_LAYERS}"
+            )
+
+
+def _network(b: _GraphBuilder, policy: BasePolicy) -> str:
+    """Append the deterministic actor; return 'squash' or 'clip' for the post-processing it needs."""
+    if isinstance(policy, TD3Policy):
+        b.module(policy.actor.features_extractor, "actor.features_extractor")
+        b.module(policy.actor.mu, "actor.mu")
+        return "squash"
+    if isinstance(policy, SACPolicy):
+        b.module(policy.actor.features_extractor, "actor.features_extractor")
+        b.module(policy.actor.latent_pi, "actor.latent_pi")
+        b.module(policy.actor.mu, "actor.mu")
+        b.add("Tanh", "actor.squash")  # the squashed Gaussian's mode is tanh(mean)
+        return "squash"
+    assert isinstance(policy, ActorCriticPolicy)
+    if not isinstance(policy.action_dist, DiagGaussianDistribution) or policy.squash_output:
+        raise UnsupportedModelError(
+            f"{type(policy.action_dist).__name__} is not supported; need a diagonal Gaussian"
+        )
+    b.module(policy.pi_features_extractor, "pi_features_extractor")
+    b.module(policy.mlp_extractor.policy_net, "mlp_extractor.policy_net")
+    b.module(policy.action_net, "action_net")
+    return "clip"
+
+
+def build_onnx(loaded: LoadedPolicy, producer_version: str) -> onnx.ModelProto:
+    """The ONNX graph of the deterministic actor, normalisation and post-processing included."""
+    b = _GraphBuilder()
+    if loaded.normalization is not None:
+        n = loaded.normalization
+        b.add("Sub", "normalize.sub", b.const("normalize.mean", n.mean))
+        b.add("Div", "normalize.div", b.const("normalize.std", np.sqrt(n.var + n.epsilon)))
+        b.add("Clip", "normalize.clip", b.const("normalize.low", -n.clip), b.const("normalize.high", n.clip))
+    post = _network(b, loaded.policy)
+    low = loaded.action_space.low.astype(np.float32)
+    high = loaded.action_space.high.astype(np.float32)
+    if post == "squash":
+        if not (np.all(low == -1.0) and np.all(high == 1.0)):
+            # SB3's unscale_action: low + 0.5 * (a + 1) * (high - low), in this order.
+            b.add("Add", "unscale.add_one", b.const("unscale.one", 1.0))
+            b.add("Mul", "unscale.half", b.const("unscale.half_value", 0.5))
+            b.add("Mul", "unscale.range", b.const("unscale.range_value", high - low))
+            b.add("Add", "unscale.low", b.const("unscale.low_value", low))
+    elif np.all(np.isfinite(low)) and np.all(np.isfinite(high)):
+        # predict() clips PPO's Gaussian mean to the action space.
+        if np.all(low == low[0]) and np.all(high == high[0]):
+            b.add("Clip", "clip", b.const("clip.low", low[0]), b.const("clip.high", high[0]))
+        else:
+            b.add("Max", "clip.low", b.const("clip.low_value", low))
+            b.add("Min", "clip.high", b.const("clip.high_value", high))
+    b.nodes.append(helper.make_node("Identity", [b.last], [OUTPUT_NAME], name="output"))
+    obs_dim, act_dim = loaded.observation_space.shape[0], loaded.action_space.shape[0]
+    graph = helper.make_graph(
+        b.nodes,
+        "embedrl_policy",
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, ["batch", obs_dim])],
+        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, ["batch", act_dim])],
+        b.initializers,
+    )
+    model = helper.make_model(
+        graph,
+        opset_imports=[helper.make_opsetid("", OPSET)],
+        ir_version=IR_VERSION,
+        producer_name="embedrl",
+        producer_version=producer_version,
+    )
+    onnx.checker.check_model(model, full_check=True)
+    return model
