@@ -30,7 +30,9 @@ def load_onnx(path: Path) -> onnx.ModelProto:
     try:
         model = onnx.load(str(path))
     except (DecodeError, ValueError, RuntimeError, OSError) as exc:
-        raise InvalidModelError(f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {exc})") from None
+        raise InvalidModelError(
+            f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {exc})"
+        ) from None
     if not model.graph.node and not model.graph.output:
         raise InvalidModelError(f"{path}: not an ONNX model (empty graph)")
     try:
@@ -58,7 +60,9 @@ def _static_shape(value: onnx.ValueInfoProto, role: str) -> tuple[int, ...]:
     t = value.type.tensor_type
     if t.elem_type != onnx.TensorProto.FLOAT:
         dtype = onnx.TensorProto.DataType.Name(t.elem_type)
-        raise UnsupportedOpError(f"graph {role} '{value.name}' has dtype {dtype}; only FLOAT (float32) is supported")
+        raise UnsupportedOpError(
+            f"graph {role} '{value.name}' has dtype {dtype}; only FLOAT (float32) is supported"
+        )
     dims = []
     for axis, d in enumerate(t.shape.dim):
         if d.HasField("dim_value") and d.dim_value > 0:
@@ -113,14 +117,17 @@ def to_ir(model: onnx.ModelProto) -> Graph:
         emitter = EMITTERS.get(proto.op_type)
         if emitter is None:
             raise UnsupportedOpError(
-                f"node '{name}': op {proto.op_type} is not supported; supported ops: {', '.join(sorted(EMITTERS))}"
+                f"node '{name}': op {proto.op_type} is not supported; "
+                f"supported ops: {', '.join(sorted(EMITTERS))}"
             )
         attrs = {a.name: _attr(a) for a in proto.attribute}
         ins = tuple(proto.input)
         if proto.op_type == "Constant":
             value = attrs.get("value")
             if set(attrs) != {"value"} or not isinstance(value, np.ndarray):
-                raise UnsupportedOpError(f"node '{name}': Constant supports only the 'value' tensor attribute")
+                raise UnsupportedOpError(
+                    f"node '{name}': Constant supports only the 'value' tensor attribute"
+                )
             constants[proto.output[0]] = _constant(proto.output[0], value, f"Constant node '{name}'")
             shapes[proto.output[0]] = tuple(int(d) for d in value.shape)
             continue

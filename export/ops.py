@@ -11,7 +11,7 @@ has the same number of elements as the output or a single element.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -56,7 +56,7 @@ def _fail(node: Node, what: str) -> UnsupportedOpError:
 class Emitter:
     """Base class: attribute and arity validation shared by every op."""
 
-    attrs: Mapping[str, AttrValue] = {}
+    attrs: ClassVar[Mapping[str, AttrValue]] = {}
     """Supported attributes and their defaults; anything else is rejected."""
     min_inputs = 1
     max_inputs = 1
@@ -68,7 +68,9 @@ class Emitter:
     def check(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
         unknown = sorted(set(node.attrs) - set(self.attrs))
         if unknown:
-            raise _fail(node, f"unsupported attribute(s) {unknown}; supported: {sorted(self.attrs) or 'none'}")
+            raise _fail(
+                node, f"unsupported attribute(s) {unknown}; supported: {sorted(self.attrs) or 'none'}"
+            )
         present = [i for i in node.inputs if i != ""]
         if not self.min_inputs <= len(present) <= self.max_inputs or len(node.outputs) != 1:
             raise _fail(
@@ -110,7 +112,7 @@ class Relu(Unary):
 
 
 class LeakyRelu(Unary):
-    attrs = {"alpha": 0.01}
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"alpha": 0.01}
     expression = "{x} >= 0.0f ? {x} : {alpha} * {x}"
 
     def formats(self, node: Node, ctx: EmitContext) -> dict[str, str]:
@@ -257,7 +259,7 @@ def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str) -> list[str
 class Gemm(Emitter):
     """``Y = alpha * A @ op(B) + beta * C`` with A a runtime [1, K] row and B, C constants."""
 
-    attrs = {"alpha": 1.0, "beta": 1.0, "transA": 0, "transB": 0}
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"alpha": 1.0, "beta": 1.0, "transA": 0, "transB": 0}
     min_inputs, max_inputs = 2, 3
 
     def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
@@ -337,7 +339,7 @@ class MatMul(Emitter):
 
 
 class Flatten(Emitter):
-    attrs = {"axis": 1}
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"axis": 1}
     alias = True
 
     def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
@@ -354,7 +356,7 @@ class Flatten(Emitter):
 
 
 class Reshape(Emitter):
-    attrs = {"allowzero": 0}
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"allowzero": 0}
     min_inputs = max_inputs = 2
     alias = True
 
@@ -384,7 +386,7 @@ class Reshape(Emitter):
 class Constant(Emitter):
     """Handled by the importer: its value becomes a graph constant; no code."""
 
-    attrs = {"value": 0}
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"value": 0}
     min_inputs = max_inputs = 0
 
     def check(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:

@@ -53,7 +53,7 @@ class ObsNormalization:
     def apply(self, obs: np.ndarray) -> np.ndarray:
         """Exactly what VecNormalize.normalize_obs computes (float64), as float32."""
         out = np.clip((obs - self.mean) / np.sqrt(self.var + self.epsilon), -self.clip, self.clip)
-        return out.astype(np.float32)
+        return np.asarray(out, dtype=np.float32)
 
 
 @dataclass(frozen=True)
@@ -103,7 +103,7 @@ def load_sb3(path: Path, vecnormalize: Path | None = None) -> LoadedPolicy:
         raise UnsupportedModelError(f"{path}: policies with gSDE (use_sde=True) are not supported")
     policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
     try:
-        policy.load_state_dict(params["policy"])
+        policy.load_state_dict(params["policy"])  # type: ignore[arg-type]
     except RuntimeError as exc:
         raise InvalidModelError(f"{path}: policy parameters do not match the policy ({exc})") from None
     policy.set_training_mode(False)
@@ -125,7 +125,9 @@ def _load_vecnormalize(path: Path, obs_space: spaces.Box) -> ObsNormalization | 
     if not enabled:
         return None
     if mean.shape != obs_space.shape or var.shape != obs_space.shape:
-        raise InvalidModelError(f"{path}: statistics of shape {mean.shape} do not fit observations {obs_space.shape}")
+        raise InvalidModelError(
+            f"{path}: statistics of shape {mean.shape} do not fit observations {obs_space.shape}"
+        )
     return ObsNormalization(mean, var, epsilon, clip)
 
 
@@ -153,7 +155,11 @@ class _GraphBuilder:
                 self.module(child, f"{prefix}.{i}")
         elif isinstance(module, nn.Linear):
             w = self.const(f"{prefix}.weight", module.weight.detach().numpy())
-            extra = [w] if module.bias is None else [w, self.const(f"{prefix}.bias", module.bias.detach().numpy())]
+            extra = (
+                [w]
+                if module.bias is None
+                else [w, self.const(f"{prefix}.bias", module.bias.detach().numpy())]
+            )
             self.add("Gemm", prefix, *extra, transB=1)
         elif isinstance(module, nn.ReLU):
             self.add("Relu", prefix)
@@ -169,7 +175,8 @@ class _GraphBuilder:
             pass
         else:
             raise UnsupportedModelError(
-                f"layer '{prefix}' ({type(module).__name__}) is not supported; supported layers: {SUPPORTED_LAYERS}"
+                f"layer '{prefix}' ({type(module).__name__}) is not supported; "
+                f"supported layers: {SUPPORTED_LAYERS}"
             )
 
 

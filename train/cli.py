@@ -12,6 +12,7 @@ import json
 import sys
 import traceback
 from pathlib import Path
+from typing import Any
 
 from train.errors import TrainError, UsageError
 
@@ -133,23 +134,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_env)
 
+    for module in _package_clis():
+        module.register(sub)
+    return parser
+
+
+def _package_clis() -> list[Any]:
+    """The ``cli`` modules of the other packages that have one."""
+    modules = []
     for name in OTHER_PACKAGES:
         try:
-            module = importlib.import_module(f"{name}.cli")
+            modules.append(importlib.import_module(f"{name}.cli"))
         except ModuleNotFoundError as exc:
             if exc.name != f"{name}.cli":
                 raise
-            continue
-        module.register(sub)
-    return parser
+    return modules
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    handled: tuple[type[Exception], ...] = (TrainError, OSError, ValueError, json.JSONDecodeError)
+    for module in _package_clis():
+        handled += getattr(module, "ERRORS", ())
     try:
         return int(args.func(args))
-    except (TrainError, OSError, ValueError, json.JSONDecodeError) as exc:
+    except handled as exc:
         if args.debug:
             traceback.print_exc()
         print(f"error: {exc}", file=sys.stderr)

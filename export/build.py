@@ -1,0 +1,84 @@
+"""Build generated C with ``make -C runtime_c`` and the system compiler; load it through ctypes."""
+
+from __future__ import annotations
+
+import ctypes
+import re
+import subprocess
+from pathlib import Path
+
+import numpy as np
+
+from export.errors import BuildError
+
+RUNTIME_C = Path(__file__).resolve().parents[1] / "runtime_c"
+"""The make project that builds generated policies (beside the Python packages in the repo)."""
+
+
+def make(target: str, c_dir: Path, build_dir: Path) -> None:
+    """Run ``make -C runtime_c TARGET POLICY_DIR=c_dir BUILD_DIR=build_dir``; errors carry make's output."""
+    if not (RUNTIME_C / "Makefile").is_file():
+        raise BuildError(f"{RUNTIME_C}/Makefile not found: run embedrl from its source tree")
+    cmd = [
+        "make",
+        "--no-print-directory",
+        "-C",
+        str(RUNTIME_C),
+        target,
+        f"POLICY_DIR={c_dir.resolve()}",
+        f"BUILD_DIR={build_dir.resolve()}",
+    ]
+    result = subprocess.run(cmd, capture_output=True, text=True)
+    if result.returncode != 0:
+        tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])
+        raise BuildError(f"building the generated C failed (make {target}):\n{tail}")
+
+
+def compiler() -> dict[str, str]:
+    """The compiler command and flags the Makefile uses, and the compiler's version line."""
+    flags = subprocess.run(
+        ["make", "--no-print-directory", "-s", "-C", str(RUNTIME_C), "flags"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    cc = flags.split()[0]
+    version = subprocess.run([cc, "--version"], capture_output=True, text=True, check=True).stdout
+    return {"command": flags, "version": version.splitlines()[0]}
+
+
+def object_size(obj: Path) -> dict[str, int]:
+    """text, data and bss bytes of an object file (binutils ``size``, Berkeley format)."""
+    out = subprocess.run(["size", str(obj)], capture_output=True, text=True, check=True).stdout
+    text, data, bss = (int(v) for v in re.split(r"\s+", out.splitlines()[1].strip())[:3])
+    return {"text": text, "data": data, "bss": bss}
+
+
+class CPolicy:
+    """A compiled policy: ``policy(obs) -> action``; ``status`` is the last return code."""
+
+    def __init__(self, library: Path, name: str, obs_dim: int, act_dim: int) -> None:
+        self._lib = ctypes.CDLL(str(library))
+        self._step = getattr(self._lib, f"{name}_step")
+        ptr = ctypes.POINTER(ctypes.c_float)
+        self._step.argtypes = [ptr, ptr]
+        self._step.restype = ctypes.c_int
+        self._ptr = ptr
+        self.obs_dim, self.act_dim = obs_dim, act_dim
+        self._act = np.zeros(act_dim, dtype=np.float32)
+        self._act_ptr = self._act.ctypes.data_as(ptr)
+        self.status = 0
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        x = np.ascontiguousarray(obs, dtype=np.float32).reshape(self.obs_dim)
+        self.status = int(self._step(x.ctypes.data_as(self._ptr), self._act_ptr))
+        return self._act.copy()
+
+    def batch(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Actions and return codes for every row of ``obs``."""
+        acts = np.zeros((len(obs), self.act_dim), dtype=np.float32)
+        codes = np.zeros(len(obs), dtype=np.int32)
+        for i, row in enumerate(obs):
+            acts[i] = self(row)
+            codes[i] = self.status
+        return acts, codes

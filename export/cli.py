@@ -1,0 +1,96 @@
+"""``embedrl export``: the export package's subcommands."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+from export.errors import ExportError
+
+
+def _safe_action(text: str) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+    if not all(abs(v) < float("inf") for v in values):
+        raise argparse.ArgumentTypeError(f"safe action must be finite, got {text!r}")
+    return values
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    from export.pipeline import ExportOptions, run_export
+
+    opts = ExportOptions(
+        source=args.source,
+        out=args.out,
+        name=args.name,
+        env_id=args.env,
+        episodes=args.episodes,
+        seed=args.seed,
+        vecnormalize=args.vecnormalize,
+        safe_action=args.safe_action,
+        force=args.force,
+        progress=sys.stderr.isatty(),
+    )
+    report = run_export(opts)
+    _print_summary(report)
+    print(f"wrote {args.out}/ ({', '.join(report['files'])}, export_report.json)")
+    return 0
+
+
+def _print_summary(report: dict[str, Any]) -> None:
+    v = report["verification"]
+    rows = [
+        ("source", f"{report['source']['path']} ({report['source']['policy_class'] or 'ONNX'})"),
+        ("ops", " ".join(report["ops"])),
+        ("samples (from rollouts)", f"{v['samples']} ({v['samples_from_rollouts']})"),
+    ]
+    if v["onnx_vs_sb3_max_abs_error"] is not None:
+        rows.append(("max |ONNX - SB3|", f"{v['onnx_vs_sb3_max_abs_error']:.3g}"))
+    rows.append(("max |C - onnxruntime|", f"{v['c_vs_onnxruntime_max_abs_error']:.3g}"))
+    loop = report["closed_loop"]
+    if "skipped" in loop:
+        rows.append(("closed loop", f"skipped: {loop['skipped']}"))
+    else:
+        for who in ("reference", "c"):
+            r = loop[who]
+            rows.append(
+                (
+                    f"closed loop {who}",
+                    f"{r['successes']} / {r['collisions']} / {r['timeouts']} (success / collision / timeout)",
+                )
+            )
+        rows.append(("episodes with another outcome", f"{loop['differing_outcomes']} of {loop['episodes']}"))
+    size = report["code_size"]
+    rows.append(("object size", f"text {size['text']} B, data {size['data']} B, bss {size['bss']} B"))
+    width = max(len(k) for k, _ in rows)
+    for key, value in rows:
+        print(f"{key:<{width}}  {value}")
+
+
+def register(sub: Any) -> None:
+    """Add the export subcommands to the ``embedrl`` parser."""
+    p = sub.add_parser("export", help="SB3 model or ONNX -> ONNX + generated C, verified")
+    p.add_argument("source", type=Path, help="SB3 model (.zip) or ONNX file (.onnx)")
+    p.add_argument("--out", type=Path, required=True, help="output folder (written atomically)")
+    p.add_argument("--name", default="policy", help="symbol prefix and file name of the generated C")
+    p.add_argument(
+        "--env", default="embedrl/WarehouseRobot-v0", help="environment for samples and closed loop"
+    )
+    p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--vecnormalize", type=Path, help="VecNormalize statistics (default: vecnormalize.pkl beside)"
+    )
+    p.add_argument(
+        "--safe-action", type=_safe_action, help="action on non-finite input, e.g. 0,0 (default zeros)"
+    )
+    p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.set_defaults(func=cmd_export)
+
+
+ERRORS: tuple[type[Exception], ...] = (ExportError,)
+"""Exceptions the dispatcher reports as one-line errors."""

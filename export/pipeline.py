@@ -1,0 +1,252 @@
+"""``embedrl export``: source -> ONNX -> C, verified, written atomically into one folder.
+
+Everything is built in a staging folder beside the output and renamed into place only when
+every step passed: on any failure the output folder is untouched (absent, or as it was).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import onnx
+import onnxruntime as ort
+
+import train
+from export import build, verify
+from export.codegen import NAME_PATTERN, generate
+from export.errors import ExportError, UnsupportedModelError, VerificationError
+from export.onnx_import import load_onnx, to_ir
+from export.sb3_onnx import LoadedPolicy, build_onnx, load_sb3
+from train.evaluate import provenance
+
+VECNORMALIZE_FILE = "vecnormalize.pkl"
+"""Statistics next to a model with this name are used unless ``--vecnormalize`` says otherwise."""
+
+
+@dataclass(frozen=True)
+class ExportOptions:
+    """What ``embedrl export`` was asked to do."""
+
+    source: Path
+    out: Path
+    name: str = "policy"
+    env_id: str = train.ENV_ID
+    episodes: int = 200
+    """Closed-loop episodes (0 skips the closed loop)."""
+    seed: int = 0
+    vecnormalize: Path | None = None
+    safe_action: tuple[float, ...] | None = None
+    force: bool = False
+    progress: bool = False
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def tool_version() -> str:
+    try:
+        return metadata.version("embedrl")
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def _ort_policy(model: onnx.ModelProto) -> Callable[[np.ndarray], np.ndarray]:
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    name = session.get_inputs()[0].name
+
+    def run(obs: np.ndarray) -> np.ndarray:
+        batch = np.asarray(obs, dtype=np.float32)
+        single = batch.ndim == 1
+        out = np.asarray(session.run(None, {name: batch.reshape(1, -1) if single else batch})[0])
+        return out.reshape(-1) if single else out
+
+    return run
+
+
+def _check_output_folder(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ExportError(f"output {out} exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise ExportError(f"output folder {out} is not empty; use --force to replace it")
+
+
+def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run every step; return the export report. Raises :class:`ExportError` on any failure."""
+    if not NAME_PATTERN.fullmatch(opts.name):
+        raise ExportError(f"--name {opts.name!r} is not valid: use a lower-case C identifier (a-z, 0-9, _)")
+    if opts.episodes < 0:
+        raise ExportError(f"closed-loop episodes must be >= 0, got {opts.episodes}")
+    _check_output_folder(opts.out, opts.force)
+    try:
+        opts.out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{opts.out.name}.partial-", dir=opts.out.parent))
+    except OSError as exc:
+        raise ExportError(f"cannot create the output folder {opts.out}: {exc.strerror or exc}") from None
+    try:
+        report = _export_into(staging, opts, log)
+        _replace_folder(staging, opts.out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return report
+
+
+def _replace_folder(staging: Path, out: Path) -> None:
+    old = None
+    if out.exists():
+        old = out.with_name(f".{out.name}.old-{os.getpid()}")
+        out.rename(old)
+    staging.rename(out)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> dict[str, Any]:
+    source = opts.source
+    suffix = source.suffix.lower()
+    if suffix not in (".zip", ".onnx"):
+        raise UnsupportedModelError(
+            f"{source}: unsupported source type '{suffix or '(none)'}'; "
+            "give an SB3 model (.zip) or an ONNX file (.onnx)"
+        )
+    files: dict[str, Path] = {}
+    loaded: LoadedPolicy | None = None
+    vecnorm_path = None
+    if suffix == ".zip":
+        vecnorm_path = opts.vecnormalize
+        if vecnorm_path is None and (source.parent / VECNORMALIZE_FILE).is_file():
+            vecnorm_path = source.parent / VECNORMALIZE_FILE
+        log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
+        loaded = load_sb3(source, vecnorm_path)
+        model = build_onnx(loaded, tool_version())
+        onnx_path = staging / "policy.onnx"
+        onnx.save(model, str(onnx_path))
+        files["policy.onnx"] = onnx_path
+    else:
+        log(f"[1/5] loading {source}")
+        model = load_onnx(source)
+        onnx_path = source
+
+    graph = to_ir(model)
+    obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
+    env = gym.make(opts.env_id)
+    obs_space, act_space = env.observation_space, env.action_space
+    env.close()
+    if not isinstance(obs_space, gym.spaces.Box) or obs_space.shape != (obs_dim,):
+        raise ExportError(
+            f"the policy observes {obs_dim} values but {opts.env_id} gives {obs_space}; pass --env"
+        )
+    if not isinstance(act_space, gym.spaces.Box) or act_space.shape != (act_dim,):
+        raise ExportError(
+            f"the policy outputs {act_dim} values but {opts.env_id} takes {act_space}; pass --env"
+        )
+
+    log(f"[2/5] generating C ({len(graph.nodes)} ops, {obs_dim} -> {act_dim})")
+    header = {
+        "tool": f"embedrl {tool_version()}",
+        "source": f"{source.name} sha256 {sha256(source)}",
+        "onnx": f"sha256 {sha256(onnx_path)}",
+    }
+    sources = generate(graph, opts.name, opts.safe_action, header)
+    c_dir = staging / "c"
+    c_dir.mkdir()
+    for filename, text in sources.items():
+        (c_dir / filename).write_text(text)
+        files[f"c/{filename}"] = c_dir / filename
+
+    log("[3/5] compiling with make -C runtime_c")
+    with tempfile.TemporaryDirectory(prefix="embedrl-build-") as tmp:
+        build_dir = Path(tmp)
+        build.make("lib", c_dir, build_dir)
+        build.make("obj", c_dir, build_dir)
+        code_size = build.object_size(build_dir / "policy.o")
+        compiled = build.CPolicy(build_dir / "libpolicy.so", opts.name, obs_dim, act_dim)
+        reference = loaded.predict if loaded is not None else _ort_policy(model)
+        onnx_policy = _ort_policy(model)
+
+        log("[4/5] verifying: ONNX vs SB3, C vs onnxruntime")
+        samples, from_rollouts = verify.sample_observations(obs_space, opts.env_id, reference, opts.seed)
+        onnx_actions = onnx_policy(samples)
+        checks: dict[str, Any] = {
+            "samples": len(samples),
+            "samples_from_rollouts": int(from_rollouts),
+            "tolerance": verify.TOLERANCE,
+            "onnx_vs_sb3_max_abs_error": None,
+        }
+        if loaded is not None:
+            err = verify.max_abs_error(onnx_actions, loaded.predict(samples))
+            checks["onnx_vs_sb3_max_abs_error"] = err
+            if err > verify.TOLERANCE:
+                raise VerificationError(f"ONNX differs from SB3 predict() by {err:.3g} > {verify.TOLERANCE}")
+        c_actions, codes = compiled.batch(samples)
+        if np.any(codes != 0):
+            raise VerificationError(
+                f"the generated C returned an error code on {int(np.sum(codes != 0))} samples"
+            )
+        err = verify.max_abs_error(c_actions, onnx_actions)
+        checks["c_vs_onnxruntime_max_abs_error"] = err
+        if err > verify.TOLERANCE:
+            raise VerificationError(
+                f"the generated C differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
+            )
+        nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
+        safe = compiled(nan_obs)
+        checks["non_finite_observation"] = {"return_code": compiled.status, "action": safe.tolist()}
+        if compiled.status != 1 or not np.all(np.isfinite(safe)):
+            raise VerificationError("the generated C did not reject a NaN observation with the safe action")
+
+        if opts.episodes and verify.supports_closed_loop(opts.env_id):
+            log(f"[5/5] closed loop: {opts.episodes} episodes, reference and generated C")
+            loop: dict[str, Any] | None = verify.closed_loop(
+                reference, compiled, opts.episodes, opts.seed, opts.progress
+            )
+            assert loop is not None
+            if loop["differing_outcomes"] > verify.MAX_DIFFERING_OUTCOMES:
+                raise VerificationError(
+                    f"closed loop: {loop['differing_outcomes']} of {opts.episodes} episodes end differently "
+                    f"with the generated C (seeds {loop['differing_seeds'][:10]}); "
+                    f"at most {verify.MAX_DIFFERING_OUTCOMES} allowed"
+                )
+        else:
+            reason = (
+                "episodes=0" if not opts.episodes else f"{opts.env_id} reports no success/collision outcomes"
+            )
+            log(f"[5/5] closed loop skipped ({reason})")
+            loop = {"skipped": reason}
+
+    report: dict[str, Any] = {
+        "tool": f"embedrl {tool_version()}",
+        "source": {
+            "path": str(source),
+            "sha256": sha256(source),
+            "kind": "sb3" if loaded is not None else "onnx",
+            "policy_class": loaded.kind if loaded is not None else None,
+            "vecnormalize": None
+            if vecnorm_path is None
+            else {"path": str(vecnorm_path), "sha256": sha256(vecnorm_path)},
+        },
+        "name": opts.name,
+        "env_id": opts.env_id,
+        "observation_dim": obs_dim,
+        "action_dim": act_dim,
+        "ops": [n.op for n in graph.nodes],
+        "compiler": build.compiler(),
+        "verification": checks,
+        "closed_loop": loop,
+        "code_size": code_size,
+        "files": {k: sha256(v) for k, v in sorted(files.items())},
+        "provenance": provenance(),
+    }
+    (staging / "export_report.json").write_text(json.dumps(report, indent=2) + "\n")
+    return report

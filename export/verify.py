@@ -1,0 +1,90 @@
+"""Numerical verification of each export step against the previous one.
+
+Observations: uniform samples within the observation space's bounds plus observations recorded
+from rollouts of the reference policy, at least :data:`MIN_SAMPLES` in all. Closed loop: the C
+policy and the reference policy drive the warehouse env from the same seeded starts.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+import train
+from train.evaluate import REPORT_KEYS, EvalReport, evaluate
+
+TOLERANCE = 1e-5
+"""Max abs action error allowed between two export steps."""
+UNIFORM_SAMPLES = 5_000
+ROLLOUT_SAMPLES = 5_000
+MIN_SAMPLES = 10_000
+ROLLOUT_EPISODES = 30
+ROLLOUT_SEED_OFFSET = 1_000_000
+"""Rollouts for samples use seeds far from the closed-loop seeds."""
+UNBOUNDED_RANGE = 10.0
+"""Infinite observation bounds are sampled within +-this."""
+MAX_DIFFERING_OUTCOMES = 2
+"""More closed-loop episodes than this with a different outcome fail the export."""
+
+Policy = Callable[[np.ndarray], np.ndarray]
+
+
+def sample_observations(
+    space: gym.spaces.Box, env_id: str, policy: Policy, seed: int
+) -> tuple[np.ndarray, int]:
+    """At least MIN_SAMPLES float32 observations and how many of them came from rollouts."""
+    rng = np.random.default_rng(seed)
+    low = np.where(np.isfinite(space.low), space.low, -UNBOUNDED_RANGE)
+    high = np.where(np.isfinite(space.high), space.high, UNBOUNDED_RANGE)
+    recorded: list[np.ndarray] = []
+    env = gym.make(env_id)
+    for episode in range(ROLLOUT_EPISODES):
+        obs, _ = env.reset(seed=seed + ROLLOUT_SEED_OFFSET + episode)
+        done = False
+        while not done:
+            recorded.append(np.asarray(obs, dtype=np.float32))
+            obs, _, terminated, truncated, _ = env.step(policy(obs))
+            done = terminated or truncated
+    env.close()
+    rollout = np.array(recorded, dtype=np.float32)
+    if len(rollout) > ROLLOUT_SAMPLES:
+        rollout = rollout[np.linspace(0, len(rollout) - 1, ROLLOUT_SAMPLES).astype(int)]
+    n_uniform = max(UNIFORM_SAMPLES, MIN_SAMPLES - len(rollout))
+    uniform = rng.uniform(low, high, size=(n_uniform, space.shape[0])).astype(np.float32)
+    return np.concatenate([uniform, rollout]), len(rollout)
+
+
+def max_abs_error(a: np.ndarray, b: np.ndarray) -> float:
+    if a.shape != b.shape:
+        raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
+    return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64))))
+
+
+def supports_closed_loop(env_id: str) -> bool:
+    """Closed-loop outcomes need the warehouse env's success/collision info."""
+    return env_id == train.ENV_ID
+
+
+def closed_loop(
+    reference: Policy, compiled: Policy, episodes: int, seed: int, progress: bool
+) -> dict[str, Any]:
+    """Both policies on the same seeded episodes: outcome counts and episodes whose outcome differs."""
+    ref = evaluate(reference, episodes, seed, "reference", progress=progress)
+    c = evaluate(compiled, episodes, seed, "generated C", progress=progress)
+    differing = [r.seed for r, q in zip(ref.results, c.results, strict=True) if r.outcome != q.outcome]
+    return {
+        "episodes": episodes,
+        "seed": seed,
+        "reference": _summary(ref),
+        "c": _summary(c),
+        "differing_outcomes": len(differing),
+        "differing_seeds": differing,
+        "max_differing_outcomes": MAX_DIFFERING_OUTCOMES,
+    }
+
+
+def _summary(report: EvalReport) -> dict[str, Any]:
+    return {k: getattr(report, k) for k in REPORT_KEYS}

@@ -1,0 +1,67 @@
+/*
+ * Timing harness for a generated policy (default name "policy").
+ *
+ *   bench_policy OBS_FILE REPEATS
+ *
+ * OBS_FILE holds N observations as raw little-endian float32, POLICY_OBS_DIM per row. The harness
+ * runs policy_step once per observation, REPEATS times over the file, and prints the median over
+ * the repeats of the nanoseconds per single-observation inference, and a checksum of the actions
+ * (so the calls cannot be optimised away).
+ */
+#include <stdio.h>
+#include <stdlib.h>
+#include <time.h>
+
+#include "policy.h"
+
+#define MAX_OBS 20000
+#define MAX_REPEATS 101
+
+static float observations[MAX_OBS][POLICY_OBS_DIM];
+
+static double now_ns(void)
+{
+    struct timespec t;
+    clock_gettime(CLOCK_MONOTONIC, &t);
+    return (double)t.tv_sec * 1e9 + (double)t.tv_nsec;
+}
+
+static int compare(const void *a, const void *b)
+{
+    double x = *(const double *)a, y = *(const double *)b;
+    return (x > y) - (x < y);
+}
+
+int main(int argc, char **argv)
+{
+    if (argc != 3) {
+        fprintf(stderr, "usage: %s OBS_FILE REPEATS\n", argv[0]);
+        return 2;
+    }
+    FILE *f = fopen(argv[1], "rb");
+    if (f == NULL) {
+        fprintf(stderr, "cannot open %s\n", argv[1]);
+        return 2;
+    }
+    size_t n = fread(observations, sizeof(float) * POLICY_OBS_DIM, MAX_OBS, f);
+    fclose(f);
+    int repeats = atoi(argv[2]);
+    if (n == 0 || repeats < 1 || repeats > MAX_REPEATS) {
+        fprintf(stderr, "need 1..%d observations and 1..%d repeats\n", MAX_OBS, MAX_REPEATS);
+        return 2;
+    }
+    double per_call[MAX_REPEATS];
+    double checksum = 0.0;
+    float act[POLICY_ACT_DIM];
+    for (int r = 0; r < repeats; ++r) {
+        double start = now_ns();
+        for (size_t i = 0; i < n; ++i) {
+            policy_step(observations[i], act);
+            checksum += act[0];
+        }
+        per_call[r] = (now_ns() - start) / (double)n;
+    }
+    qsort(per_call, (size_t)repeats, sizeof(double), compare);
+    printf("ns_per_inference %.1f\nchecksum %.6f\nobservations %zu\n", per_call[repeats / 2], checksum, n);
+    return 0;
+}
