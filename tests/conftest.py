@@ -16,3 +16,11 @@ def env() -> Iterator[gym.Env[np.ndarray, np.ndarray]]:
     e = gym.make(train.ENV_ID)
     yield e
     e.close()
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--regen-golden",
+        action="store_true",
+        help="rewrite the generated-code golden files instead of comparing with them",
+    )

@@ -1,0 +1,50 @@
+"""Building tiny ONNX graphs and compiling their generated C for the export tests."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+from onnx import TensorProto, helper, numpy_helper
+
+from export import build
+from export.codegen import generate
+from export.onnx_import import to_ir
+
+_counter = itertools.count()
+
+
+def make_model(
+    nodes: list[onnx.NodeProto],
+    inits: dict[str, Any],
+    in_dim: int,
+    out_dim: int,
+    in_shape: list[int | str] | None = None,
+    opset: int = 17,
+) -> onnx.ModelProto:
+    """A model with input 'x' [batch, in_dim] and output 'y' [batch, out_dim]."""
+    graph = helper.make_graph(
+        nodes,
+        "test",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, in_shape or ["batch", in_dim])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["batch", out_dim])],
+        [numpy_helper.from_array(np.asarray(v), k) for k, v in inits.items()],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)], ir_version=8)
+
+
+def compile_model(model: onnx.ModelProto, tmp: Path, name: str = "policy") -> build.CPolicy:
+    """Generate C for ``model``, build it with make, and load it."""
+    graph = to_ir(model)
+    folder = tmp / f"m{next(_counter)}"
+    c_dir = folder / "c"
+    c_dir.mkdir(parents=True)
+    for filename, text in generate(graph, name).items():
+        (c_dir / filename).write_text(text)
+    build.make("lib", c_dir, folder / "build")
+    return build.CPolicy(
+        folder / "build" / "libpolicy.so", name, graph.size(graph.input), graph.size(graph.output)
+    )

@@ -1,0 +1,191 @@
+"""Bad input: a precise error naming what is wrong, and nothing partial left behind."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import pytest
+from onnx import helper
+
+from export.codegen import generate
+from export.errors import ExportError, InvalidModelError, UnsupportedOpError
+from export.onnx_import import load_onnx, to_ir
+from tests.export.helpers import make_model
+from train.cli import main
+
+F = np.float32
+mk = helper.make_node
+W = np.ones((2, 6), F)
+B = np.zeros(2, F)
+
+
+def _mlp(**gemm_attrs: Any) -> onnx.ModelProto:
+    return make_model(
+        [mk("Gemm", ["x", "W", "b"], ["h"], transB=1, **gemm_attrs), mk("Tanh", ["h"], ["y"])],
+        {"W": W, "b": B},
+        6,
+        2,
+    )
+
+
+def _save(model: onnx.ModelProto, path: Path) -> Path:
+    onnx.save(model, str(path))
+    return path
+
+
+def test_unsupported_op_names_the_op_the_node_and_the_supported_ops() -> None:
+    model = make_model([mk("Exp", ["x"], ["y"], name="my_exp")], {}, 6, 6)
+    with pytest.raises(
+        UnsupportedOpError, match=r"node 'my_exp': op Exp is not supported; supported ops: .*Gemm"
+    ):
+        to_ir(model)
+
+
+def test_unknown_attribute_is_rejected() -> None:
+    model = make_model([mk("LeakyRelu", ["x"], ["y"], name="lr", alpha=0.1, beta=2.0)], {}, 6, 6)
+    with pytest.raises(
+        UnsupportedOpError, match=r"LeakyRelu node 'lr': unsupported attribute\(s\) \['beta'\]"
+    ):
+        to_ir(model)
+
+
+def test_unsupported_attribute_value_is_rejected() -> None:
+    model = make_model([mk("Gemm", ["x", "W"], ["y"], name="g", transA=1)], {"W": np.ones((6, 6), F)}, 6, 6)
+    with pytest.raises(UnsupportedOpError, match="Gemm node 'g': transA=1 is not supported"):
+        to_ir(model)
+
+
+def test_runtime_weights_are_rejected() -> None:
+    model = make_model([mk("Relu", ["x"], ["r"]), mk("MatMul", ["x", "r"], ["y"], name="mm")], {}, 6, 6)
+    with pytest.raises(UnsupportedOpError, match="MatMul node 'mm'"):
+        to_ir(model)
+
+
+def test_dynamic_batch_is_fixed_to_one() -> None:
+    graph = to_ir(_mlp())
+    assert graph.shapes["x"] == (1, 6) and graph.shapes["y"] == (1, 2)
+
+
+def test_other_dynamic_dimensions_are_rejected() -> None:
+    model = make_model([mk("Tanh", ["x"], ["y"])], {}, 6, 6, in_shape=[1, "features"])
+    with pytest.raises(UnsupportedOpError, match=r"dynamic dimension 1 \('features'\); only the batch"):
+        to_ir(model)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_weights_are_rejected(bad: float) -> None:
+    w = W.copy()
+    w[1, 2] = bad
+    model = make_model([mk("Gemm", ["x", "W"], ["y"], transB=1)], {"W": w}, 6, 2)
+    with pytest.raises(InvalidModelError, match="initializer 'W' contains 1 NaN/Inf value"):
+        to_ir(model)
+
+
+def test_float64_weights_are_rejected() -> None:
+    model = make_model([mk("Add", ["x", "v"], ["y"])], {"v": np.ones(6)}, 6, 6)
+    with pytest.raises(ExportError, match="float64"):
+        to_ir(model)
+
+
+def test_old_opset_is_rejected() -> None:
+    model = make_model([mk("Relu", ["x"], ["y"])], {}, 6, 6, opset=9)
+    with pytest.raises(UnsupportedOpError, match="opset 9 is not supported; need >= 13"):
+        to_ir(model)
+
+
+def test_missing_truncated_and_foreign_files(tmp_path: Path) -> None:
+    with pytest.raises(InvalidModelError, match="no such file"):
+        load_onnx(tmp_path / "absent.onnx")
+    good = _save(_mlp(), tmp_path / "good.onnx").read_bytes()
+    truncated = tmp_path / "truncated.onnx"
+    truncated.write_bytes(good[: len(good) // 2])
+    with pytest.raises(InvalidModelError, match=r"truncated\.onnx"):
+        load_onnx(truncated)
+    foreign = tmp_path / "foreign.onnx"
+    foreign.write_text("this is not a protobuf\n")
+    with pytest.raises(InvalidModelError, match=r"foreign\.onnx"):
+        load_onnx(foreign)
+
+
+def test_invalid_name_is_rejected() -> None:
+    with pytest.raises(ExportError, match="not a valid prefix"):
+        generate(to_ir(_mlp()), name="2fast")
+
+
+def _cli_error(args: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "Traceback" not in err
+    return err
+
+
+def test_cli_rejects_bad_sources_and_leaves_no_output(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    err = _cli_error(["export", str(tmp_path / "missing.zip"), "--out", str(out)], capsys)
+    assert "missing.zip: no such file" in err
+    (tmp_path / "model.pt").write_bytes(b"\0")
+    err = _cli_error(["export", str(tmp_path / "model.pt"), "--out", str(out)], capsys)
+    assert "unsupported source type '.pt'" in err
+    (tmp_path / "broken.zip").write_bytes(b"PK\x03\x04 broken")
+    err = _cli_error(["export", str(tmp_path / "broken.zip"), "--out", str(out)], capsys)
+    assert "not a readable Stable-Baselines3 model" in err
+    _save(make_model([mk("Exp", ["x"], ["y"])], {}, 6, 2), tmp_path / "exp.onnx")
+    err = _cli_error(["export", str(tmp_path / "exp.onnx"), "--out", str(out)], capsys)
+    assert "op Exp is not supported" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.zip", "exp.onnx", "model.pt"]
+
+
+def test_cli_rejects_a_policy_that_does_not_fit_the_env(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = _save(make_model([mk("Tanh", ["x"], ["y"])], {}, 3, 3), tmp_path / "three.onnx")
+    err = _cli_error(["export", str(src), "--out", str(tmp_path / "out")], capsys)
+    assert "observes 3 values" in err and "--env" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_unwritable_output_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    blocker = tmp_path / "file"
+    blocker.write_text("a file, not a folder")
+    err = _cli_error(["export", str(src), "--out", str(blocker / "out")], capsys)
+    assert "cannot create the output folder" in err
+
+
+def test_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "keep.txt").write_text("precious")
+    err = _cli_error(["export", str(src), "--out", str(out), "--episodes", "0"], capsys)
+    assert "not empty; use --force" in err
+    assert (out / "keep.txt").read_text() == "precious"
+    assert main(["export", str(src), "--out", str(out), "--episodes", "0", "--force"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json"]
+
+
+def test_cli_failed_verification_leaves_the_previous_export(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    out = tmp_path / "out"
+    assert main(["export", str(src), "--out", str(out), "--episodes", "0"]) == 0
+    before = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    bad = make_model(
+        [mk("Tanh", ["x"], ["h"]), mk("Gemm", ["h", "W", "b"], ["y"], transB=1)],
+        {"W": W, "b": B},
+        6,
+        2,
+        in_shape=["batch", 7],
+    )
+    bad_path = tmp_path / "bad.onnx"
+    bad_path.write_bytes(bad.SerializeToString())
+    _cli_error(["export", str(bad_path), "--out", str(out), "--force", "--episodes", "0"], capsys)
+    after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert after == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.onnx", "mlp.onnx", "out"]

@@ -1,0 +1,115 @@
+"""Per-op tests: the generated C against onnxruntime and onnx.reference on the same inputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, cast
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from onnx import helper
+from onnx.reference import ReferenceEvaluator
+
+from tests.export.helpers import compile_model, make_model
+
+F = np.float32
+RNG = np.random.default_rng(0)
+N = 7
+W = RNG.normal(size=(5, N)).astype(F)  # [out, in]
+B5 = RNG.normal(size=5).astype(F)
+V = RNG.normal(size=N).astype(F)
+POSITIVE = (RNG.random(N) + 0.5).astype(F)
+mk = helper.make_node
+
+# name: (nodes, initializers, output dim)
+CASES: dict[str, tuple[list[onnx.NodeProto], dict[str, Any], int]] = {
+    "Gemm transB=1 with bias": ([mk("Gemm", ["x", "W", "b"], ["y"], transB=1)], {"W": W, "b": B5}, 5),
+    "Gemm transB=0 without bias": ([mk("Gemm", ["x", "WT"], ["y"])], {"WT": W.T.copy()}, 5),
+    "Gemm alpha beta scalar C": (
+        [mk("Gemm", ["x", "W", "c"], ["y"], transB=1, alpha=0.5, beta=-2.0)],
+        {"W": W, "c": F(0.25)},
+        5,
+    ),
+    "MatMul then Add": (
+        [mk("MatMul", ["x", "WT"], ["m"]), mk("Add", ["m", "b"], ["y"])],
+        {"WT": W.T.copy(), "b": B5},
+        5,
+    ),
+    "Add vector": ([mk("Add", ["x", "v"], ["y"])], {"v": V}, N),
+    "Add constant first": ([mk("Add", ["v", "x"], ["y"])], {"v": V}, N),
+    "Sub scalar": ([mk("Sub", ["x", "s"], ["y"])], {"s": F(1.5)}, N),
+    "Mul vector [1,N]": ([mk("Mul", ["x", "v"], ["y"])], {"v": V.reshape(1, N)}, N),
+    "Div vector": ([mk("Div", ["x", "p"], ["y"])], {"p": POSITIVE}, N),
+    "Add two runtime values": ([mk("Relu", ["x"], ["r"]), mk("Add", ["x", "r"], ["y"])], {}, N),
+    "Max": ([mk("Max", ["x", "v"], ["y"])], {"v": V}, N),
+    "Min": ([mk("Min", ["x", "v"], ["y"])], {"v": V}, N),
+    "Relu": ([mk("Relu", ["x"], ["y"])], {}, N),
+    "LeakyRelu": ([mk("LeakyRelu", ["x"], ["y"], alpha=0.2)], {}, N),
+    "LeakyRelu default alpha": ([mk("LeakyRelu", ["x"], ["y"])], {}, N),
+    "Tanh": ([mk("Tanh", ["x"], ["y"])], {}, N),
+    "Sigmoid": ([mk("Sigmoid", ["x"], ["y"])], {}, N),
+    "Softplus": ([mk("Softplus", ["x"], ["y"])], {}, N),
+    "Clip both": ([mk("Clip", ["x", "lo", "hi"], ["y"])], {"lo": F(-0.5), "hi": F(0.75)}, N),
+    "Clip min only": ([mk("Clip", ["x", "lo"], ["y"])], {"lo": F(-0.5)}, N),
+    "Clip max only": ([mk("Clip", ["x", "", "hi"], ["y"])], {"hi": F(0.75)}, N),
+    "Identity": ([mk("Identity", ["x"], ["y"])], {}, N),
+    "Flatten": ([mk("Flatten", ["x"], ["y"], axis=1)], {}, N),
+    "Reshape": (
+        [mk("Reshape", ["x", "shape"], ["r"]), mk("Tanh", ["r"], ["y"])],
+        {"shape": np.array([1, -1], dtype=np.int64)},
+        N,
+    ),
+    "Constant operand": (
+        [mk("Constant", [], ["c"], value=onnx.numpy_helper.from_array(V, "c")), mk("Mul", ["x", "c"], ["y"])],
+        {},
+        N,
+    ),
+}
+
+
+def _inputs() -> np.ndarray:
+    x = RNG.normal(scale=3.0, size=(200, N)).astype(F)
+    x[0] = 0.0
+    x[1, :] = 40.0  # large values: Softplus and Sigmoid away from zero
+    x[2, :] = -40.0
+    return x
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_op_matches_onnxruntime_and_reference(case: str, tmp_path: Path) -> None:
+    nodes, inits, out_dim = CASES[case]
+    model = make_model(nodes, inits, N, out_dim)
+    onnx.checker.check_model(model, full_check=True)
+    policy = compile_model(model, tmp_path)
+    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+    reference = cast(Any, ReferenceEvaluator(model))
+    for x in _inputs():
+        row = x.reshape(1, N)
+        expected_ort = session.run(None, {"x": row})[0].reshape(-1)
+        expected_ref = np.asarray(reference.run(None, {"x": row})[0]).reshape(-1)
+        got = policy(x)
+        assert policy.status == 0
+        scale = max(1.0, float(np.max(np.abs(expected_ort))))
+        np.testing.assert_allclose(got, expected_ort, rtol=0, atol=1e-5 * scale)
+        np.testing.assert_allclose(got, expected_ref, rtol=0, atol=1e-5 * scale)
+
+
+def test_non_finite_observation_gives_the_safe_action(tmp_path: Path) -> None:
+    nodes, inits, out_dim = CASES["Gemm transB=1 with bias"]
+    policy = compile_model(make_model(nodes, inits, N, out_dim), tmp_path)
+    for bad in (np.nan, np.inf, -np.inf):
+        x = V.copy()
+        x[3] = bad
+        assert np.array_equal(policy(x), np.zeros(5, F))
+        assert policy.status == 1
+
+
+def test_non_finite_result_gives_the_safe_action(tmp_path: Path) -> None:
+    # Dividing by a zero weight makes infinities: the C must not let them out.
+    model = make_model([mk("Div", ["x", "z"], ["y"])], {"z": np.zeros(N, F)}, N, N)
+    policy = compile_model(model, tmp_path)
+    out = policy(np.ones(N, F))
+    assert policy.status == 2
+    assert np.array_equal(out, np.zeros(N, F))
