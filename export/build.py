@@ -15,8 +15,11 @@ RUNTIME_C = Path(__file__).resolve().parents[1] / "runtime_c"
 """The make project that builds generated policies (beside the Python packages in the repo)."""
 
 
-def make(target: str, c_dir: Path, build_dir: Path) -> None:
-    """Run ``make -C runtime_c TARGET POLICY_DIR=c_dir BUILD_DIR=build_dir``; errors carry make's output."""
+def make(target: str, c_dir: Path, build_dir: Path, opt: str | None = None) -> None:
+    """Run ``make -C runtime_c TARGET POLICY_DIR=c_dir BUILD_DIR=build_dir [OPT=opt]``.
+
+    Errors carry the last lines of make's output.
+    """
     if not (RUNTIME_C / "Makefile").is_file():
         raise BuildError(f"{RUNTIME_C}/Makefile not found: run embedrl from its source tree")
     cmd = [
@@ -28,6 +31,8 @@ def make(target: str, c_dir: Path, build_dir: Path) -> None:
         f"POLICY_DIR={c_dir.resolve()}",
         f"BUILD_DIR={build_dir.resolve()}",
     ]
+    if opt is not None:
+        cmd.append(f"OPT={opt}")
     result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0:
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])

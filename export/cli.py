@@ -71,6 +71,20 @@ def _print_summary(report: dict[str, Any]) -> None:
         print(f"{key:<{width}}  {value}")
 
 
+def cmd_bench_export(args: argparse.Namespace) -> int:
+    from export.bench import run
+    from train.evaluate import provenance, write_json
+
+    result = run(args.export_dir, args.seed)
+    width = max(len(k) for k in result)
+    for key, value in result.items():
+        print(f"{key:<{width}}  {' '.join(value) if isinstance(value, list) else value}")
+    if args.json:
+        write_json({**result, "provenance": provenance()}, args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
 def register(sub: Any) -> None:
     """Add the export subcommands to the ``embedrl`` parser."""
     p = sub.add_parser("export", help="SB3 model or ONNX -> ONNX + generated C, verified")
@@ -90,6 +104,14 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("bench-export", help="ns per inference: generated C vs onnxruntime vs torch")
+    p.add_argument(
+        "--export-dir", type=Path, help="an export folder (default: the study's 6-100-100-2 actor)"
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the measurement here")
+    p.set_defaults(func=cmd_bench_export)
 
 
 ERRORS: tuple[type[Exception], ...] = (ExportError,)

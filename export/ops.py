@@ -240,20 +240,33 @@ def _input_major(node: Node, b: np.ndarray, transposed: bool) -> np.ndarray:
     return np.ascontiguousarray(b.T if transposed else b, dtype=np.float32)
 
 
+K_BLOCK = 4
+"""Inputs folded into one pass over the outputs: fewer loads and stores of the accumulator row."""
+
+
 def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str) -> list[str]:
-    # Per output the sum runs in a fixed order (init, then k = 0, 1, ...): vectorising over
-    # n never reassociates it, so the result does not depend on the optimisation level.
-    return [
-        f"for (int n = 0; n < {n}; ++n) {{",
-        f"    {y}[n] = {init};",
-        "}",
-        f"for (int k = 0; k < {k}; ++k) {{",
-        f"    const float xk = {x}[k];",
-        f"    for (int n = 0; n < {n}; ++n) {{",
-        f"        {y}[n] += xk * {w}[k][n];",
-        "    }",
-        "}",
-    ]
+    # Per output the sum runs in a fixed order (init, then k = 0, 1, ...): the blocked pass
+    # y[n] = y[n] + x0*w0[n] + x1*w1[n] + ... evaluates left to right, and vectorising over n
+    # never reassociates it, so the result does not depend on the optimisation level.
+    lines = [f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"]
+    full = k - k % K_BLOCK
+    if full:
+        terms = " + ".join(f"x{j} * {w}[k + {j}][n]" for j in range(K_BLOCK))
+        lines += [
+            f"for (int k = 0; k < {full}; k += {K_BLOCK}) {{",
+            *[f"    const float x{j} = {x}[k + {j}];" for j in range(K_BLOCK)],
+            f"    for (int n = 0; n < {n}; ++n) {{",
+            f"        {y}[n] = {y}[n] + {terms};",
+            "    }",
+            "}",
+        ]
+    for k0 in range(full, k):
+        lines += [
+            f"for (int n = 0; n < {n}; ++n) {{",
+            f"    {y}[n] = {y}[n] + {x}[{k0}] * {w}[{k0}][n];",
+            "}",
+        ]
+    return lines
 
 
 class Gemm(Emitter):

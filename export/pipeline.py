@@ -151,6 +151,13 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         raise ExportError(
             f"the policy outputs {act_dim} values but {opts.env_id} takes {act_space}; pass --env"
         )
+    if opts.safe_action is not None:
+        safe = np.asarray(opts.safe_action, dtype=np.float32)
+        if safe.shape != (act_dim,) or not act_space.contains(safe):
+            raise ExportError(
+                f"--safe-action {list(opts.safe_action)} must be {act_dim} values within the action space "
+                f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
+            )
 
     log(f"[2/5] generating C ({len(graph.nodes)} ops, {obs_dim} -> {act_dim})")
     header = {

@@ -36,15 +36,17 @@ def make_model(
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)], ir_version=8)
 
 
-def compile_model(model: onnx.ModelProto, tmp: Path, name: str = "policy") -> build.CPolicy:
-    """Generate C for ``model``, build it with make, and load it."""
+def compile_model(
+    model: onnx.ModelProto, tmp: Path, name: str = "policy", opt: str | None = None
+) -> build.CPolicy:
+    """Generate C for ``model``, build it with make (optionally at optimisation ``opt``), and load it."""
     graph = to_ir(model)
     folder = tmp / f"m{next(_counter)}"
     c_dir = folder / "c"
     c_dir.mkdir(parents=True)
     for filename, text in generate(graph, name).items():
         (c_dir / filename).write_text(text)
-    build.make("lib", c_dir, folder / "build")
+    build.make("lib", c_dir, folder / "build", opt)
     return build.CPolicy(
         folder / "build" / "libpolicy.so", name, graph.size(graph.input), graph.size(graph.output)
     )

@@ -189,3 +189,19 @@ def test_cli_failed_verification_leaves_the_previous_export(
     after = {p.relative_to(out): p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert after == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.onnx", "mlp.onnx", "out"]
+
+
+@pytest.mark.parametrize("safe", ["0.5", "0,2", "0,0,0"])
+def test_cli_rejects_a_safe_action_outside_the_action_space(
+    safe: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    err = _cli_error(["export", str(src), "--out", str(tmp_path / "out"), "--safe-action", safe], capsys)
+    assert "--safe-action" in err and "within the action space" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_rejects_a_non_numeric_safe_action(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["export", "x.onnx", "--out", "o", "--safe-action", "zero,zero"])
+    assert "comma-separated numbers" in capsys.readouterr().err

@@ -58,3 +58,22 @@ def test_float_literals_round_trip_exactly(bits: int) -> None:
     text = c_float(float(value))
     assert text.endswith("f") and any(c in text for c in ".e")
     assert np.float32(float(text[:-1])).tobytes() == value.tobytes()
+
+
+def test_results_do_not_depend_on_the_optimisation_level(tmp_path: Path) -> None:
+    # The study's 6-100-100-2 shape: the blocked, vectorised loops keep every output's summation order.
+    rng = np.random.default_rng(5)
+    widths = [6, 100, 100, 2]
+    nodes, inits, last = [], {}, "x"
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
+        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
+        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
+        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
+        out = "y" if i == 2 else f"a{i}"
+        nodes.append(helper.make_node("Tanh" if i == 2 else "Relu", [f"g{i}"], [out]))
+        last = out
+    model = make_model(nodes, inits, 6, 2)
+    x = rng.uniform(-2, 2, size=(2000, 6)).astype(np.float32)
+    o0, _ = compile_model(model, tmp_path, opt="-O0").batch(x)
+    o3, _ = compile_model(model, tmp_path, opt="-O3").batch(x)
+    assert o0.tobytes() == o3.tobytes()

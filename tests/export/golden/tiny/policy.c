@@ -86,11 +86,14 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     for (int n = 0; n < 4; ++n) {
         policy_buf1[n] = policy_w3_b1[n];
     }
-    for (int k = 0; k < 3; ++k) {
-        const float xk = policy_buf0[k];
-        for (int n = 0; n < 4; ++n) {
-            policy_buf1[n] += xk * policy_w2_W1[k][n];
-        }
+    for (int n = 0; n < 4; ++n) {
+        policy_buf1[n] = policy_buf1[n] + policy_buf0[0] * policy_w2_W1[0][n];
+    }
+    for (int n = 0; n < 4; ++n) {
+        policy_buf1[n] = policy_buf1[n] + policy_buf0[1] * policy_w2_W1[1][n];
+    }
+    for (int n = 0; n < 4; ++n) {
+        policy_buf1[n] = policy_buf1[n] + policy_buf0[2] * policy_w2_W1[2][n];
     }
     /* Relu 'relu1' [1x4] -> [1x4] */
     for (int i = 0; i < 4; ++i) {
@@ -100,10 +103,13 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     for (int n = 0; n < 2; ++n) {
         policy_buf0[n] = policy_w5_b2[n];
     }
-    for (int k = 0; k < 4; ++k) {
-        const float xk = policy_buf1[k];
+    for (int k = 0; k < 4; k += 4) {
+        const float x0 = policy_buf1[k + 0];
+        const float x1 = policy_buf1[k + 1];
+        const float x2 = policy_buf1[k + 2];
+        const float x3 = policy_buf1[k + 3];
         for (int n = 0; n < 2; ++n) {
-            policy_buf0[n] += xk * policy_w4_W2[k][n];
+            policy_buf0[n] = policy_buf0[n] + x0 * policy_w4_W2[k + 0][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
         }
     }
     /* Tanh 'squash' [1x2] -> [1x2] */

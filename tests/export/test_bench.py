@@ -1,0 +1,40 @@
+"""The speed benchmark runs and reports its ratios (no timing is asserted: benchmarks are not tests)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import helper
+
+from tests.export.helpers import make_model
+from train.cli import main
+
+
+def test_bench_export_reports_ratios_from_one_run(tmp_path: Path) -> None:
+    w = np.random.default_rng(0).normal(size=(2, 6)).astype(np.float32)
+    model = make_model(
+        [helper.make_node("Gemm", ["x", "W"], ["g"], transB=1), helper.make_node("Tanh", ["g"], ["y"])],
+        {"W": w},
+        6,
+        2,
+    )
+    onnx.save(model, str(tmp_path / "m.onnx"))
+    assert main(["export", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "exp"), "--episodes", "0"]) == 0
+    out = tmp_path / "bench.json"
+    assert main(["bench-export", "--export-dir", str(tmp_path / "exp"), "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["c_ns_per_inference"] > 0 and data["onnxruntime_ns_per_inference"] > 0
+    assert data["torch_ns_per_inference"] is None  # an ONNX source has no torch model
+    assert data["speedup_vs_onnxruntime"] == pytest.approx(
+        data["onnxruntime_ns_per_inference"] / data["c_ns_per_inference"], rel=0.01
+    )
+    assert data["object_text_bytes"] > 0
+
+
+def test_bench_export_needs_an_export_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench-export", "--export-dir", str(tmp_path)]) == 2
+    assert "not an export folder" in capsys.readouterr().err
