@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup demo test test-fast lint type format bench clean
+.PHONY: setup demo test test-fast lint type format bench export-example clean
 
 setup: $(STAMP)
 
@@ -43,6 +43,13 @@ format: $(STAMP)
 
 bench: $(STAMP)
 	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
+	$(VENV)/bin/embedrl bench-export --json $(OUT)/bench/export.json
+
+# Until the training issue ships policies: a briefly trained TD3 with the study's 6-100-100-2 actor,
+# exported with the full verification (10,000 samples, 200 closed-loop episodes).
+export-example: $(STAMP)
+	$(PY) -m export.example $(OUT)/example/td3.zip
+	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force
 
 clean:
 	rm -rf $(OUT) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

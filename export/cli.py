@@ -64,6 +64,7 @@ def _print_summary(report: dict[str, Any]) -> None:
                 )
             )
         rows.append(("episodes with another outcome", f"{loop['differing_outcomes']} of {loop['episodes']}"))
+        rows.append(("max |C - reference| on C's path", f"{loop['c_trajectory_max_action_diff']:.3g}"))
     size = report["code_size"]
     rows.append(("object size", f"text {size['text']} B, data {size['data']} B, bss {size['bss']} B"))
     width = max(len(k) for k, _ in rows)

@@ -215,16 +215,12 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
 
         if opts.episodes and verify.supports_closed_loop(opts.env_id):
             log(f"[5/5] closed loop: {opts.episodes} episodes, reference and generated C")
-            loop: dict[str, Any] | None = verify.closed_loop(
+            loop: dict[str, Any] = verify.closed_loop(
                 reference, compiled, opts.episodes, opts.seed, opts.progress
             )
-            assert loop is not None
-            if loop["differing_outcomes"] > verify.MAX_DIFFERING_OUTCOMES:
-                raise VerificationError(
-                    f"closed loop: {loop['differing_outcomes']} of {opts.episodes} episodes end differently "
-                    f"with the generated C (seeds {loop['differing_seeds'][:10]}); "
-                    f"at most {verify.MAX_DIFFERING_OUTCOMES} allowed"
-                )
+            failure = verify.closed_loop_failure(loop)
+            if failure:
+                raise VerificationError(failure)
         else:
             reason = (
                 "episodes=0" if not opts.episodes else f"{opts.env_id} reports no success/collision outcomes"

@@ -205,3 +205,49 @@ def test_cli_rejects_a_non_numeric_safe_action(capsys: pytest.CaptureFixture[str
     with pytest.raises(SystemExit):
         main(["export", "x.onnx", "--out", "o", "--safe-action", "zero,zero"])
     assert "comma-separated numbers" in capsys.readouterr().err
+
+
+def test_closed_loop_counts_differing_outcomes_and_diagnoses_them() -> None:
+    from export import verify
+    from train.potential_field import PotentialFieldController
+
+    pf = PotentialFieldController()
+
+    def broken(obs: np.ndarray) -> np.ndarray:  # an "export" that lost the network: never moves
+        return np.zeros(2, dtype=np.float32)
+
+    loop = verify.closed_loop(pf, broken, episodes=5, seed=0, progress=False)
+    assert loop["reference"]["successes"] == 5 and loop["c"]["timeouts"] == 5
+    assert loop["differing_outcomes"] == 5 and loop["differing_seeds"] == [0, 1, 2, 3, 4]
+    assert loop["c_trajectory_max_action_diff"] > 0.5
+    message = verify.closed_loop_failure(loop)
+    assert (
+        message is not None and "5 of 5 episodes end differently" in message and "an export error" in message
+    )
+    same = verify.closed_loop(pf, pf, episodes=5, seed=0, progress=False)
+    assert same["differing_outcomes"] == 0 and same["c_trajectory_max_action_diff"] == 0.0
+    assert verify.closed_loop_failure(same) is None
+    rounding = {**loop, "c_trajectory_max_action_diff": 3e-7}
+    assert "float32 rounding amplified" in (verify.closed_loop_failure(rounding) or "")
+
+
+def test_failed_closed_loop_fails_the_export_and_writes_nothing(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from export import verify
+
+    def always_differs(
+        reference: Any, compiled: Any, episodes: int, seed: int, progress: bool
+    ) -> dict[str, Any]:
+        return {
+            "episodes": episodes,
+            "differing_outcomes": 3,
+            "differing_seeds": [1, 2, 3],
+            "c_trajectory_max_action_diff": 0.25,
+        }
+
+    monkeypatch.setattr(verify, "closed_loop", always_differs)
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    err = _cli_error(["export", str(src), "--out", str(tmp_path / "out"), "--episodes", "4"], capsys)
+    assert "closed loop: 3 of 4 episodes end differently" in err and "an export error" in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mlp.onnx"]
