@@ -15,7 +15,9 @@ RUNTIME_C = Path(__file__).resolve().parents[1] / "runtime_c"
 """The make project that builds generated policies (beside the Python packages in the repo)."""
 
 
-def make(target: str, c_dir: Path, build_dir: Path, opt: str | None = None) -> None:
+def make(
+    target: str, c_dir: Path, build_dir: Path, opt: str | None = None, extra: dict[str, str] | None = None
+) -> None:
     """Run ``make -C runtime_c TARGET POLICY_DIR=c_dir BUILD_DIR=build_dir [OPT=opt]``.
 
     Errors carry the last lines of make's output.
@@ -33,9 +35,12 @@ def make(target: str, c_dir: Path, build_dir: Path, opt: str | None = None) -> N
     ]
     if opt is not None:
         cmd.append(f"OPT={opt}")
+    cmd += [f"{k}={v}" for k, v in (extra or {}).items()]
     result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0:
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])
+        if "overflowed by" in result.stderr or "RAM overflow" in result.stderr:
+            tail = result.stderr  # the linker names the region: keep every line
         raise BuildError(f"building the generated C failed (make {target}):\n{tail}")
 
 

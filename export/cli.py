@@ -33,6 +33,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         vecnormalize=args.vecnormalize,
         safe_action=args.safe_action,
         force=args.force,
+        targets=tuple(args.target or ()),
         progress=sys.stderr.isatty(),
     )
     report = run_export(opts)
@@ -65,6 +66,15 @@ def _print_summary(report: dict[str, Any]) -> None:
             )
         rows.append(("episodes with another outcome", f"{loop['differing_outcomes']} of {loop['episodes']}"))
         rows.append(("max |C - reference| on C's path", f"{loop['c_trajectory_max_action_diff']:.3g}"))
+    for name, t in report["targets"].items():
+        rows.append((f"{name} on QEMU {t['qemu_machine']}", f"max |error| {t['max_abs_error']:.3g}"))
+        rows.append(
+            (
+                f"{name} policy size",
+                f"flash {t['flash_bytes']} B, RAM {t['ram_bytes']} B "
+                f"(stack {t['stack_bytes']} B); test image flash {t['image_flash_bytes']} B",
+            )
+        )
     size = report["code_size"]
     rows.append(("object size", f"text {size['text']} B, data {size['data']} B, bss {size['bss']} B"))
     width = max(len(k) for k, _ in rows)
@@ -104,6 +114,12 @@ def register(sub: Any) -> None:
         "--safe-action", type=_safe_action, help="action on non-finite input, e.g. 0,0 (default zeros)"
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument(
+        "--target",
+        action="append",
+        choices=["cortex-m4", "cortex-m3", "cortex-m7"],
+        help="also build firmware for this Cortex-M, run it on QEMU and measure it (repeatable)",
+    )
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("bench-export", help="ns per inference: generated C vs onnxruntime vs torch")

@@ -23,7 +23,7 @@ import onnx
 import onnxruntime as ort
 
 import train
-from export import build, verify
+from export import build, target, verify
 from export.codegen import NAME_PATTERN, generate
 from export.errors import ExportError, UnsupportedModelError, VerificationError
 from export.onnx_import import load_onnx, to_ir
@@ -49,6 +49,8 @@ class ExportOptions:
     safe_action: tuple[float, ...] | None = None
     force: bool = False
     progress: bool = False
+    targets: tuple[str, ...] = ()
+    """Cortex-M targets to build, run under QEMU and measure (names in export.target.TARGETS)."""
 
 
 def sha256(path: Path) -> str:
@@ -86,6 +88,13 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
     """Run every step; return the export report. Raises :class:`ExportError` on any failure."""
     if not NAME_PATTERN.fullmatch(opts.name):
         raise ExportError(f"--name {opts.name!r} is not valid: use a lower-case C identifier (a-z, 0-9, _)")
+    unknown = [t for t in opts.targets if t not in target.TARGETS]
+    if unknown:
+        raise ExportError(f"unknown target(s) {unknown}; supported: {', '.join(target.TARGETS)}")
+    if opts.targets and opts.name != "policy":
+        raise ExportError(
+            "--target builds the test firmware around policy_step: use the default --name policy"
+        )
     if opts.episodes < 0:
         raise ExportError(f"closed-loop episodes must be >= 0, got {opts.episodes}")
     _check_output_folder(opts.out, opts.force)
@@ -100,6 +109,37 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return report
+
+
+def _verify_target(
+    t: target.Target,
+    c_dir: Path,
+    vectors_path: Path,
+    vectors: np.ndarray,
+    expected: np.ndarray,
+    build_dir: Path,
+    act_dim: int,
+) -> dict[str, Any]:
+    """Build and run one target's firmware; its actions must match the reference within tolerance."""
+    out = target.build_firmware(t, c_dir, vectors_path, build_dir)
+    run = target.run_qemu(t, out / "firmware.elf", len(vectors), act_dim)
+    if np.any(run.codes != 0):
+        raise VerificationError(
+            f"{t.name}: policy_step returned an error on {int(np.sum(run.codes != 0))} observations"
+        )
+    err = verify.max_abs_error(run.actions, expected)
+    if err > verify.TOLERANCE:
+        raise VerificationError(
+            f"{t.name}: the firmware differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
+        )
+    return {
+        "qemu_machine": t.qemu_machine,
+        "max_abs_error": err,
+        **target.sizes(out, run.stack_bytes),
+        "quantize": None,
+        "samples": len(vectors),
+        "memory_kib": {"flash": t.flash_kib, "ram": t.ram_kib},
+    }
 
 
 def _replace_folder(staging: Path, out: Path) -> None:
@@ -207,6 +247,18 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
             raise VerificationError(
                 f"the generated C differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
             )
+        vectors = target.pick_test_vectors(samples, from_rollouts)
+        vectors_path = staging / "test" / "test_vectors.c"
+        vectors_path.parent.mkdir()
+        vectors_path.write_text(target.test_vectors_source(vectors))
+        files["test/test_vectors.c"] = vectors_path
+        targets = {}
+        for name in opts.targets:
+            log(f"[4/5] {name}: building firmware, running it on QEMU")
+            targets[name] = _verify_target(
+                target.TARGETS[name], c_dir, vectors_path, vectors, onnx_policy(vectors), build_dir, act_dim
+            )
+
         nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
         safe = compiled(nan_obs)
         checks["non_finite_observation"] = {"return_code": compiled.status, "action": safe.tolist()}
@@ -248,6 +300,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         "verification": checks,
         "closed_loop": loop,
         "code_size": code_size,
+        "targets": targets,
         "files": {k: sha256(v) for k, v in sorted(files.items())},
         "provenance": provenance(),
     }

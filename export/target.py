@@ -1,0 +1,167 @@
+"""Bare-metal Cortex-M targets: build the generated C into firmware, run it under QEMU, measure it.
+
+The firmware (``make -C runtime_c TARGET=...``) runs the policy on observations embedded at build
+time and prints the action bits through semihosting; they are compared with a reference computed
+on the host. Sizes come from the linked images: the policy's cost is the difference between an
+image that calls ``policy_step`` and one that does not (so it includes the library routines the
+policy pulls in, such as libm or software floating point), its RAM adds the measured peak stack.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from export import build
+from export.codegen import c_float
+from export.errors import BuildError, ExportError
+
+TEST_VECTOR_COUNT = 256
+"""Observations embedded in the test image (half uniform, half recorded from rollouts)."""
+QEMU_TIMEOUT_S = 300
+APT_PACKAGES = "gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm"
+
+
+@dataclass(frozen=True)
+class Target:
+    """A Cortex-M core, the QEMU machine that emulates it, and the part whose memory it models."""
+
+    name: str
+    qemu_machine: str
+    flash_kib: int
+    ram_kib: int
+    """Memory of the modelled part (runtime_c/cortex_m/<name>.ld)."""
+
+
+TARGETS = {
+    "cortex-m4": Target("cortex-m4", "mps2-an386", 1024, 192),
+    "cortex-m3": Target("cortex-m3", "mps2-an385", 256, 64),
+    "cortex-m7": Target("cortex-m7", "mps2-an500", 2048, 512),
+}
+
+
+def test_vectors_source(observations: np.ndarray) -> str:
+    """C source defining the test image's observations (exact float literals)."""
+    rows = ",\n".join("    {" + ", ".join(c_float(v) for v in row) + "}" for row in observations)
+    return (
+        "/* Observations for the Cortex-M test image, written by embedrl export. Do not edit. */\n"
+        f"const unsigned embedrl_test_count = {len(observations)}u;\n"
+        f"const float embedrl_test_obs[{len(observations)}][{observations.shape[1]}] = {{\n{rows}\n}};\n"
+    )
+
+
+def pick_test_vectors(samples: np.ndarray, from_rollouts: int) -> np.ndarray:
+    """TEST_VECTOR_COUNT observations spread over the uniform and the recorded samples."""
+    uniform, recorded = samples[: len(samples) - from_rollouts], samples[len(samples) - from_rollouts :]
+    half = TEST_VECTOR_COUNT // 2
+    parts = [
+        p[np.linspace(0, len(p) - 1, min(len(p), half)).astype(int)] for p in (uniform, recorded) if len(p)
+    ]
+    picked = np.concatenate(parts)
+    if len(picked) < TEST_VECTOR_COUNT:
+        extra = uniform[np.linspace(0, len(uniform) - 1, TEST_VECTOR_COUNT - len(picked)).astype(int)]
+        picked = np.concatenate([picked, extra])
+    return np.ascontiguousarray(picked[:TEST_VECTOR_COUNT], dtype=np.float32)
+
+
+def _require(tool: str) -> None:
+    if shutil.which(tool) is None:
+        raise ExportError(f"{tool} not found: install the Debian packages {APT_PACKAGES} (make deps)")
+
+
+_OVERFLOW = re.compile(r"region [`']?(\w+)'? overflowed by (\d+) bytes")
+
+
+def build_firmware(target: Target, c_dir: Path, vectors: Path, build_dir: Path) -> Path:
+    """Build the test image and the size probes; a policy too large for the part is a clear error."""
+    _require("arm-none-eabi-gcc")
+    try:
+        build.make(
+            "firmware",
+            c_dir,
+            build_dir,
+            extra={"TARGET": target.name, "TEST_VECTORS": str(vectors.resolve())},
+        )
+    except BuildError as exc:
+        overflows = _OVERFLOW.findall(str(exc))
+        if overflows:
+            region, excess = max(overflows, key=lambda o: int(o[1]))
+            size = target.flash_kib if region == "FLASH" else target.ram_kib
+            raise ExportError(
+                f"{target.name}: the policy does not fit the target's memory: region {region} "
+                f"({size} KiB) overflowed by {int(excess)} bytes"
+            ) from None
+        if "RAM overflow" in str(exc):
+            raise ExportError(
+                f"{target.name}: the policy does not fit the target's RAM ({target.ram_kib} KiB)"
+            ) from None
+        raise
+    return build_dir / target.name
+
+
+@dataclass(frozen=True)
+class TargetRun:
+    actions: np.ndarray
+    codes: np.ndarray
+    stack_bytes: int
+
+
+def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> TargetRun:
+    """Run the test image on QEMU and parse what it reports through semihosting."""
+    _require("qemu-system-arm")
+    cmd = [
+        "qemu-system-arm",
+        "-M",
+        target.qemu_machine,
+        "-nographic",
+        "-monitor",
+        "none",
+        "-semihosting",
+        "-kernel",
+        str(firmware),
+    ]
+    try:
+        result = subprocess.run(cmd, capture_output=True, text=True, timeout=QEMU_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        raise ExportError(
+            f"{target.name}: the firmware did not finish within {QEMU_TIMEOUT_S} s on QEMU"
+        ) from None
+    if result.returncode != 0:
+        raise ExportError(
+            f"{target.name}: the firmware exited with status {result.returncode} on QEMU {target.qemu_machine} "
+            f"(3 is a fault): {(result.stdout + result.stderr).strip()[-300:]}"
+        )
+    lines = result.stdout.splitlines()
+    stack = [int(line.split()[1]) for line in lines if line.startswith("STACK ")]
+    rows = [line.split() for line in lines if line.startswith("A ")]
+    if len(stack) != 1 or len(rows) != count or f"DONE {count}" not in lines:
+        raise ExportError(f"{target.name}: unexpected firmware output: {result.stdout[:300]!r}")
+    bits = np.array([[int(h, 16) for h in row[3:]] for row in rows], dtype=np.uint32)
+    if bits.shape != (count, act_dim):
+        raise ExportError(
+            f"{target.name}: the firmware printed {bits.shape[1]} actions per line, expected {act_dim}"
+        )
+    return TargetRun(bits.view(np.float32), np.array([int(row[2]) for row in rows]), stack[0])
+
+
+def sizes(out: Path, stack_bytes: int) -> dict[str, int]:
+    """Policy flash and RAM (difference of the probe images plus the stack) and the test image's."""
+    policy, empty, image = (_size(out / f"{name}.elf") for name in ("policy", "empty", "firmware"))
+    return {
+        "flash_bytes": (policy["text"] + policy["data"]) - (empty["text"] + empty["data"]),
+        "ram_bytes": (policy["data"] + policy["bss"]) - (empty["data"] + empty["bss"]) + stack_bytes,
+        "stack_bytes": stack_bytes,
+        "image_flash_bytes": image["text"] + image["data"],
+        "image_ram_bytes": image["data"] + image["bss"],
+    }
+
+
+def _size(elf: Path) -> dict[str, int]:
+    out = subprocess.run(["arm-none-eabi-size", str(elf)], capture_output=True, text=True, check=True).stdout
+    text, data, bss = (int(v) for v in out.splitlines()[1].split()[:3])
+    return {"text": text, "data": data, "bss": bss}
