@@ -133,8 +133,8 @@ def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> Target
         ) from None
     if result.returncode != 0:
         raise ExportError(
-            f"{target.name}: the firmware exited with status {result.returncode} on QEMU {target.qemu_machine} "
-            f"(3 is a fault): {(result.stdout + result.stderr).strip()[-300:]}"
+            f"{target.name}: the firmware exited with status {result.returncode} "
+            f"on QEMU {target.qemu_machine} (3 is a fault): {(result.stdout + result.stderr).strip()[-300:]}"
         )
     lines = result.stdout.splitlines()
     stack = [int(line.split()[1]) for line in lines if line.startswith("STACK ")]
