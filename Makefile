@@ -5,9 +5,20 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup demo test test-fast lint type format bench export-example clean
+.PHONY: setup deps demo test test-fast lint type format bench export-example clean
 
 setup: $(STAMP)
+
+# Debian packages the Cortex-M tests need: cross compiler, newlib, QEMU. Installed when missing
+# (as root or with passwordless sudo); otherwise the command to run is printed.
+APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm
+deps:
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	echo "installing Debian packages:$$missing"; \
+	if [ "$$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO=sudo; \
+	else echo "missing Debian packages:$$missing; run: sudo apt-get install$$missing" >&2; exit 1; fi; \
+	$$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q $$missing
 
 # torch first and pinned: an unpinned torch pulls several GB of CUDA wheels (platform notes).
 $(STAMP): pyproject.toml
@@ -24,7 +35,7 @@ demo: $(STAMP)
 	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
 	@echo "demo: wrote $(OUT)/demo/eval.json, trajectories.png and episode.gif"
 
-test: $(STAMP)
+test: deps $(STAMP)
 	$(PY) -m pytest
 
 test-fast: $(STAMP)

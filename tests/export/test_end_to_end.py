@@ -64,10 +64,10 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
     assert loop["episodes"] == 20 and loop["differing_outcomes"] <= MAX_DIFFERING_OUTCOMES
     for who in ("reference", "c"):
         assert loop[who]["successes"] + loop[who]["collisions"] + loop[who]["timeouts"] == 20
-    assert sorted(report["files"]) == ["c/policy.c", "c/policy.h", "policy.onnx"]
+    assert sorted(report["files"]) == ["c/policy.c", "c/policy.h", "policy.onnx", "test/test_vectors.c"]
     assert report["compiler"]["command"].startswith("cc -std=c99 -Wall -Wextra -Werror -pedantic")
     assert report["code_size"]["text"] > 0
-    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json", "policy.onnx"]
+    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json", "policy.onnx", "test"]
     expected_class = {"ddpg": "TD3Policy", "td3": "TD3Policy", "sac": "SACPolicy", "ppo": "ActorCriticPolicy"}
     assert report["source"]["policy_class"] == expected_class[algo]
 
@@ -159,7 +159,7 @@ def test_onnx_source_and_name_prefix(models: dict[str, Path], tmp_path: Path) ->
         first / "policy.onnx", tmp_path / "second", "--name", "drive", "--safe-action", "0.5,-0.5"
     )
     assert report["source"]["kind"] == "onnx" and report["name"] == "drive"
-    assert sorted(report["files"]) == ["c/drive.c", "c/drive.h"]
+    assert sorted(report["files"]) == ["c/drive.c", "c/drive.h", "test/test_vectors.c"]
     assert report["verification"]["onnx_vs_sb3_max_abs_error"] is None
     assert report["verification"]["non_finite_observation"] == {"return_code": 1, "action": [0.5, -0.5]}
     assert report["closed_loop"]["differing_outcomes"] == 0

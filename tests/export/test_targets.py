@@ -1,0 +1,106 @@
+"""Cortex-M targets: firmware for M4 and M3 built, run on QEMU, checked against onnxruntime, measured.
+
+These tests need Debian's gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-system-arm
+(``make deps``; CI installs them). Without them they fail with the install hint, never skip.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import pytest
+from onnx import helper
+
+from export.build import RUNTIME_C
+from tests.export.helpers import make_model
+from train.cli import main
+
+pytestmark = pytest.mark.slow
+
+
+def _mlp(widths: list[int], seed: int = 0) -> onnx.ModelProto:
+    rng = np.random.default_rng(seed)
+    nodes, inits, last = [], {}, "x"
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
+        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
+        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
+        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
+        out = "y" if i == len(widths) - 2 else f"a{i}"
+        nodes.append(helper.make_node("Tanh" if out == "y" else "Relu", [f"g{i}"], [out]))
+        last = out
+    return make_model(nodes, inits, widths[0], widths[-1])
+
+
+def _export(tmp_path: Path, widths: list[int], *extra: str) -> tuple[int, Path]:
+    src = tmp_path / "mlp.onnx"
+    onnx.save(_mlp(widths), str(src))
+    out = tmp_path / "export"
+    return main(["export", str(src), "--out", str(out), "--episodes", "0", *extra]), out
+
+
+@pytest.fixture(scope="module")
+def study_export(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    code, out = _export(tmp_path_factory.mktemp("study"), [6, 100, 100, 2], "--target", "cortex-m4",
+                        "--target", "cortex-m3")
+    assert code == 0
+    report: dict[str, Any] = json.loads((out / "export_report.json").read_text())
+    return report
+
+
+@pytest.mark.parametrize(("target", "machine"), [("cortex-m4", "mps2-an386"), ("cortex-m3", "mps2-an385")])
+def test_firmware_matches_onnxruntime_on_qemu(study_export: dict[str, Any], target: str, machine: str) -> None:
+    t = study_export["targets"][target]
+    assert t["qemu_machine"] == machine
+    assert t["samples"] == 256
+    assert t["max_abs_error"] <= 1e-5
+    assert t["quantize"] is None
+
+
+def test_size_report_is_within_the_bounds_for_the_study_actor(study_export: dict[str, Any]) -> None:
+    m4, m3 = study_export["targets"]["cortex-m4"], study_export["targets"]["cortex-m3"]
+    weights = (6 * 100 + 100 + 100 * 100 + 100 + 100 * 2 + 2) * 4
+    for t, flash_limit in ((m4, 48 * 1024), (m3, 64 * 1024)):
+        assert weights < t["flash_bytes"] <= flash_limit
+        assert 800 < t["ram_bytes"] <= 1024  # two 100-float buffers plus the measured stack
+        assert 0 < t["stack_bytes"] < 512
+        assert t["image_flash_bytes"] > t["flash_bytes"]
+    # Software floating point costs the M3 flash, not accuracy.
+    assert m3["flash_bytes"] > m4["flash_bytes"]
+
+
+def test_a_policy_too_large_for_the_target_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # 6-300-300-2 float weights are 370 KB; the Cortex-M3 part has 256 KiB of flash.
+    code, out = _export(tmp_path, [6, 300, 300, 2], "--target", "cortex-m3")
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "cortex-m3: the policy does not fit the target's memory: region FLASH (256 KiB) overflowed by" in err
+    assert "collect2" not in err and not out.exists()
+
+
+def test_firmware_builds_by_hand_from_an_export(tmp_path: Path) -> None:
+    code, out = _export(tmp_path, [6, 8, 2])
+    assert code == 0 and (out / "test" / "test_vectors.c").is_file()
+    result = subprocess.run(
+        ["make", "-C", str(RUNTIME_C), "TARGET=cortex-m4", f"POLICY_DIR={out / 'c'}", f"BUILD_DIR={tmp_path / 'b'}"],
+        capture_output=True, text=True,
+    )
+    assert result.returncode == 0, result.stderr
+    run = subprocess.run(["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none", "-semihosting",
+                          "-kernel", str(tmp_path / "b" / "cortex-m4" / "firmware.elf")],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and "DONE 256" in run.stdout
+
+
+def test_unknown_target_and_renamed_policy_are_rejected(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code, _ = _export(tmp_path, [6, 8, 2], "--target", "cortex-m4", "--name", "drive")
+    assert code == 2 and "use the default --name policy" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["export", "x.onnx", "--out", "o", "--target", "cortex-m0"])
+    result = subprocess.run(["make", "-C", str(RUNTIME_C), "TARGET=avr", "POLICY_DIR=/tmp"], capture_output=True, text=True)
+    assert result.returncode != 0 and "unknown TARGET=avr" in result.stderr
