@@ -34,6 +34,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         safe_action=args.safe_action,
         force=args.force,
         targets=tuple(args.target or ()),
+        quantize=args.quantize,
         progress=sys.stderr.isatty(),
     )
     report = run_export(opts)
@@ -51,7 +52,18 @@ def _print_summary(report: dict[str, Any]) -> None:
     ]
     if v["onnx_vs_sb3_max_abs_error"] is not None:
         rows.append(("max |ONNX - SB3|", f"{v['onnx_vs_sb3_max_abs_error']:.3g}"))
-    rows.append(("max |C - onnxruntime|", f"{v['c_vs_onnxruntime_max_abs_error']:.3g}"))
+    if "quantization" in v:
+        q = v["quantization"]
+        rows.append(("quantization", q["scheme"]))
+        rows.append(
+            (
+                "C vs Python model of it",
+                f"{q['model_mismatches']} of {v['samples']} samples differ in any bit",
+            )
+        )
+        rows.append(("worst |int8 - float|", f"{q['worst_action_error_vs_float']:.3g}"))
+    else:
+        rows.append(("max |C - onnxruntime|", f"{v['c_vs_onnxruntime_max_abs_error']:.3g}"))
     loop = report["closed_loop"]
     if "skipped" in loop:
         rows.append(("closed loop", f"skipped: {loop['skipped']}"))
@@ -67,7 +79,12 @@ def _print_summary(report: dict[str, Any]) -> None:
         rows.append(("episodes with another outcome", f"{loop['differing_outcomes']} of {loop['episodes']}"))
         rows.append(("max |C - reference| on C's path", f"{loop['c_trajectory_max_action_diff']:.3g}"))
     for name, t in report["targets"].items():
-        rows.append((f"{name} on QEMU {t['qemu_machine']}", f"max |error| {t['max_abs_error']:.3g}"))
+        check = (
+            "bit-exact with the model"
+            if t["bit_exact_with_model"]
+            else f"max |error| {t['max_abs_error']:.3g}"
+        )
+        rows.append((f"{name} on QEMU {t['qemu_machine']}", check))
         rows.append(
             (
                 f"{name} policy size",
@@ -114,6 +131,7 @@ def register(sub: Any) -> None:
         "--safe-action", type=_safe_action, help="action on non-finite input, e.g. 0,0 (default zeros)"
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument("--quantize", choices=["int8"], help="int8 weights per output channel (float activations)")
     p.add_argument(
         "--target",
         action="append",

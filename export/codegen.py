@@ -96,8 +96,11 @@ def plan_buffers(graph: Graph, input_ref: str) -> _Plan:
 class _Context:
     """The :class:`export.ops.EmitContext` the emitters write through."""
 
-    def __init__(self, graph: Graph, prefix: str, plan: _Plan) -> None:
+    def __init__(self, graph: Graph, prefix: str, plan: _Plan, quantize: str | None = None) -> None:
         self.graph, self.prefix, self.plan = graph, prefix, plan
+        self.quantize = quantize
+        self.helpers: dict[str, str] = {}
+        """Deterministic math helpers emitted so far: name -> C definition."""
         self.declarations: list[str] = []
         self._symbols: dict[str, str] = {}
         self.const_bytes = 0
@@ -114,16 +117,17 @@ class _Context:
             return self._symbols[key]
         symbol = f"{self.prefix}_w{len(self._symbols)}_{_sanitize(key.split('#')[0])}"
         self._symbols[key] = symbol
-        a = np.asarray(array, dtype=np.float32)
-        self.const_bytes += a.size * 4
+        integer = np.asarray(array).dtype == np.int8
+        a = np.asarray(array, dtype=np.int8 if integer else np.float32)
+        self.const_bytes += a.size * a.itemsize
         dims = "".join(f"[{d}]" for d in a.shape)
-        lines = [f"/* {comment} */", f"static const float {symbol}{dims} = {{"]
+        ctype = "int8_t" if integer else "float"
+        lines = [f"/* {comment} */", f"static const {ctype} {symbol}{dims} = {{"]
         rows = a.reshape(1, -1) if a.ndim == 1 else a
+        per_line = VALUES_PER_LINE * 3 if integer else VALUES_PER_LINE
         for r, row in enumerate(rows):
-            items = [c_float(v) for v in row]
-            chunks = [
-                ", ".join(items[i : i + VALUES_PER_LINE]) for i in range(0, len(items), VALUES_PER_LINE)
-            ]
+            items = [str(int(v)) for v in row] if integer else [c_float(v) for v in row]
+            chunks = [", ".join(items[i : i + per_line]) for i in range(0, len(items), per_line)]
             sep = "," if r < len(rows) - 1 else ""
             if a.ndim == 1:
                 lines += [
@@ -144,6 +148,14 @@ class _Context:
     def literal(self, value: float) -> str:
         return c_float(value)
 
+    def helper(self, name: str) -> str:
+        needs = {"tanh_det": ["exp_det"], "sigmoid_det": ["exp_det"], "exp_det": []}[name]
+        for dependency in needs:
+            self.helper(dependency)
+        if name not in self.helpers:
+            self.helpers[name] = _helper_source(self.prefix, name)
+        return f"{self.prefix}_{name}"
+
     def constant(self, value: str) -> np.ndarray | None:
         return self.graph.constants.get(value)
 
@@ -151,11 +163,53 @@ class _Context:
         return self.graph.size(value)
 
 
+def _helper_source(prefix: str, name: str) -> str:
+    """C of a deterministic math helper; mirrored operation by operation in export.quantize."""
+    from export import quantize as q
+
+    if name == "exp_det":
+        lo, hi = c_float(q.EXP_CLAMP[0]), c_float(q.EXP_CLAMP[1])
+        steps = "\n".join(f"    p = p * f + {c_float(float(c))};" for c in reversed(q.EXP2_POLY[:-1]))
+        return f"""/* exp(x) from IEEE float operations only: the same bits anywhere (see export.quantize). */
+static float {prefix}_exp_det(float x)
+{{
+    x = x < {lo} ? {lo} : (x > {hi} ? {hi} : x);
+    const float t = x * {c_float(float(q.LOG2E))};
+    const float t_half = t + 0.5f;
+    int32_t n = (int32_t)t_half;
+    if ((float)n > t_half) {{
+        n -= 1; /* floor(t + 1/2): f stays within [-1/2, 1/2] */
+    }}
+    const float f = t - (float)n;
+    float p = {c_float(float(q.EXP2_POLY[-1]))};
+{steps}
+    union {{
+        uint32_t u;
+        float f;
+    }} two_n;
+    two_n.u = (uint32_t)(n + 127) << 23; /* 2^n exactly: n is within [-125, 127] */
+    return p * two_n.f;
+}}"""
+    if name == "tanh_det":
+        return f"""static float {prefix}_tanh_det(float x)
+{{
+    const float a = x < 0.0f ? -x : x;
+    float t = 1.0f - 2.0f / ({prefix}_exp_det(a + a) + 1.0f);
+    t = a > {c_float(q.TANH_SATURATION)} ? 1.0f : t;
+    return x < 0.0f ? -t : t;
+}}"""
+    return f"""static float {prefix}_sigmoid_det(float x)
+{{
+    return 1.0f / (1.0f + {prefix}_exp_det(-x));
+}}"""
+
+
 def generate(
     graph: Graph,
     name: str = "policy",
     safe_action: Sequence[float] | None = None,
     provenance: Mapping[str, str] | None = None,
+    quantize: str | None = None,
 ) -> dict[str, str]:
     """Generate ``{name}.h`` and ``{name}.c`` for ``graph``.
 
@@ -170,7 +224,13 @@ def generate(
         raise ExportError(f"safe action has {len(safe)} values but the policy outputs {act_dim}")
     up = name.upper()
     plan = plan_buffers(graph, "obs")
-    ctx = _Context(graph, name, plan)
+    if quantize not in (None, "int8"):
+        raise ExportError(f"quantization {quantize!r} is not supported; supported: int8")
+    if quantize:
+        from export.quantize import check_supported
+
+        check_supported(graph)
+    ctx = _Context(graph, name, plan, quantize)
     body: list[str] = []
     for node in graph.nodes:
         emitter = EMITTERS[node.op]
@@ -190,7 +250,8 @@ def generate(
             "/*",
             f" * {name}: policy generated by embedrl. Do not edit: regenerate with `embedrl export`.",
             *header_lines,
-            f" * observation [{obs_dim}] -> action [{act_dim}], {len(graph.nodes)} ops",
+            f" * observation [{obs_dim}] -> action [{act_dim}], {len(graph.nodes)} ops"
+            + (", int8 weights per output channel, float32 activations" if quantize else ""),
             f" * RAM: {len(plan.buffer_sizes)} static buffer(s), {ram} bytes; "
             f"weights: {ctx.const_bytes} bytes of const data",
             f" * Not reentrant: {name}_step uses file-scope buffers (one call at a time).",
@@ -224,14 +285,14 @@ int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
 #include "{name}.h"
 
 #include <math.h>
-
+{"#include <stdint.h>" + chr(10) if quantize else ""}
 {chr(10).join(ctx.declarations)}
 
 {safe_decl}
 
 /* Scratch buffers ({ram} bytes). */
 {chr(10).join(buffers) if buffers else "/* none */"}
-
+{"".join(chr(10) + h + chr(10) for h in ctx.helpers.values())}
 static int {name}_safe(float act[{up}_ACT_DIM], int code)
 {{
     for (int i = 0; i < {up}_ACT_DIM; ++i) {{

@@ -24,12 +24,19 @@ Shape = tuple[int, ...]
 class EmitContext(Protocol):
     """What an emitter may ask of the code generator."""
 
+    quantize: str | None
+    """None for float32 code, "int8" for int8 weights (see export.quantize)."""
+
+    def helper(self, name: str) -> str:
+        """Emit the named deterministic math helper (``exp_det``, ``tanh_det``, ``sigmoid_det``) once."""
+        ...
+
     def ref(self, value: str) -> str:
         """C expression for the array holding ``value`` (a buffer, the input, or a constant)."""
         ...
 
     def const(self, key: str, array: np.ndarray, comment: str) -> str:
-        """Declare a ``static const float`` array (1-D or 2-D) once and return its symbol."""
+        """Declare a ``static const`` float (or int8) array, 1-D or 2-D, once and return its symbol."""
         ...
 
     def literal(self, value: float) -> str:
@@ -122,9 +129,29 @@ class LeakyRelu(Unary):
 class Tanh(Unary):
     expression = "tanhf({x})"
 
+    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
+        if ctx.quantize:  # libm's tanhf differs between C libraries: use the exact helper
+            x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
+            return [
+                f"for (int i = 0; i < {n}; ++i) {{",
+                f"    {y}[i] = {ctx.helper('tanh_det')}({x}[i]);",
+                "}",
+            ]
+        return super().emit(node, ctx, n)
+
 
 class Sigmoid(Unary):
     expression = "1.0f / (1.0f + expf(-{x}))"
+
+    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
+        if ctx.quantize:
+            x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
+            return [
+                f"for (int i = 0; i < {n}; ++i) {{",
+                f"    {y}[i] = {ctx.helper('sigmoid_det')}({x}[i]);",
+                "}",
+            ]
+        return super().emit(node, ctx, n)
 
 
 class Softplus(Unary):
@@ -244,14 +271,14 @@ K_BLOCK = 4
 """Inputs folded into one pass over the outputs: fewer loads and stores of the accumulator row."""
 
 
-def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str) -> list[str]:
+def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str = "") -> list[str]:
     # Per output the sum runs in a fixed order (init, then k = 0, 1, ...): the blocked pass
     # y[n] = y[n] + x0*w0[n] + x1*w1[n] + ... evaluates left to right, and vectorising over n
     # never reassociates it, so the result does not depend on the optimisation level.
     lines = [f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"]
     full = k - k % K_BLOCK
     if full:
-        terms = " + ".join(f"x{j} * {w}[k + {j}][n]" for j in range(K_BLOCK))
+        terms = " + ".join(f"x{j} * {cast}{w}[k + {j}][n]" for j in range(K_BLOCK))
         lines += [
             f"for (int k = 0; k < {full}; k += {K_BLOCK}) {{",
             *[f"    const float x{j} = {x}[k + {j}];" for j in range(K_BLOCK)],
@@ -263,10 +290,30 @@ def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str) -> list[str
     for k0 in range(full, k):
         lines += [
             f"for (int n = 0; n < {n}; ++n) {{",
-            f"    {y}[n] = {y}[n] + {x}[{k0}] * {w}[{k0}][n];",
+            f"    {y}[n] = {y}[n] + {x}[{k0}] * {cast}{w}[{k0}][n];",
             "}",
         ]
     return lines
+
+
+def _quantized_lines(
+    node: Node, ctx: EmitContext, w: np.ndarray, bias: str | None, x: str, y: str, n: int
+) -> list[str]:
+    """int8 weights per output channel: acc = sum x[k] * q[k][n]; y[n] = b[n] + s[n] * acc[n]."""
+    from export.quantize import quantize_columns
+
+    q, scale = quantize_columns(w)
+    k = w.shape[0]
+    qsym = ctx.const(node.inputs[1] + "#int8", q, f"{node.name} weights, int8, input-major [{k}][{n}]")
+    ssym = ctx.const(node.inputs[1] + "#scale", scale, f"{node.name} per-output scales [{n}]")
+    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)")
+    scaled = f"{ssym}[n] * {y}[n]"
+    return [
+        *lines,
+        f"for (int n = 0; n < {n}; ++n) {{",
+        f"    {y}[n] = {bias + ' + ' if bias else ''}{scaled};",
+        "}",
+    ]
 
 
 class Gemm(Emitter):
@@ -305,7 +352,11 @@ class Gemm(Emitter):
         assert b is not None
         w = _input_major(node, b, bool(node.attr("transB", 0)))
         k = w.shape[0]
-        wsym = ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights, input-major [{k}][{n}]")
+        wsym = (
+            ""
+            if ctx.quantize
+            else ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights, input-major [{k}][{n}]")
+        )
         alpha, beta = float(node.attr("alpha", 1.0)), float(node.attr("beta", 1.0))
         c = ctx.constant(node.inputs[2]) if len(node.inputs) > 2 and node.inputs[2] else None
         x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
@@ -315,6 +366,8 @@ class Gemm(Emitter):
             bias = ctx.literal(float(c.reshape(-1)[0]))
         else:
             bias = f"{ctx.const(node.inputs[2], c.reshape(-1), f'{node.name} bias [{n}]')}[n]"
+        if ctx.quantize:
+            return _quantized_lines(node, ctx, w, bias, x, y, n)
         if alpha == 1.0 and beta == 1.0:
             return _matmul_lines(x, y, wsym, k, n, bias or "0.0f")
         lines = _matmul_lines(x, y, wsym, k, n, "0.0f")
@@ -344,8 +397,11 @@ class MatMul(Emitter):
         b = ctx.constant(node.inputs[1])
         assert b is not None
         w = _input_major(node, b, False)
+        x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
+        if ctx.quantize:
+            return _quantized_lines(node, ctx, w, None, x, y, n)
         wsym = ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights [{w.shape[0]}][{n}]")
-        return _matmul_lines(ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0]), wsym, w.shape[0], n, "0.0f")
+        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f")
 
 
 # -- shape ops (no code: the output aliases the input) -----------------------------------------

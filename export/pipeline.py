@@ -23,7 +23,7 @@ import onnx
 import onnxruntime as ort
 
 import train
-from export import build, target, verify
+from export import build, quantize, target, verify
 from export.codegen import NAME_PATTERN, generate
 from export.errors import ExportError, UnsupportedModelError, VerificationError
 from export.onnx_import import load_onnx, to_ir
@@ -50,6 +50,8 @@ class ExportOptions:
     force: bool = False
     progress: bool = False
     targets: tuple[str, ...] = ()
+    quantize: str | None = None
+    """None (float32) or "int8" (see export.quantize)."""
     """Cortex-M targets to build, run under QEMU and measure (names in export.target.TARGETS)."""
 
 
@@ -119,8 +121,10 @@ def _verify_target(
     expected: np.ndarray,
     build_dir: Path,
     act_dim: int,
+    quantized: str | None,
 ) -> dict[str, Any]:
-    """Build and run one target's firmware; its actions must match the reference within tolerance."""
+    """Build and run one target's firmware: float actions must match onnxruntime within tolerance,
+    quantised ones the Python model bit for bit."""
     out = target.build_firmware(t, c_dir, vectors_path, build_dir)
     run = target.run_qemu(t, out / "firmware.elf", len(vectors), act_dim)
     if np.any(run.codes != 0):
@@ -128,7 +132,14 @@ def _verify_target(
             f"{t.name}: policy_step returned an error on {int(np.sum(run.codes != 0))} observations"
         )
     err = verify.max_abs_error(run.actions, expected)
-    if err > verify.TOLERANCE:
+    if quantized:
+        mismatches = verify.bitwise_mismatches(run.actions, expected)
+        if mismatches:
+            raise VerificationError(
+                f"{t.name}: the {quantized} firmware differs from the Python model "
+                f"on {mismatches} observations"
+            )
+    elif err > verify.TOLERANCE:
         raise VerificationError(
             f"{t.name}: the firmware differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
         )
@@ -136,7 +147,8 @@ def _verify_target(
         "qemu_machine": t.qemu_machine,
         "max_abs_error": err,
         **target.sizes(out, run.stack_bytes),
-        "quantize": None,
+        "quantize": quantized,
+        "bit_exact_with_model": True if quantized else None,
         "samples": len(vectors),
         "memory_kib": {"flash": t.flash_kib, "ram": t.ram_kib},
     }
@@ -205,7 +217,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         "source": f"{source.name} sha256 {sha256(source)}",
         "onnx": f"sha256 {sha256(onnx_path)}",
     }
-    sources = generate(graph, opts.name, opts.safe_action, header)
+    sources = generate(graph, opts.name, opts.safe_action, header, quantize=opts.quantize)
     c_dir = staging / "c"
     c_dir.mkdir()
     for filename, text in sources.items():
@@ -243,7 +255,20 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
             )
         err = verify.max_abs_error(c_actions, onnx_actions)
         checks["c_vs_onnxruntime_max_abs_error"] = err
-        if err > verify.TOLERANCE:
+        if opts.quantize:
+            # Quantised: the C must equal the Python model of its arithmetic bit for bit; its
+            # distance from the float policy is reported (and judged in closed loop).
+            mismatches = verify.bitwise_mismatches(c_actions, quantize.evaluate(graph, samples))
+            checks["quantization"] = {
+                "scheme": quantize.SCHEME,
+                "worst_action_error_vs_float": err,
+                "model_mismatches": mismatches,
+            }
+            if mismatches:
+                raise VerificationError(
+                    f"the int8 C differs from the Python model of its arithmetic on {mismatches} samples"
+                )
+        elif err > verify.TOLERANCE:
             raise VerificationError(
                 f"the generated C differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
             )
@@ -255,8 +280,16 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         targets = {}
         for name in opts.targets:
             log(f"[4/5] {name}: building firmware, running it on QEMU")
+            expected = quantize.evaluate(graph, vectors) if opts.quantize else onnx_policy(vectors)
             targets[name] = _verify_target(
-                target.TARGETS[name], c_dir, vectors_path, vectors, onnx_policy(vectors), build_dir, act_dim
+                target.TARGETS[name],
+                c_dir,
+                vectors_path,
+                vectors,
+                expected,
+                build_dir,
+                act_dim,
+                opts.quantize,
             )
 
         nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
@@ -270,7 +303,11 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
             loop: dict[str, Any] = verify.closed_loop(
                 reference, compiled, opts.episodes, opts.seed, opts.progress
             )
-            failure = verify.closed_loop_failure(loop)
+            failure = (
+                verify.quantized_closed_loop_failure(loop)
+                if opts.quantize
+                else verify.closed_loop_failure(loop)
+            )
             if failure:
                 raise VerificationError(failure)
         else:
@@ -292,6 +329,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
             else {"path": str(vecnorm_path), "sha256": sha256(vecnorm_path)},
         },
         "name": opts.name,
+        "quantize": opts.quantize,
         "env_id": opts.env_id,
         "observation_dim": obs_dim,
         "action_dim": act_dim,

@@ -121,5 +121,26 @@ def closed_loop_failure(loop: dict[str, Any]) -> str | None:
     )
 
 
+MAX_SUCCESS_GAP_PP = 2.0
+"""A quantised policy's closed-loop success rate must stay within this of the float policy's."""
+
+
+def quantized_closed_loop_failure(loop: dict[str, Any]) -> str | None:
+    """The error message if a quantised policy's success rate strays from the float policy's."""
+    ref, q = 100 * loop["reference"]["success_rate"], 100 * loop["c"]["success_rate"]
+    if abs(ref - q) <= MAX_SUCCESS_GAP_PP:
+        return None
+    return (
+        f"closed loop: the quantised policy succeeds in {q:.1f}% of {loop['episodes']} episodes, the float "
+        f"policy in {ref:.1f}%: more than {MAX_SUCCESS_GAP_PP:g} percentage points apart"
+    )
+
+
+def bitwise_mismatches(a: np.ndarray, b: np.ndarray) -> int:
+    """Rows of two float32 arrays that differ in any bit."""
+    a32, b32 = np.ascontiguousarray(a, np.float32), np.ascontiguousarray(b, np.float32)
+    return int(np.sum(np.any(a32.view(np.uint32) != b32.view(np.uint32), axis=1)))
+
+
 def _summary(report: EvalReport) -> dict[str, Any]:
     return {k: getattr(report, k) for k in REPORT_KEYS}

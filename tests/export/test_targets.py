@@ -46,15 +46,18 @@ def _export(tmp_path: Path, widths: list[int], *extra: str) -> tuple[int, Path]:
 
 @pytest.fixture(scope="module")
 def study_export(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    code, out = _export(tmp_path_factory.mktemp("study"), [6, 100, 100, 2], "--target", "cortex-m4",
-                        "--target", "cortex-m3")
+    code, out = _export(
+        tmp_path_factory.mktemp("study"), [6, 100, 100, 2], "--target", "cortex-m4", "--target", "cortex-m3"
+    )
     assert code == 0
     report: dict[str, Any] = json.loads((out / "export_report.json").read_text())
     return report
 
 
 @pytest.mark.parametrize(("target", "machine"), [("cortex-m4", "mps2-an386"), ("cortex-m3", "mps2-an385")])
-def test_firmware_matches_onnxruntime_on_qemu(study_export: dict[str, Any], target: str, machine: str) -> None:
+def test_firmware_matches_onnxruntime_on_qemu(
+    study_export: dict[str, Any], target: str, machine: str
+) -> None:
     t = study_export["targets"][target]
     assert t["qemu_machine"] == machine
     assert t["samples"] == 256
@@ -74,12 +77,16 @@ def test_size_report_is_within_the_bounds_for_the_study_actor(study_export: dict
     assert m3["flash_bytes"] > m4["flash_bytes"]
 
 
-def test_a_policy_too_large_for_the_target_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_policy_too_large_for_the_target_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     # 6-300-300-2 float weights are 370 KB; the Cortex-M3 part has 256 KiB of flash.
     code, out = _export(tmp_path, [6, 300, 300, 2], "--target", "cortex-m3")
     assert code == 2
     err = capsys.readouterr().err
-    assert "cortex-m3: the policy does not fit the target's memory: region FLASH (256 KiB) overflowed by" in err
+    assert (
+        "cortex-m3: the policy does not fit the target's memory: region FLASH (256 KiB) overflowed by" in err
+    )
     assert "collect2" not in err and not out.exists()
 
 
@@ -87,20 +94,61 @@ def test_firmware_builds_by_hand_from_an_export(tmp_path: Path) -> None:
     code, out = _export(tmp_path, [6, 8, 2])
     assert code == 0 and (out / "test" / "test_vectors.c").is_file()
     result = subprocess.run(
-        ["make", "-C", str(RUNTIME_C), "TARGET=cortex-m4", f"POLICY_DIR={out / 'c'}", f"BUILD_DIR={tmp_path / 'b'}"],
-        capture_output=True, text=True,
+        [
+            "make",
+            "-C",
+            str(RUNTIME_C),
+            "TARGET=cortex-m4",
+            f"POLICY_DIR={out / 'c'}",
+            f"BUILD_DIR={tmp_path / 'b'}",
+        ],
+        capture_output=True,
+        text=True,
     )
     assert result.returncode == 0, result.stderr
-    run = subprocess.run(["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none", "-semihosting",
-                          "-kernel", str(tmp_path / "b" / "cortex-m4" / "firmware.elf")],
-                         capture_output=True, text=True, timeout=120)
+    run = subprocess.run(
+        [
+            "qemu-system-arm",
+            "-M",
+            "mps2-an386",
+            "-nographic",
+            "-monitor",
+            "none",
+            "-semihosting",
+            "-kernel",
+            str(tmp_path / "b" / "cortex-m4" / "firmware.elf"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert run.returncode == 0 and "DONE 256" in run.stdout
 
 
-def test_unknown_target_and_renamed_policy_are_rejected(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_unknown_target_and_renamed_policy_are_rejected(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     code, _ = _export(tmp_path, [6, 8, 2], "--target", "cortex-m4", "--name", "drive")
     assert code == 2 and "use the default --name policy" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["export", "x.onnx", "--out", "o", "--target", "cortex-m0"])
-    result = subprocess.run(["make", "-C", str(RUNTIME_C), "TARGET=avr", "POLICY_DIR=/tmp"], capture_output=True, text=True)
+    result = subprocess.run(
+        ["make", "-C", str(RUNTIME_C), "TARGET=avr", "POLICY_DIR=/tmp"], capture_output=True, text=True
+    )
     assert result.returncode != 0 and "unknown TARGET=avr" in result.stderr
+
+
+def test_int8_firmware_is_bit_exact_on_qemu_and_fits_14_kb(tmp_path: Path) -> None:
+    code, out = _export(
+        tmp_path, [6, 100, 100, 2], "--quantize", "int8", "--target", "cortex-m4", "--target", "cortex-m3"
+    )
+    assert code == 0
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["quantize"] == "int8"
+    assert report["verification"]["quantization"]["model_mismatches"] == 0
+    for name in ("cortex-m4", "cortex-m3"):
+        t = report["targets"][name]
+        assert t["quantize"] == "int8" and t["bit_exact_with_model"] is True
+        assert t["ram_bytes"] <= 1024
+    assert report["targets"]["cortex-m4"]["flash_bytes"] <= 14 * 1024
+    assert "int8_t" in (out / "c" / "policy.c").read_text()

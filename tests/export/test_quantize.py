@@ -1,0 +1,107 @@
+"""--quantize int8: the Python model of the arithmetic and the generated C agree bit for bit."""
+
+from __future__ import annotations
+
+import itertools
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from onnx import helper
+
+from export import build, quantize, verify
+from export.codegen import generate
+from export.errors import UnsupportedOpError
+from export.onnx_import import to_ir
+from tests.export.helpers import make_model
+
+ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")
+
+
+def _mlp(widths: list[int], acts: list[str], seed: int) -> onnx.ModelProto:
+    rng = np.random.default_rng(seed)
+    nodes, inits, last = [], {}, "x"
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
+        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
+        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
+        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
+        out = "y" if i == len(acts) - 1 else f"a{i}"
+        nodes.append(helper.make_node(acts[i], [f"g{i}"], [out]))
+        last = out
+    return make_model(nodes, inits, widths[0], widths[-1])
+
+
+def _compile_int8(model: onnx.ModelProto, tmp: Path) -> build.CPolicy:
+    graph = to_ir(model)
+    (tmp / "c").mkdir()
+    for filename, text in generate(graph, quantize="int8").items():
+        (tmp / "c" / filename).write_text(text)
+    build.make("lib", tmp / "c", tmp / "b")
+    return build.CPolicy(
+        tmp / "b" / "libpolicy.so", "policy", graph.size(graph.input), graph.size(graph.output)
+    )
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    st.lists(st.integers(1, 20), min_size=2, max_size=4).flatmap(
+        lambda w: st.tuples(
+            st.just(w),
+            st.lists(st.sampled_from(ACTIVATIONS), min_size=len(w) - 1, max_size=len(w) - 1),
+            st.integers(0, 2**31 - 1),
+        )
+    )
+)
+def test_generated_int8_c_equals_the_python_model_bit_for_bit(spec: tuple[list[int], list[str], int]) -> None:
+    widths, acts, seed = spec
+    model = _mlp(widths, acts, seed)
+    x = np.random.default_rng(seed).normal(scale=3.0, size=(200, widths[0])).astype(np.float32)
+    with tempfile.TemporaryDirectory() as tmp:
+        got, codes = _compile_int8(model, Path(tmp)).batch(x)
+    assert not codes.any()
+    assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x)) == 0
+
+
+def test_int8_stays_close_to_float() -> None:
+    import onnxruntime as ort
+
+    model = _mlp([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    x = np.random.default_rng(0).uniform(-2, 2, size=(500, 6)).astype(np.float32)
+    float_out = ort.InferenceSession(model.SerializeToString()).run(None, {"x": x})[0]
+    assert np.max(np.abs(quantize.evaluate(to_ir(model), x) - float_out)) < 0.05
+
+
+def test_weights_are_symmetric_int8_per_output_channel() -> None:
+    w = np.array([[1.0, -0.01], [-2.0, 0.005], [0.5, 0.0]], dtype=np.float32)  # [K=3][N=2]
+    q, scale = quantize.quantize_columns(w)
+    assert q.dtype == np.int8 and q.shape == w.shape
+    np.testing.assert_allclose(scale, [2.0 / 127, 0.01 / 127], rtol=1e-6)
+    assert q[1, 0] == -127 and q[0, 1] == -127  # each column's largest weight maps to +-127
+    assert np.max(np.abs(q.astype(np.float32) * scale - w)) <= np.max(scale) / 2 + 1e-9
+
+
+def test_deterministic_exp_and_tanh_are_accurate() -> None:
+    x = np.linspace(-20, 20, 20001, dtype=np.float32)
+    np.testing.assert_allclose(quantize.tanh_det(x), np.tanh(x.astype(np.float64)), rtol=0, atol=2e-6)
+    small = np.linspace(-10, 10, 2001, dtype=np.float32)
+    np.testing.assert_allclose(quantize.exp_det(small), np.exp(small.astype(np.float64)), rtol=2e-6)
+    assert quantize.tanh_det(np.array([9.5, -30.0], np.float32)).tolist() == [1.0, -1.0]
+
+
+def test_int8_rejects_ops_without_an_exact_model() -> None:
+    model = make_model([helper.make_node("Softplus", ["x"], ["y"], name="sp")], {}, 6, 6)
+    with pytest.raises(UnsupportedOpError, match="Softplus node 'sp' is not supported with --quantize int8"):
+        generate(to_ir(model), quantize="int8")
+
+
+def test_quantised_closed_loop_rule_is_two_percentage_points() -> None:
+    def loop(ref: float, q: float) -> dict[str, object]:
+        return {"episodes": 200, "reference": {"success_rate": ref}, "c": {"success_rate": q}}
+
+    assert verify.quantized_closed_loop_failure(loop(0.99, 0.97)) is None
+    message = verify.quantized_closed_loop_failure(loop(0.99, 0.96))
+    assert message is not None and "96.0%" in message and "99.0%" in message
