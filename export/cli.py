@@ -61,7 +61,7 @@ def _print_summary(report: dict[str, Any]) -> None:
                 f"{q['model_mismatches']} of {v['samples']} samples differ in any bit",
             )
         )
-        rows.append(("worst |int8 - float|", f"{q['worst_action_error_vs_float']:.3g}"))
+        rows.append((f"worst |{report['quantize']} - float|", f"{q['worst_action_error_vs_float']:.3g}"))
     else:
         rows.append(("max |C - onnxruntime|", f"{v['c_vs_onnxruntime_max_abs_error']:.3g}"))
     loop = report["closed_loop"]
@@ -131,7 +131,11 @@ def register(sub: Any) -> None:
         "--safe-action", type=_safe_action, help="action on non-finite input, e.g. 0,0 (default zeros)"
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
-    p.add_argument("--quantize", choices=["int8"], help="int8 weights per output channel (float activations)")
+    p.add_argument(
+        "--quantize",
+        choices=["int8", "q15"],
+        help="int8: int8 weights per output channel, float activations; q15: 16-bit fixed point (no FPU)",
+    )
     p.add_argument(
         "--target",
         action="append",

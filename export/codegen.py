@@ -17,12 +17,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from export.errors import ExportError
+from export.fixed_point import FixedSection
 from export.ir import Graph
 from export.ops import EMITTERS
 
 NAME_PATTERN = re.compile(r"[a-z_][a-z0-9_]{0,30}")
 """Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol."""
 VALUES_PER_LINE = 6
+_INTEGER_CTYPES = {"int8": "int8_t", "uint8": "uint8_t", "int16": "int16_t", "int64": "int64_t"}
 
 
 def c_float(value: float) -> str:
@@ -49,8 +51,11 @@ class _Plan:
     buffer_sizes: list[int] = field(default_factory=list)
 
 
-def plan_buffers(graph: Graph, input_ref: str) -> _Plan:
-    """Assign scratch buffers by liveness; element-wise ops run in place when their input dies."""
+def plan_buffers(graph: Graph, input_ref: str, skip: frozenset[str] = frozenset()) -> _Plan:
+    """Assign scratch buffers by liveness; element-wise ops run in place when their input dies.
+
+    Nodes named in ``skip`` are computed elsewhere (a fixed-point section) and get no float buffer.
+    """
     last_use: dict[str, int] = {}
     for index, node in enumerate(graph.nodes):
         for i in node.inputs:
@@ -69,6 +74,10 @@ def plan_buffers(graph: Graph, input_ref: str) -> _Plan:
         emitter = EMITTERS[node.op]
         out = node.outputs[0]
         src = plan.storage.get(node.inputs[0], "")
+        if node.name in skip:
+            plan.storage[out] = "fixed"
+            storage_end["fixed"] = len(graph.nodes) + 1
+            continue
         if emitter.alias:
             plan.storage[out] = src
             storage_end[src] = max(storage_end[src], end(out))
@@ -84,10 +93,10 @@ def plan_buffers(graph: Graph, input_ref: str) -> _Plan:
             plan.storage[out] = buf
             storage_end[buf] = end(out)
         buf = plan.storage[out]
-        if buf != input_ref:
+        if buf not in (input_ref, "fixed"):
             plan.buffer_sizes[int(buf)] = max(plan.buffer_sizes[int(buf)], graph.size(out))
         for s, e in list(storage_end.items()):
-            if e == index and s != input_ref and s not in free:
+            if e == index and s not in (input_ref, "fixed") and s not in free:
                 free.append(s)
                 free.sort(key=int)
     return plan
@@ -117,11 +126,11 @@ class _Context:
             return self._symbols[key]
         symbol = f"{self.prefix}_w{len(self._symbols)}_{_sanitize(key.split('#')[0])}"
         self._symbols[key] = symbol
-        integer = np.asarray(array).dtype == np.int8
-        a = np.asarray(array, dtype=np.int8 if integer else np.float32)
+        ctype = _INTEGER_CTYPES.get(np.asarray(array).dtype.name, "float")
+        integer = ctype != "float"
+        a = np.asarray(array) if integer else np.asarray(array, dtype=np.float32)
         self.const_bytes += a.size * a.itemsize
         dims = "".join(f"[{d}]" for d in a.shape)
-        ctype = "int8_t" if integer else "float"
         lines = [f"/* {comment} */", f"static const {ctype} {symbol}{dims} = {{"]
         rows = a.reshape(1, -1) if a.ndim == 1 else a
         per_line = VALUES_PER_LINE * 3 if integer else VALUES_PER_LINE
@@ -161,6 +170,76 @@ class _Context:
 
     def size(self, value: str) -> int:
         return self.graph.size(value)
+
+
+def _with_section_output(graph: Graph, plan: _Plan, section: FixedSection) -> _Plan:
+    """Give the section's (float) output a buffer of its own after planning around the section."""
+    buffer = str(len(plan.buffer_sizes))
+    plan.buffer_sizes.append(graph.size(section.output))
+    inside = {n.outputs[0] for n in graph.nodes if n.name in section.nodes} - {section.output}
+    for value, where in plan.storage.items():
+        if where == "fixed" and value not in inside:  # the output and shape-only aliases of it
+            plan.storage[value] = buffer
+    return plan
+
+
+def _section_lines(section: FixedSection, ctx: _Context) -> tuple[list[str], list[str]]:
+    """C for a q15 section (see export.fixed_point) and its int16 buffer declarations."""
+    p = ctx.prefix
+    widths = [section.layers[0].weights.shape[1]] + [layer.weights.shape[0] for layer in section.layers[:-1]]
+    qbufs = [f"{p}_q0", f"{p}_q1"]
+    decls = [f"static int16_t {qbufs[0]}[{max(widths[0::2])}];"]
+    if len(widths) > 1:
+        decls.append(f"static int16_t {qbufs[1]}[{max(widths[1::2])}];")
+    src_ref, out_ref = ctx.ref(section.input), ctx.ref(section.output)
+    scale = c_float(2.0**section.in_frac)
+    lines = [
+        f"/* 16-bit fixed point: {len(section.layers)} layer(s); "
+        f"input with {section.in_frac} fractional bits */",
+        f"for (int i = 0; i < {widths[0]}; ++i) {{",
+        f"    float v = {src_ref}[i] * {scale};",
+        "    v = v > 32767.0f ? 32767.0f : (v < -32767.0f ? -32767.0f : v);",
+        "    v = v + 0.5f;",
+        "    int32_t q = (int32_t)v;",
+        "    if ((float)q > v) {",
+        "        q -= 1; /* floor: round half up */",
+        "    }",
+        f"    {qbufs[0]}[i] = (int16_t)q;",
+        "}",
+    ]
+    for j, layer in enumerate(section.layers):
+        n_out, k_in = layer.weights.shape
+        src = qbufs[j % 2]
+        w = ctx.const(
+            f"{layer.name}#q15", layer.weights, f"{layer.name} weights, int16, output-major [{n_out}][{k_in}]"
+        )
+        b = ctx.const(
+            f"{layer.name}#q15bias", layer.bias, f"{layer.name} bias in accumulator units [{n_out}]"
+        )
+        lines += [
+            f"/* {layer.name}: [{k_in}] -> [{n_out}]{' + ReLU' if layer.relu else ''} */",
+            f"for (int n = 0; n < {n_out}; ++n) {{",
+            f"    int64_t acc = {b}[n];",
+            f"    for (int k = 0; k < {k_in}; ++k) {{",
+            f"        acc += (int32_t){src}[k] * (int32_t){w}[n][k];",
+            "    }",
+        ]
+        if layer.out_frac is None:
+            s = ctx.const(
+                f"{layer.name}#q15scale", layer.out_scale(), f"{layer.name} output scales [{n_out}]"
+            )
+            lines += [f"    {out_ref}[n] = (float)acc * {s}[n];", "}"]
+        else:
+            sh = ctx.const(f"{layer.name}#q15shift", layer.shifts().astype(np.uint8), f"{layer.name} shifts")
+            dst = qbufs[(j + 1) % 2]
+            clamp = "r > 32767 ? 32767 : (r < " + ("0 ? 0" if layer.relu else "-32767 ? -32767") + " : r)"
+            lines += [
+                f"    const int sh = {sh}[n];",
+                "    const int64_t r = (acc + ((int64_t)1 << (sh - 1))) >> sh; /* round, arithmetic shift */",
+                f"    {dst}[n] = (int16_t)({clamp});",
+                "}",
+            ]
+    return lines, decls
 
 
 def _helper_source(prefix: str, name: str) -> str:
@@ -210,11 +289,14 @@ def generate(
     safe_action: Sequence[float] | None = None,
     provenance: Mapping[str, str] | None = None,
     quantize: str | None = None,
+    section: FixedSection | None = None,
 ) -> dict[str, str]:
     """Generate ``{name}.h`` and ``{name}.c`` for ``graph``.
 
     ``safe_action`` is written instead of the action when the observation or the result is not
     finite (default zeros). ``provenance`` lines (e.g. hashes) go into both file headers.
+    ``quantize`` is None, "int8" or "q15"; q15 needs the ``section`` planned by
+    :func:`export.fixed_point.plan`.
     """
     if not NAME_PATTERN.fullmatch(name):
         raise ExportError(f"name {name!r} is not a valid prefix: use a lower-case C identifier (a-z, 0-9, _)")
@@ -224,15 +306,25 @@ def generate(
         raise ExportError(f"safe action has {len(safe)} values but the policy outputs {act_dim}")
     up = name.upper()
     plan = plan_buffers(graph, "obs")
-    if quantize not in (None, "int8"):
-        raise ExportError(f"quantization {quantize!r} is not supported; supported: int8")
+    if quantize not in (None, "int8", "q15"):
+        raise ExportError(f"quantization {quantize!r} is not supported; supported: int8, q15")
+    if (quantize == "q15") != (section is not None):
+        raise ExportError("q15 code needs its fixed-point section (and only q15 takes one)")
     if quantize:
         from export.quantize import check_supported
 
         check_supported(graph)
+    if section is not None:
+        plan = _with_section_output(graph, plan_buffers(graph, "obs", section.nodes), section)
     ctx = _Context(graph, name, plan, quantize)
     body: list[str] = []
+    int16_buffers: list[str] = []
     for node in graph.nodes:
+        if section is not None and node.name in section.nodes:
+            if node.name == section.first_node:
+                lines, int16_buffers = _section_lines(section, ctx)
+                body += lines
+            continue
         emitter = EMITTERS[node.op]
         shape_in = "x".join(str(d) for d in graph.shapes[node.inputs[0]])
         shape_out = "x".join(str(d) for d in graph.shapes[node.outputs[0]])
@@ -243,7 +335,7 @@ def generate(
         )
         body += emitter.emit(node, ctx, graph.size(node.outputs[0]))
     out_ref = ctx.ref(graph.output)
-    ram = sum(plan.buffer_sizes) * 4
+    ram = sum(plan.buffer_sizes) * 4 + sum(int(b.split("[")[1].rstrip("];")) * 2 for b in int16_buffers)
     header_lines = [f" * {k}: {v}" for k, v in (provenance or {}).items()]
     banner = "\n".join(
         [
@@ -251,7 +343,11 @@ def generate(
             f" * {name}: policy generated by embedrl. Do not edit: regenerate with `embedrl export`.",
             *header_lines,
             f" * observation [{obs_dim}] -> action [{act_dim}], {len(graph.nodes)} ops"
-            + (", int8 weights per output channel, float32 activations" if quantize else ""),
+            + {
+                None: "",
+                "int8": ", int8 weights per output channel, float32 activations",
+                "q15": ", 16-bit fixed point (int16 weights and activations, int64 sums)",
+            }[quantize],
             f" * RAM: {len(plan.buffer_sizes)} static buffer(s), {ram} bytes; "
             f"weights: {ctx.const_bytes} bytes of const data",
             f" * Not reentrant: {name}_step uses file-scope buffers (one call at a time).",
@@ -276,7 +372,9 @@ int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
 
 #endif /* {up}_H */
 """
-    buffers = [f"static float {name}_buf{i}[{size}];" for i, size in enumerate(plan.buffer_sizes)]
+    buffers = [
+        f"static float {name}_buf{i}[{size}];" for i, size in enumerate(plan.buffer_sizes)
+    ] + int16_buffers
     safe_decl = (
         f"static const float {name}_safe_action[{up}_ACT_DIM] = {{{', '.join(c_float(v) for v in safe)}}};"
     )

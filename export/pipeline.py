@@ -23,7 +23,7 @@ import onnx
 import onnxruntime as ort
 
 import train
-from export import build, quantize, target, verify
+from export import build, fixed_point, quantize, target, verify
 from export.codegen import NAME_PATTERN, generate
 from export.errors import ExportError, UnsupportedModelError, VerificationError
 from export.onnx_import import load_onnx, to_ir
@@ -211,13 +211,19 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
                 f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
             )
 
+    reference = loaded.predict if loaded is not None else _ort_policy(model)
+    onnx_policy = _ort_policy(model)
+    # Observations for verification (and for calibrating q15's fixed-point scales).
+    samples, from_rollouts = verify.sample_observations(obs_space, opts.env_id, reference, opts.seed)
+    section = fixed_point.plan(graph, samples) if opts.quantize == "q15" else None
+
     log(f"[2/5] generating C ({len(graph.nodes)} ops, {obs_dim} -> {act_dim})")
     header = {
         "tool": f"embedrl {tool_version()}",
         "source": f"{source.name} sha256 {sha256(source)}",
         "onnx": f"sha256 {sha256(onnx_path)}",
     }
-    sources = generate(graph, opts.name, opts.safe_action, header, quantize=opts.quantize)
+    sources = generate(graph, opts.name, opts.safe_action, header, quantize=opts.quantize, section=section)
     c_dir = staging / "c"
     c_dir.mkdir()
     for filename, text in sources.items():
@@ -231,11 +237,8 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         build.make("obj", c_dir, build_dir)
         code_size = build.object_size(build_dir / "policy.o")
         compiled = build.CPolicy(build_dir / "libpolicy.so", opts.name, obs_dim, act_dim)
-        reference = loaded.predict if loaded is not None else _ort_policy(model)
-        onnx_policy = _ort_policy(model)
 
         log("[4/5] verifying: ONNX vs SB3, C vs onnxruntime")
-        samples, from_rollouts = verify.sample_observations(obs_space, opts.env_id, reference, opts.seed)
         onnx_actions = onnx_policy(samples)
         checks: dict[str, Any] = {
             "samples": len(samples),
@@ -258,15 +261,16 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         if opts.quantize:
             # Quantised: the C must equal the Python model of its arithmetic bit for bit; its
             # distance from the float policy is reported (and judged in closed loop).
-            mismatches = verify.bitwise_mismatches(c_actions, quantize.evaluate(graph, samples))
+            mismatches = verify.bitwise_mismatches(c_actions, quantize.evaluate(graph, samples, section))
             checks["quantization"] = {
-                "scheme": quantize.SCHEME,
+                "scheme": quantize.SCHEMES[opts.quantize],
                 "worst_action_error_vs_float": err,
                 "model_mismatches": mismatches,
             }
             if mismatches:
                 raise VerificationError(
-                    f"the int8 C differs from the Python model of its arithmetic on {mismatches} samples"
+                    f"the {opts.quantize} C differs from the Python model of its arithmetic "
+                    f"on {mismatches} samples"
                 )
         elif err > verify.TOLERANCE:
             raise VerificationError(
@@ -280,7 +284,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         targets = {}
         for name in opts.targets:
             log(f"[4/5] {name}: building firmware, running it on QEMU")
-            expected = quantize.evaluate(graph, vectors) if opts.quantize else onnx_policy(vectors)
+            expected = quantize.evaluate(graph, vectors, section) if opts.quantize else onnx_policy(vectors)
             targets[name] = _verify_target(
                 target.TARGETS[name],
                 c_dir,

@@ -19,11 +19,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from export import fixed_point
 from export.errors import UnsupportedOpError
+from export.fixed_point import FixedSection
 from export.ir import Graph
 
 F = np.float32
-SCHEME = "int8 weights per output channel (symmetric), float32 activations"
+SCHEMES = {
+    "int8": "int8 weights per output channel (symmetric), float32 activations",
+    "q15": "16-bit fixed point: int16 weights (per-channel power-of-two scales) and activations, int64 sums",
+}
 INT8_MAX = 127
 EXP_CLAMP = (-87.0, 88.0)
 """exp_det's input range: beyond it float32 exp under- or overflows."""
@@ -110,14 +115,21 @@ def _layer(x: np.ndarray, w: np.ndarray, bias: np.ndarray | None) -> np.ndarray:
     return scaled if bias is None else (bias + scaled).astype(F)
 
 
-def evaluate(graph: Graph, obs: np.ndarray) -> np.ndarray:
-    """The int8 policy's actions for a batch of observations [B, obs_dim], bit-exact with the C."""
+def evaluate(graph: Graph, obs: np.ndarray, section: FixedSection | None = None) -> np.ndarray:
+    """The quantised policy's actions for a batch of observations [B, obs_dim], bit-exact with the C.
+
+    Without ``section`` the int8 scheme; with it, the q15 section replaces its nodes.
+    """
     values: dict[str, np.ndarray] = {graph.input: np.asarray(obs, F).reshape(len(obs), -1)}
 
     def get(name: str) -> np.ndarray:
         return values[name] if name in values else np.asarray(graph.constants[name], F).reshape(-1)
 
     for node in graph.nodes:
+        if section is not None and node.name in section.nodes:
+            if node.name == section.first_node:
+                values[section.output] = fixed_point.run(section, get(section.input))
+            continue
         x = get(node.inputs[0])
         op = node.op
         if op in ("Gemm", "MatMul"):

@@ -13,30 +13,11 @@
 #include "policy.h"
 
 #define PAINT 0xA5A5A5A5u
-#define PROBE_WORDS 1024u /* 4 KB below main's frame: more than any policy here may use */
-#define GUARD_WORDS 32u   /* leave the painter's own frame alone */
+#define PROBE_WORDS 1024u /* 4 KB below main's stack pointer: more than any policy here may use */
 
 extern const unsigned embedrl_test_count;
 extern const float embedrl_test_obs[][POLICY_OBS_DIM];
 extern void initialise_monitor_handles(void);
-
-static uint32_t *probe_top;
-
-__attribute__((noinline)) static void paint(void)
-{
-    for (uint32_t i = GUARD_WORDS; i < PROBE_WORDS; ++i) {
-        probe_top[-(int32_t)i] = PAINT;
-    }
-}
-
-__attribute__((noinline)) static uint32_t stack_used(void)
-{
-    uint32_t i = PROBE_WORDS - 1u;
-    while (i >= GUARD_WORDS && probe_top[-(int32_t)i] == PAINT) {
-        --i;
-    }
-    return i * 4u;
-}
 
 static uint32_t bits(float f)
 {
@@ -47,14 +28,24 @@ static uint32_t bits(float f)
 
 int main(void)
 {
-    uint32_t marker;
     float act[POLICY_ACT_DIM];
     initialise_monitor_handles();
 
-    probe_top = &marker;
-    paint();
+    /* Stack painting, all inside main so that no other frame lives below its stack pointer while
+     * painting and scanning: everything policy_step (and what it calls) writes below it is its use. */
+    uint32_t *top;
+    __asm__ volatile("mov %0, sp" : "=r"(top));
+    volatile uint32_t *sp = top; /* volatile: gcc must not turn the loop into a memset call, whose own
+                                    frame would sit in the painted area */
+    for (uint32_t i = 1; i <= PROBE_WORDS; ++i) {
+        sp[-(int32_t)i] = PAINT;
+    }
     policy_step(embedrl_test_obs[0], act);
-    printf("STACK %lu\n", (unsigned long)stack_used());
+    uint32_t used = PROBE_WORDS;
+    while (used > 0 && sp[-(int32_t)used] == PAINT) {
+        --used;
+    }
+    printf("STACK %lu\n", (unsigned long)(used * 4u));
 
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
         int code = policy_step(embedrl_test_obs[i], act);

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from onnx import helper
 
-from export import build, quantize, verify
+from export import build, fixed_point, quantize, verify
 from export.codegen import generate
 from export.errors import UnsupportedOpError
 from export.onnx_import import to_ir
@@ -105,3 +105,56 @@ def test_quantised_closed_loop_rule_is_two_percentage_points() -> None:
     assert verify.quantized_closed_loop_failure(loop(0.99, 0.97)) is None
     message = verify.quantized_closed_loop_failure(loop(0.99, 0.96))
     assert message is not None and "96.0%" in message and "99.0%" in message
+
+
+def _compile_q15(
+    model: onnx.ModelProto, calibration: np.ndarray, tmp: Path
+) -> tuple[build.CPolicy, fixed_point.FixedSection]:
+    graph = to_ir(model)
+    section = fixed_point.plan(graph, calibration)
+    (tmp / "c").mkdir()
+    for filename, text in generate(graph, quantize="q15", section=section).items():
+        (tmp / "c" / filename).write_text(text)
+    build.make("lib", tmp / "c", tmp / "b")
+    policy = build.CPolicy(
+        tmp / "b" / "libpolicy.so", "policy", graph.size(graph.input), graph.size(graph.output)
+    )
+    return policy, section
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    st.lists(st.integers(1, 24), min_size=2, max_size=5).flatmap(
+        lambda w: st.tuples(
+            st.just(w), st.sampled_from(["Tanh", "Identity", "Sigmoid"]), st.integers(0, 2**31 - 1)
+        )
+    )
+)
+def test_generated_q15_c_equals_the_integer_model_bit_for_bit(spec: tuple[list[int], str, int]) -> None:
+    widths, last, seed = spec
+    acts = ["Relu"] * (len(widths) - 2) + [last]
+    model = _mlp(widths, acts, seed)
+    rng = np.random.default_rng(seed)
+    calibration = rng.normal(scale=2.0, size=(300, widths[0])).astype(np.float32)
+    x = rng.normal(scale=3.0, size=(300, widths[0])).astype(np.float32)  # wider than calibrated: saturation
+    with tempfile.TemporaryDirectory() as tmp:
+        policy, section = _compile_q15(model, calibration, Path(tmp))
+        got, codes = policy.batch(x)
+    assert not codes.any()
+    assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x, section)) == 0
+
+
+def test_q15_is_close_to_float_within_the_calibrated_range() -> None:
+    import onnxruntime as ort
+
+    model = _mlp([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    x = np.random.default_rng(0).uniform(-2, 2, size=(500, 6)).astype(np.float32)
+    section = fixed_point.plan(to_ir(model), x)
+    float_out = ort.InferenceSession(model.SerializeToString()).run(None, {"x": x})[0]
+    assert np.max(np.abs(quantize.evaluate(to_ir(model), x, section) - float_out)) < 0.01
+
+
+def test_q15_rejects_layers_joined_by_anything_but_relu() -> None:
+    model = _mlp([4, 8, 2], ["Sigmoid", "Tanh"], 0)
+    with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* between layers is not supported with q15"):
+        fixed_point.plan(to_ir(model), np.zeros((4, 4), np.float32))

@@ -1,0 +1,233 @@
+"""``--quantize q15``: 16-bit fixed point for FPU-less cores, and its exact Python model.
+
+The chain of Gemm layers (with ReLU between them) runs in integers: activations are int16 with a
+power-of-two scale per tensor (``frac`` fractional bits, calibrated on the verification
+observations with headroom), weights are int16 with a power-of-two scale per output channel,
+products accumulate in int64 with the bias, and each layer requantises with a rounding right
+shift and saturates to int16. ReLU is fused. Only the edges are float: the observation (after any
+normalisation) is scaled and rounded into int16 once, and the last layer's accumulator is
+converted to float once, before the output non-linearity (deterministic tanh, see export.quantize)
+and the action post-processing. On a Cortex-M3 that leaves a handful of software-float operations
+per step instead of one per multiply-add.
+
+Integer sums are exact in any order, so the C computes each output as a dot product (weights stored
+output-major) and the int64 numpy model here reproduces it bit for bit; the float edges use the same
+IEEE operations in the same order as the C. Signed right shifts are arithmetic with gcc (documented
+implementation-defined behaviour), as in numpy.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from export.errors import UnsupportedOpError
+from export.ir import Graph, Node
+
+F = np.float32
+Q_MAX = 32767
+HEADROOM = 1.5
+"""Calibrated activation ranges are widened by this factor before choosing the scale."""
+MAX_FRAC = 24
+PREFIX_OPS = frozenset({"Sub", "Add", "Mul", "Div", "Clip", "Identity", "Flatten", "Reshape", "Max", "Min"})
+SUFFIX_OPS = frozenset(
+    {
+        "Tanh",
+        "Sigmoid",
+        "Relu",
+        "Add",
+        "Sub",
+        "Mul",
+        "Div",
+        "Clip",
+        "Max",
+        "Min",
+        "Identity",
+        "Flatten",
+        "Reshape",
+    }
+)
+
+
+@dataclass(frozen=True)
+class FixedLayer:
+    """One Gemm in fixed point."""
+
+    name: str
+    weights: np.ndarray
+    """int16 [N][K], output-major."""
+    bias: np.ndarray
+    """int64 [N], in accumulator units (in_frac + w_frac[n] fractional bits)."""
+    w_frac: np.ndarray
+    """Fractional bits of each output channel's weights [N]."""
+    in_frac: int
+    out_frac: int | None
+    """Fractional bits of the int16 output; None for the last layer, whose output is float."""
+    relu: bool
+
+    def shifts(self) -> np.ndarray:
+        assert self.out_frac is not None
+        return (self.in_frac + self.w_frac - self.out_frac).astype(np.int64)
+
+    def out_scale(self) -> np.ndarray:
+        """Last layer: float32 factor 2^-(in_frac + w_frac[n]) turning the accumulator into the output."""
+        return np.ldexp(F(1.0), -(self.in_frac + self.w_frac).astype(np.int32)).astype(F)
+
+
+@dataclass(frozen=True)
+class FixedSection:
+    """The integer part of the graph: from ``input`` (float, quantised on entry) to ``output`` (float)."""
+
+    input: str
+    output: str
+    in_frac: int
+    layers: tuple[FixedLayer, ...]
+    nodes: frozenset[str]
+    """Names of the IR nodes the section replaces."""
+    first_node: str
+
+
+def _frac_for(peak: float) -> int:
+    if peak <= 0 or not math.isfinite(peak):
+        return 15
+    return int(max(0, min(MAX_FRAC, math.floor(math.log2(Q_MAX / (peak * HEADROOM))))))
+
+
+def _consumers(graph: Graph, value: str) -> list[Node]:
+    return [n for n in graph.nodes if value in n.inputs]
+
+
+def _float_forward(graph: Graph, obs: np.ndarray) -> dict[str, np.ndarray]:
+    """Every value of the graph in float64 (numpy), for calibration."""
+    values: dict[str, np.ndarray] = {graph.input: np.asarray(obs, np.float64).reshape(len(obs), -1)}
+
+    def get(name: str) -> np.ndarray:
+        return values[name] if name in values else np.asarray(graph.constants[name], np.float64).reshape(-1)
+
+    for node in graph.nodes:
+        x, op = get(node.inputs[0]), node.op
+        if op == "Gemm":
+            w = graph.constants[node.inputs[1]].astype(np.float64)
+            y = x @ (w.T if node.attr("transB", 0) else w)
+            if len(node.inputs) > 2 and node.inputs[2]:
+                y = y + graph.constants[node.inputs[2]].astype(np.float64).reshape(-1)
+        elif op == "MatMul":
+            y = x @ graph.constants[node.inputs[1]].astype(np.float64)
+        elif op in ("Add", "Sub", "Mul", "Div", "Max", "Min"):
+            b = get(node.inputs[1])
+            y = {
+                "Add": np.add,
+                "Sub": np.subtract,
+                "Mul": np.multiply,
+                "Div": np.divide,
+                "Max": np.fmax,
+                "Min": np.fmin,
+            }[op](x, b)
+        elif op == "Relu":
+            y = np.maximum(x, 0)
+        elif op == "Tanh":
+            y = np.tanh(x)
+        elif op == "Sigmoid":
+            y = 1 / (1 + np.exp(-x))
+        elif op == "Clip":
+            lo = (
+                graph.constants[node.inputs[1]].item() if len(node.inputs) > 1 and node.inputs[1] else -np.inf
+            )
+            hi = graph.constants[node.inputs[2]].item() if len(node.inputs) > 2 and node.inputs[2] else np.inf
+            y = np.clip(x, lo, hi)
+        else:
+            y = x
+        values[node.outputs[0]] = y
+    return values
+
+
+def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
+    """Find the Gemm chain, calibrate its scales on ``calibration`` observations, quantise it."""
+    gemms = [i for i, n in enumerate(graph.nodes) if n.op in ("Gemm", "MatMul")]
+    if not gemms:
+        raise UnsupportedOpError("--quantize q15 needs at least one Gemm or MatMul")
+    first, last = gemms[0], gemms[-1]
+    for node in graph.nodes[:first]:
+        if node.op not in PREFIX_OPS:
+            raise UnsupportedOpError(
+                f"{node.op} node '{node.name}' before the first layer is not supported with q15"
+            )
+    for node in graph.nodes[last + 1 :]:
+        if node.op not in SUFFIX_OPS:
+            raise UnsupportedOpError(
+                f"{node.op} node '{node.name}' after the last layer is not supported with q15"
+            )
+    inner = graph.nodes[first : last + 1]
+    for i, node in enumerate(inner):
+        if node.op in ("Gemm", "MatMul"):
+            if i and inner[i - 1].op not in ("Relu", "Gemm", "MatMul"):
+                raise UnsupportedOpError(f"q15 layers may only be joined by Relu, found {inner[i - 1].op}")
+        elif node.op != "Relu":
+            raise UnsupportedOpError(
+                f"{node.op} node '{node.name}' between layers is not supported with q15 (only Relu)"
+            )
+        if node is not inner[-1] and len(_consumers(graph, node.outputs[0])) != 1:
+            raise UnsupportedOpError(f"node '{node.name}': q15 layers must form a chain")
+    values = _float_forward(graph, calibration)
+    section_input = inner[0].inputs[0]
+    in_frac = _frac_for(float(np.max(np.abs(values[section_input]))))
+    layers = []
+    frac = in_frac
+    nodes = [n for n in inner if n.op != "Relu"]
+    for j, node in enumerate(nodes):
+        b = graph.constants[node.inputs[1]].astype(np.float64)
+        w = (b.T if node.op == "Gemm" and node.attr("transB", 0) else b).T  # output-major [N][K]
+        if node.op == "Gemm" and (
+            float(node.attr("alpha", 1.0)) != 1.0 or float(node.attr("beta", 1.0)) != 1.0
+        ):
+            raise UnsupportedOpError(f"Gemm node '{node.name}': alpha/beta != 1 are not supported with q15")
+        w_frac = np.array(
+            [_frac_for(float(np.max(np.abs(row))) * 1.0 / HEADROOM) for row in w], dtype=np.int64
+        )
+        w_q = np.clip(np.rint(w * np.ldexp(1.0, w_frac)[:, None]), -Q_MAX, Q_MAX).astype(np.int16)
+        bias = np.zeros(w.shape[0])
+        if node.op == "Gemm" and len(node.inputs) > 2 and node.inputs[2]:
+            bias = np.broadcast_to(
+                graph.constants[node.inputs[2]].astype(np.float64).reshape(-1), (w.shape[0],)
+            )
+        bias_acc = np.rint(bias * np.ldexp(1.0, frac + w_frac)).astype(np.int64)
+        consumers = _consumers(graph, node.outputs[0])
+        relu = bool(consumers) and consumers[0].op == "Relu" and j < len(nodes) - 1
+        out_value = consumers[0].outputs[0] if relu else node.outputs[0]
+        if j < len(nodes) - 1:
+            out_frac = min(_frac_for(float(np.max(np.abs(values[out_value])))), frac + int(w_frac.min()) - 1)
+        else:
+            out_frac = None
+        layers.append(FixedLayer(node.name, w_q, bias_acc, w_frac, frac, out_frac, relu))
+        frac = out_frac if out_frac is not None else frac
+    return FixedSection(
+        section_input,
+        inner[-1].outputs[0],
+        in_frac,
+        tuple(layers),
+        frozenset(n.name for n in inner),
+        inner[0].name,
+    )
+
+
+def quantize_input(x: np.ndarray, frac: int) -> np.ndarray:
+    """float32 -> int16 as the C does it: scale (exact), clamp, round half up."""
+    v = (np.asarray(x, F) * F(2.0**frac)).astype(F)
+    v = np.where(v > F(Q_MAX), F(Q_MAX), np.where(v < F(-Q_MAX), F(-Q_MAX), v)).astype(F)
+    return np.floor((v + F(0.5)).astype(F)).astype(np.int64)
+
+
+def run(section: FixedSection, x: np.ndarray) -> np.ndarray:
+    """The section on a batch of float32 inputs: int64 model, float32 output."""
+    q = quantize_input(x, section.in_frac)
+    for layer in section.layers:
+        acc = q @ layer.weights.astype(np.int64).T + layer.bias
+        if layer.out_frac is None:
+            return np.asarray(acc.astype(F) * layer.out_scale(), dtype=F)
+        s = layer.shifts()
+        r = (acc + (np.int64(1) << (s - 1))) >> s
+        r = np.clip(r, -Q_MAX, Q_MAX)
+        q = np.maximum(r, 0) if layer.relu else r
+    raise AssertionError("a section ends with a float layer")
