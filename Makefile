@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup deps demo test test-fast lint type format bench export-example clean
+.PHONY: setup deps demo test test-fast lint type format bench export-example targets-example clean
 
 setup: $(STAMP)
 
@@ -61,6 +61,16 @@ bench: $(STAMP)
 export-example: $(STAMP)
 	$(PY) -m export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force
+
+# The same policy on bare-metal Cortex-M4F and Cortex-M3 under QEMU: float32, int8 and q15.
+targets-example: deps $(STAMP)
+	test -f $(OUT)/example/td3.zip || $(PY) -m export.example $(OUT)/example/td3.zip
+	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/float32 --force \
+	    --target cortex-m4 --target cortex-m3
+	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/int8 --force --quantize int8 \
+	    --target cortex-m4 --target cortex-m3
+	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/q15 --force --quantize q15 \
+	    --target cortex-m4 --target cortex-m3
 
 clean:
 	rm -rf $(OUT) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
