@@ -1,0 +1,58 @@
+#include "e2e.h"
+
+#define CRC8_POLY 0x1Du
+#define CRC8_INIT 0xFFu
+#define CRC8_XOR_OUT 0xFFu
+
+static uint8_t crc8_update(uint8_t crc, uint8_t byte)
+{
+    crc ^= byte;
+    for (int bit = 0; bit < 8; ++bit) {
+        crc = (uint8_t)((crc & 0x80u) ? (uint8_t)(crc << 1) ^ CRC8_POLY : (uint8_t)(crc << 1));
+    }
+    return crc;
+}
+
+uint8_t e2e_crc8(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES])
+{
+    uint8_t crc = CRC8_INIT;
+    crc = crc8_update(crc, (uint8_t)(data_id & 0xFFu));
+    crc = crc8_update(crc, (uint8_t)((data_id >> 8) & 0xFFu));
+    for (unsigned i = 1; i < E2E_FRAME_BYTES; ++i) {
+        crc = crc8_update(crc, data[i]);
+    }
+    return (uint8_t)(crc ^ CRC8_XOR_OUT);
+}
+
+void e2e_protect(uint32_t data_id, uint8_t data[E2E_FRAME_BYTES])
+{
+    data[0] = e2e_crc8(data_id, data);
+}
+
+bool e2e_crc_ok(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES])
+{
+    return data[0] == e2e_crc8(data_id, data);
+}
+
+e2e_status e2e_check_counter(e2e_receiver *rx, uint8_t counter)
+{
+    counter &= (uint8_t)(E2E_COUNTER_MODULO - 1u);
+    if (!rx->seen) {
+        rx->seen = true;
+        rx->last_counter = counter;
+        return E2E_OK;
+    }
+    uint8_t delta = (uint8_t)((counter - rx->last_counter) & (E2E_COUNTER_MODULO - 1u));
+    if (delta == 1u) {
+        rx->last_counter = counter;
+        return E2E_OK;
+    }
+    if (delta == 0u) {
+        return E2E_REPEATED;
+    }
+    if (delta <= E2E_MAX_FORWARD_JUMP) {
+        rx->last_counter = counter;
+        return E2E_OK_SOME_LOST;
+    }
+    return E2E_WRONG_SEQUENCE;
+}

@@ -1,0 +1,44 @@
+/*
+ * End-to-end protection of CAN frames, AUTOSAR profile 1 style (see hil/policy.dbc):
+ * byte 0 is a CRC-8 SAE J1850 (poly 0x1D, init 0xFF, final XOR 0xFF) over the data ID (the CAN ID,
+ * low byte then high byte) and bytes 1..7; a 4-bit alive counter per message detects repeated,
+ * lost and out-of-order frames.
+ */
+#ifndef EMBEDRL_E2E_H
+#define EMBEDRL_E2E_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#define E2E_FRAME_BYTES 8u
+#define E2E_COUNTER_MODULO 16u
+#define E2E_MAX_FORWARD_JUMP 7u /* larger "forward" deltas are treated as old frames */
+
+typedef enum {
+    E2E_OK = 0,
+    E2E_OK_SOME_LOST, /* accepted: the counter jumped forward, frames before it were lost */
+    E2E_BAD_CRC,
+    E2E_REPEATED,
+    E2E_WRONG_SEQUENCE
+} e2e_status;
+
+/* Receiver state of one message: the last accepted alive counter. */
+typedef struct {
+    uint8_t last_counter;
+    bool seen;
+} e2e_receiver;
+
+uint8_t e2e_crc8(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES]);
+
+/* Write the CRC into byte 0 (the counter must already be packed). */
+void e2e_protect(uint32_t data_id, uint8_t data[E2E_FRAME_BYTES]);
+
+bool e2e_crc_ok(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES]);
+
+/* Check the alive counter of a frame whose CRC is good. Accepts the first frame and every frame
+ * whose counter is one more than the last accepted one; a forward jump of up to
+ * E2E_MAX_FORWARD_JUMP is accepted as E2E_OK_SOME_LOST (frames before it were lost). A repeated
+ * (E2E_REPEATED) or older (E2E_WRONG_SEQUENCE) counter is rejected and changes nothing. */
+e2e_status e2e_check_counter(e2e_receiver *rx, uint8_t counter);
+
+#endif /* EMBEDRL_E2E_H */

@@ -1,0 +1,69 @@
+/*
+ * The policy node: untrusted CAN frames in, actions and status out.
+ *
+ * Every frame is validated at the boundary (ID, length, CRC, alive counter); only then are its
+ * signals decoded (with the cantools-generated codec from hil/policy.dbc). An observation is the
+ * three frames ObservationA..C of one Step; when all three have arrived the policy runs once and
+ * the action echoes the Step. Once the first observation has arrived, no valid observation for
+ * timeout_ms -> SAFE: the safe action (0, 0)
+ * is sent (and repeated every timeout_ms); back to RUN only after recover_count consecutive valid
+ * observations, answered with the safe action until then. A non-finite policy output also gives
+ * the safe action (policy_step guarantees it). No malloc; every loop is bounded.
+ */
+#ifndef EMBEDRL_NODE_H
+#define EMBEDRL_NODE_H
+
+#include <stdbool.h>
+#include <stdint.h>
+
+#include "e2e.h"
+#include "platform.h"
+#include "policy.h"
+
+#define NODE_OBS_FRAMES 3u
+
+typedef enum { NODE_RUN = 0, NODE_SAFE = 1 } node_state;
+
+typedef struct {
+    uint32_t timeout_ms;
+    uint32_t recover_count;
+    uint32_t status_period_ms;
+} node_config;
+
+typedef struct {
+    node_config config;
+    node_state state;
+    /* counters reported in NodeStatus (saturating) */
+    uint32_t frames_ok;
+    uint32_t crc_errors;
+    uint32_t sequence_errors;
+    uint32_t timeouts;
+    uint32_t inference_us;
+    uint32_t rejected;   /* unknown ID or wrong length: dropped before any decoding */
+    uint32_t incomplete; /* observation steps abandoned before all frames arrived */
+    uint32_t actions_sent;
+    e2e_receiver rx[NODE_OBS_FRAMES];
+    /* observation being assembled */
+    bool pending_valid;
+    uint16_t pending_step;
+    uint8_t pending_parts;
+    float pending_obs[POLICY_OBS_DIM];
+    uint16_t last_step;
+    uint32_t last_valid_ms;
+    uint32_t last_safe_ms;
+    uint32_t next_status_ms;
+    uint32_t consecutive_valid;
+    bool armed; /* the watchdog runs from the first valid observation on */
+    uint8_t action_counter;
+    uint8_t status_counter;
+} node_t;
+
+void node_init(node_t *node, const node_config *config, uint32_t now_ms);
+
+/* Handle one received frame (sends the action when an observation completes). */
+void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms);
+
+/* Time-driven duties: watchdog and periodic status. Returns the ms until the next deadline. */
+uint32_t node_poll(node_t *node, uint32_t now_ms);
+
+#endif /* EMBEDRL_NODE_H */

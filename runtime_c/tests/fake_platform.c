@@ -1,0 +1,64 @@
+/* Fake transport and clock for the node's unit tests: sent frames are recorded, time is set by hand. */
+#include "fake_platform.h"
+
+#include <string.h>
+
+static can_frame_t sent[FAKE_MAX_SENT];
+static unsigned sent_count;
+static uint32_t now_us;
+
+int transport_open(const char *iface)
+{
+    (void)iface;
+    return 0;
+}
+
+int transport_recv(can_frame_t *frame, uint32_t timeout_ms)
+{
+    (void)frame;
+    (void)timeout_ms;
+    return 0;
+}
+
+int transport_send(const can_frame_t *frame)
+{
+    if (sent_count < FAKE_MAX_SENT) {
+        sent[sent_count++] = *frame;
+    }
+    return 0;
+}
+
+void transport_close(void)
+{
+}
+
+uint32_t clock_ms(void)
+{
+    return now_us / 1000u;
+}
+
+uint32_t clock_us(void)
+{
+    return now_us;
+}
+
+void fake_reset(void)
+{
+    sent_count = 0;
+    memset(sent, 0, sizeof sent);
+}
+
+unsigned fake_sent_count(void)
+{
+    return sent_count;
+}
+
+const can_frame_t *fake_sent(unsigned index)
+{
+    return index < sent_count ? &sent[index] : NULL;
+}
+
+void fake_set_ms(uint32_t ms)
+{
+    now_us = ms * 1000u;
+}

@@ -1,0 +1,14 @@
+/* Test double of a generated policy (same contract as `embedrl export` output), for node unit tests. */
+#ifndef POLICY_H
+#define POLICY_H
+
+#define POLICY_OBS_DIM 6
+#define POLICY_ACT_DIM 2
+#define POLICY_OK 0
+#define POLICY_ERR_OBS_NOT_FINITE 1
+#define POLICY_ERR_ACT_NOT_FINITE 2
+
+/* act = (obs[0] / 2, obs[1] / 2); if obs[0] > 1.5 the "network" overflows: safe action, code 2. */
+int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
+
+#endif

@@ -1,0 +1,333 @@
+/*
+ * Unit tests of the policy node on the fake transport and clock: codec round trips for every
+ * message, E2E rejections, observation assembly, watchdog and recovery, non-finite outputs.
+ */
+#include <math.h>
+#include <stdio.h>
+#include <string.h>
+
+#include "e2e.h"
+#include "fake_platform.h"
+#include "node.h"
+#include "policy_dbc.h"
+
+static int failures;
+static int checks;
+
+#define CHECK(cond)                                                                                \
+    do {                                                                                           \
+        ++checks;                                                                                  \
+        if (!(cond)) {                                                                             \
+            ++failures;                                                                            \
+            fprintf(stderr, "%s:%d: CHECK failed: %s\n", __FILE__, __LINE__, #cond);               \
+        }                                                                                          \
+    } while (0)
+
+#define TIMEOUT_MS 100u
+#define RECOVER 3u
+
+static const node_config config = {TIMEOUT_MS, RECOVER, 1000u};
+static uint8_t counters[3];
+
+/* The three observation frames of one step, E2E protected, as the simulator sends them. */
+static void make_observation(can_frame_t frames[3], uint16_t step, const float obs[6])
+{
+    struct policy_dbc_observation_a_t a;
+    struct policy_dbc_observation_b_t b;
+    struct policy_dbc_observation_c_t c;
+    memset(&a, 0, sizeof a);
+    memset(&b, 0, sizeof b);
+    memset(&c, 0, sizeof c);
+    a.counter = counters[0]++ & 15u;
+    b.counter = counters[1]++ & 15u;
+    c.counter = counters[2]++ & 15u;
+    a.step = b.step = c.step = step;
+    a.x = policy_dbc_observation_a_x_encode(obs[0]);
+    a.y = policy_dbc_observation_a_y_encode(obs[1]);
+    b.sin_theta = policy_dbc_observation_b_sin_theta_encode(obs[2]);
+    b.cos_theta = policy_dbc_observation_b_cos_theta_encode(obs[3]);
+    c.speed = policy_dbc_observation_c_speed_encode(obs[4]);
+    c.turn_rate = policy_dbc_observation_c_turn_rate_encode(obs[5]);
+    for (unsigned i = 0; i < 3; ++i) {
+        frames[i].id = POLICY_DBC_OBSERVATION_A_FRAME_ID + i;
+        frames[i].len = 8;
+        memset(frames[i].data, 0, 8);
+    }
+    policy_dbc_observation_a_pack(frames[0].data, &a, 8);
+    policy_dbc_observation_b_pack(frames[1].data, &b, 8);
+    policy_dbc_observation_c_pack(frames[2].data, &c, 8);
+    for (unsigned i = 0; i < 3; ++i) {
+        e2e_protect(frames[i].id, frames[i].data);
+    }
+}
+
+static void send_observation(node_t *node, uint16_t step, const float obs[6], uint32_t now_ms)
+{
+    can_frame_t frames[3];
+    make_observation(frames, step, obs);
+    for (unsigned i = 0; i < 3; ++i) {
+        node_on_frame(node, &frames[i], now_ms);
+    }
+}
+
+/* The last action frame sent, decoded; returns 0 if there is none. */
+static int last_action(float act[2], uint16_t *step)
+{
+    for (unsigned i = fake_sent_count(); i-- > 0;) {
+        const can_frame_t *f = fake_sent(i);
+        if (f->id == POLICY_DBC_ACTION_FRAME_ID) {
+            struct policy_dbc_action_t m;
+            CHECK(e2e_crc_ok(f->id, f->data));
+            policy_dbc_action_unpack(&m, f->data, 8);
+            act[0] = (float)policy_dbc_action_force_left_decode(m.force_left);
+            act[1] = (float)policy_dbc_action_force_right_decode(m.force_right);
+            *step = m.step;
+            return 1;
+        }
+    }
+    return 0;
+}
+
+static unsigned count_actions(void)
+{
+    unsigned n = 0;
+    for (unsigned i = 0; i < fake_sent_count(); ++i) {
+        n += fake_sent(i)->id == POLICY_DBC_ACTION_FRAME_ID;
+    }
+    return n;
+}
+
+static void fresh(node_t *node)
+{
+    fake_reset();
+    memset(counters, 0, sizeof counters);
+    fake_set_ms(1000);
+    node_init(node, &config, 1000);
+}
+
+static void test_codec_round_trips(void)
+{
+    uint8_t buf[8];
+    struct policy_dbc_observation_a_t a = {0}, a2;
+    a.crc = 0xA5;
+    a.counter = 9;
+    a.step = 4095;
+    a.x = policy_dbc_observation_a_x_encode(-1.75);
+    a.y = policy_dbc_observation_a_y_encode(1.25);
+    CHECK(policy_dbc_observation_a_pack(buf, &a, 8) == 8);
+    CHECK(policy_dbc_observation_a_unpack(&a2, buf, 8) == 0);
+    CHECK(memcmp(&a, &a2, sizeof a) == 0);
+    CHECK(fabs(policy_dbc_observation_a_x_decode(a2.x) + 1.75) < 4e-6);
+
+    struct policy_dbc_observation_b_t b = {0}, b2;
+    b.counter = 15;
+    b.step = 17;
+    b.sin_theta = policy_dbc_observation_b_sin_theta_encode(-1.0);
+    b.cos_theta = policy_dbc_observation_b_cos_theta_encode(1.0);
+    CHECK(policy_dbc_observation_b_pack(buf, &b, 8) == 8);
+    CHECK(policy_dbc_observation_b_unpack(&b2, buf, 8) == 0 && memcmp(&b, &b2, sizeof b) == 0);
+    CHECK(policy_dbc_observation_b_cos_theta_decode(b2.cos_theta) == 1.0);
+
+    struct policy_dbc_observation_c_t c = {0}, c2;
+    c.step = 1;
+    c.speed = policy_dbc_observation_c_speed_encode(0.7);
+    c.turn_rate = policy_dbc_observation_c_turn_rate_encode(-2.0);
+    CHECK(policy_dbc_observation_c_pack(buf, &c, 8) == 8);
+    CHECK(policy_dbc_observation_c_unpack(&c2, buf, 8) == 0 && memcmp(&c, &c2, sizeof c) == 0);
+    CHECK(policy_dbc_observation_c_turn_rate_decode(c2.turn_rate) == -2.0);
+
+    struct policy_dbc_action_t act = {0}, act2;
+    act.counter = 3;
+    act.step = 200;
+    act.force_left = policy_dbc_action_force_left_encode(-1.0);
+    act.force_right = policy_dbc_action_force_right_encode(0.123456);
+    CHECK(policy_dbc_action_pack(buf, &act, 8) == 8);
+    CHECK(policy_dbc_action_unpack(&act2, buf, 8) == 0 && memcmp(&act, &act2, sizeof act) == 0);
+    CHECK(fabs(policy_dbc_action_force_right_decode(act2.force_right) - 0.123456) < 4e-6);
+
+    struct policy_dbc_node_status_t s = {0}, s2;
+    s.counter = 7;
+    s.state = 1;
+    s.frames_ok = 65535;
+    s.crc_errors = 255;
+    s.sequence_errors = 1;
+    s.timeouts = 2;
+    s.inference_us = 1023;
+    CHECK(policy_dbc_node_status_pack(buf, &s, 8) == 8);
+    CHECK(policy_dbc_node_status_unpack(&s2, buf, 8) == 0 && memcmp(&s, &s2, sizeof s) == 0);
+}
+
+static void test_crc8_reference_vector(void)
+{
+    /* CRC-8 SAE J1850 of "123456789" is 0x4B; here the first two bytes go through the data ID. */
+    const uint8_t data[8] = {0, '3', '4', '5', '6', '7', '8', '9'};
+    CHECK(e2e_crc8((uint32_t)'1' | ((uint32_t)'2' << 8), data) == 0x4Bu);
+}
+
+static void test_valid_observation_gives_one_action(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {1.0f, -0.5f, 0.0f, 1.0f, 0.1f, 0.2f};
+    send_observation(&node, 42, obs, 1000);
+    float act[2];
+    uint16_t step;
+    CHECK(count_actions() == 1);
+    CHECK(last_action(act, &step) && step == 42);
+    CHECK(fabsf(act[0] - 0.5f) < 4e-6f && fabsf(act[1] + 0.25f) < 4e-6f);
+    CHECK(node.frames_ok == 3 && node.crc_errors == 0 && node.sequence_errors == 0);
+}
+
+static void test_e2e_rejections(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {0.2f, 0.2f, 0.0f, 1.0f, 0.0f, 0.0f};
+    can_frame_t frames[3];
+
+    /* corrupted payload bit: CRC error, dropped, no action */
+    make_observation(frames, 1, obs);
+    frames[1].data[5] ^= 0x10u;
+    for (unsigned i = 0; i < 3; ++i) {
+        node_on_frame(&node, &frames[i], 1000);
+    }
+    CHECK(node.crc_errors == 1 && count_actions() == 0);
+
+    /* foreign frame: a valid frame of ObservationA sent under ObservationB's ID (wrong data ID) */
+    make_observation(frames, 2, obs);
+    can_frame_t foreign = frames[0];
+    foreign.id = POLICY_DBC_OBSERVATION_B_FRAME_ID;
+    node_on_frame(&node, &foreign, 1000);
+    CHECK(node.crc_errors == 2);
+
+    /* a complete valid step still works */
+    for (unsigned i = 0; i < 3; ++i) {
+        node_on_frame(&node, &frames[i], 1000);
+    }
+    CHECK(count_actions() == 1);
+
+    /* repeated frame (same counter): sequence error, no second action */
+    node_on_frame(&node, &frames[2], 1000);
+    CHECK(node.sequence_errors == 1 && count_actions() == 1);
+
+    /* lost frames: a forward jump of the counter is accepted and counted */
+    uint32_t ok_before = node.frames_ok;
+    counters[0] = (uint8_t)(counters[0] + 2u);
+    make_observation(frames, 3, obs);
+    node_on_frame(&node, &frames[0], 1000);
+    CHECK(node.sequence_errors == 2 && node.frames_ok == ok_before + 1);
+
+    /* out of order: an older counter */
+    can_frame_t older[3];
+    counters[0] = (uint8_t)(counters[0] - 3u);
+    make_observation(older, 3, obs);
+    node_on_frame(&node, &older[0], 1000);
+    CHECK(node.sequence_errors == 3 && node.frames_ok == ok_before + 1);
+
+    /* wrong length and unknown ID are rejected before decoding */
+    can_frame_t short_frame = frames[0];
+    short_frame.len = 7;
+    node_on_frame(&node, &short_frame, 1000);
+    can_frame_t unknown = frames[0];
+    unknown.id = 0x123;
+    node_on_frame(&node, &unknown, 1000);
+    CHECK(node.rejected == 2);
+}
+
+static void test_never_assembles_two_steps(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {0.4f, 0.4f, 0.0f, 1.0f, 0.0f, 0.0f};
+    can_frame_t step5[3], step6[3];
+    make_observation(step5, 5, obs);
+    make_observation(step6, 6, obs);
+    node_on_frame(&node, &step5[0], 1000);
+    node_on_frame(&node, &step5[1], 1000);
+    node_on_frame(&node, &step6[2], 1000); /* the last part, but of the next step */
+    CHECK(count_actions() == 0 && node.incomplete == 1);
+    node_on_frame(&node, &step6[0], 1000);
+    node_on_frame(&node, &step6[1], 1000);
+    float act[2];
+    uint16_t step;
+    CHECK(count_actions() == 1 && last_action(act, &step) && step == 6);
+}
+
+static void test_watchdog_safe_and_recovery(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {1.0f, 1.0f, 0.0f, 1.0f, 0.0f, 0.0f};
+    float act[2];
+    uint16_t step;
+    /* before the first observation the watchdog is not armed */
+    node_poll(&node, 1000 + 10 * TIMEOUT_MS);
+    CHECK(node.state == NODE_RUN && node.timeouts == 0);
+    send_observation(&node, 1, obs, 2000);
+    node_poll(&node, 2000 + TIMEOUT_MS - 1);
+    CHECK(node.state == NODE_RUN && count_actions() == 1);
+    node_poll(&node, 2000 + TIMEOUT_MS);
+    CHECK(node.state == NODE_SAFE && node.timeouts == 1);
+    CHECK(count_actions() == 2 && last_action(act, &step) && act[0] == 0.0f && act[1] == 0.0f);
+    /* still silent: the safe action is repeated every timeout */
+    node_poll(&node, 2000 + 2 * TIMEOUT_MS);
+    CHECK(count_actions() == 3);
+    /* recovery needs RECOVER consecutive valid observations; until then the safe action answers */
+    uint32_t t = 2000 + 2 * TIMEOUT_MS + 10;
+    for (uint16_t s = 2; s < 2 + RECOVER - 1; ++s) {
+        send_observation(&node, s, obs, t);
+        CHECK(node.state == NODE_SAFE && last_action(act, &step) && step == s && act[0] == 0.0f);
+    }
+    /* a corrupted frame restarts the count */
+    can_frame_t frames[3];
+    make_observation(frames, 9, obs);
+    frames[0].data[3] ^= 1u;
+    node_on_frame(&node, &frames[0], t);
+    for (uint16_t s = 10; s < 10 + RECOVER - 1; ++s) {
+        send_observation(&node, s, obs, t);
+        CHECK(node.state == NODE_SAFE);
+    }
+    send_observation(&node, 20, obs, t);
+    CHECK(node.state == NODE_RUN && last_action(act, &step) && step == 20 && fabsf(act[0] - 0.5f) < 4e-6f);
+}
+
+static void test_non_finite_output_gives_the_safe_action(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {1.9f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f}; /* the fake network overflows */
+    send_observation(&node, 7, obs, 1000);
+    float act[2];
+    uint16_t step;
+    CHECK(last_action(act, &step) && step == 7 && act[0] == 0.0f && act[1] == 0.0f);
+}
+
+static void test_status_frame_reports_counters(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {0.1f, 0.1f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 1, obs, 1000);
+    fake_reset();
+    node_poll(&node, 1000);
+    CHECK(fake_sent_count() >= 1);
+    const can_frame_t *f = fake_sent(0);
+    struct policy_dbc_node_status_t s;
+    CHECK(f->id == POLICY_DBC_NODE_STATUS_FRAME_ID && e2e_crc_ok(f->id, f->data));
+    policy_dbc_node_status_unpack(&s, f->data, 8);
+    CHECK(s.state == 0 && s.frames_ok == 3 && s.crc_errors == 0);
+}
+
+int main(void)
+{
+    test_codec_round_trips();
+    test_crc8_reference_vector();
+    test_valid_observation_gives_one_action();
+    test_e2e_rejections();
+    test_never_assembles_two_steps();
+    test_watchdog_safe_and_recovery();
+    test_non_finite_output_gives_the_safe_action();
+    test_status_frame_reports_counters();
+    printf("%d checks, %d failures\n", checks, failures);
+    return failures == 0 ? 0 : 1;
+}
