@@ -1,0 +1,55 @@
+"""End-to-end protection, the Python side of runtime_c/node/e2e.c (AUTOSAR profile 1 style).
+
+Byte 0 of every frame is a CRC-8 SAE J1850 (poly 0x1D, init 0xFF, final XOR 0xFF) over the data ID
+(the CAN ID, low byte then high byte) and bytes 1..7; a 4-bit alive counter per message.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+CRC8_POLY = 0x1D
+COUNTER_MODULO = 16
+MAX_FORWARD_JUMP = 7
+
+
+def crc8(data_id: int, data: bytes) -> int:
+    crc = 0xFF
+    for byte in (data_id & 0xFF, (data_id >> 8) & 0xFF, *data[1:8]):
+        crc ^= byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ CRC8_POLY) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc ^ 0xFF
+
+
+def protect(data_id: int, data: bytes) -> bytes:
+    """The frame with its CRC in byte 0."""
+    return bytes([crc8(data_id, data)]) + bytes(data[1:8])
+
+
+def crc_ok(data_id: int, data: bytes) -> bool:
+    return len(data) == 8 and data[0] == crc8(data_id, data)
+
+
+@dataclass
+class Receiver:
+    """Alive-counter check of one message, as the C node does it."""
+
+    last: int | None = None
+
+    def check(self, counter: int) -> str:
+        """"ok", "lost" (accepted after a forward jump), "repeated" or "wrong_sequence" (rejected)."""
+        counter %= COUNTER_MODULO
+        if self.last is None:
+            self.last = counter
+            return "ok"
+        delta = (counter - self.last) % COUNTER_MODULO
+        if delta == 1:
+            self.last = counter
+            return "ok"
+        if delta == 0:
+            return "repeated"
+        if delta <= MAX_FORWARD_JUMP:
+            self.last = counter
+            return "lost"
+        return "wrong_sequence"
