@@ -9,9 +9,10 @@ OUT ?= out
 
 setup: $(STAMP)
 
-# Debian packages the Cortex-M tests need: cross compiler, newlib, QEMU. Installed when missing
+# Debian packages the tests need: cross compiler, newlib, QEMU (Cortex-M); User-Mode Linux, kmod and
+# iproute2 (vcan for the HIL tests where the kernel has no CAN). Installed when missing
 # (as root or with passwordless sudo); otherwise the command to run is printed.
-APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm
+APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2
 deps:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \

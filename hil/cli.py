@@ -35,7 +35,9 @@ def run_hil(args: argparse.Namespace) -> dict[str, Any]:
 
     export_dir: Path = args.export_dir.resolve()
     if not (export_dir / "c" / "policy.c").is_file():
-        raise HilError(f"{export_dir}: no c/policy.c (is it an `embedrl export` folder with the default --name?)")
+        raise HilError(
+            f"{export_dir}: no c/policy.c (is it an `embedrl export` folder with the default --name?)"
+        )
     onnx = _onnx_of(export_dir)
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
     print(f"building the node: make -C runtime_c node POLICY_DIR={export_dir / 'c'}")
@@ -44,17 +46,31 @@ def run_hil(args: argparse.Namespace) -> dict[str, Any]:
     except BuildError as exc:
         raise HilError(str(exc)) from None
     where = sandbox.choose(args.sandbox)
-    print(f"sandbox: {where}" + (" (no kernel CAN here: User-Mode Linux gives a real SocketCAN vcan0)"
-                                 if where == "uml" else " (vcan0)"))
+    print(
+        f"sandbox: {where}"
+        + (
+            " (no kernel CAN here: User-Mode Linux gives a real SocketCAN vcan0)"
+            if where == "uml"
+            else " (vcan0)"
+        )
+    )
     cfg = SessionConfig(
-        node=str(work / "build" / "policy_node"), onnx=str(onnx), episodes=args.episodes, seed=args.seed,
-        node_timeout_ms=args.timeout_ms, realtime=args.realtime,
-        log=str(args.log.resolve()) if args.log else None, results=str(work / "results.json"), inject=args.inject,
+        node=str(work / "build" / "policy_node"),
+        onnx=str(onnx),
+        episodes=args.episodes,
+        seed=args.seed,
+        node_timeout_ms=args.timeout_ms,
+        realtime=args.realtime,
+        log=str(args.log.resolve()) if args.log else None,
+        results=str(work / "results.json"),
+        inject=args.inject,
     )
     if cfg.log:
         Path(cfg.log).parent.mkdir(parents=True, exist_ok=True)
-    print(f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
-          + (f", injecting '{args.inject}'" if args.inject else ""))
+    print(
+        f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
+        + (f", injecting '{args.inject}'" if args.inject else "")
+    )
     if where == "host":
         results = run(cfg)
     else:
@@ -76,24 +92,48 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     from train.evaluate import EpisodeResult, EvalReport, evaluate
 
     episodes = [
-        EpisodeResult(e["seed"], e["outcome"], e["steps"], e["episode_return"], e["time_s"], None,
-                      [tuple(p) for p in e["trajectory"]])
+        EpisodeResult(
+            e["seed"],
+            e["outcome"],
+            e["steps"],
+            e["episode_return"],
+            e["time_s"],
+            None,
+            [tuple(p) for p in e["trajectory"]],
+        )
         for e in results["episodes"]
     ]
     report = EvalReport.from_results(episodes, args.seed, f"HIL {args.export_dir}")
-    session = ort.InferenceSession(str(_onnx_of(args.export_dir.resolve())), providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(
+        str(_onnx_of(args.export_dir.resolve())), providers=["CPUExecutionProvider"]
+    )
 
     def simulated(obs: np.ndarray) -> np.ndarray:
         return np.asarray(session.run(None, {"obs": obs.reshape(1, -1)})[0]).reshape(-1)
 
     sim = evaluate(simulated, len(episodes), args.seed, "simulation (onnxruntime)")
     differing = [h.seed for h, s in zip(episodes, sim.results, strict=True) if h.outcome != s.outcome]
-    keys = ("steps", "max_action_abs_diff", "first_divergent_step", "frames_tx", "frames_rx", "crc_errors",
-            "sequence_errors", "rx_timeouts", "sandbox", "latency_us", "deadline_misses", "node_status", "injection")
+    keys = (
+        "steps",
+        "max_action_abs_diff",
+        "first_divergent_step",
+        "frames_tx",
+        "frames_rx",
+        "crc_errors",
+        "sequence_errors",
+        "rx_timeouts",
+        "sandbox",
+        "latency_us",
+        "deadline_misses",
+        "node_status",
+        "injection",
+    )
     extra = {k: results.get(k) for k in keys}
     extra["faults"] = sum(e.outcome == "fault" for e in episodes)
-    extra["simulation"] = {k: getattr(sim, k) for k in ("episodes", "successes", "collisions", "timeouts",
-                                                         "success_rate", "mean_return")}
+    extra["simulation"] = {
+        k: getattr(sim, k)
+        for k in ("episodes", "successes", "collisions", "timeouts", "success_rate", "mean_return")
+    }
     extra["outcomes_differing_from_simulation"] = differing
     data = report.to_json(extra)
     for row, e in zip(data["per_episode"], results["episodes"], strict=True):
@@ -103,7 +143,9 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         from train.plots import plot_trajectories
 
         plot_trajectories(report, args.plot / "hil_trajectories.png")
-        plot_latency(results["latencies_us"], args.plot / "hil_latency.png", results["sandbox"], args.realtime)
+        plot_latency(
+            results["latencies_us"], args.plot / "hil_latency.png", results["sandbox"], args.realtime
+        )
     return data
 
 
@@ -118,15 +160,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     diff = data["max_action_abs_diff"]
     rows = [
         ("sandbox", data["sandbox"]),
-        ("HIL successes / collisions / timeouts / faults",
-         f"{data['successes']} / {data['collisions']} / {data['timeouts']} / {data['faults']}"),
-        ("simulation successes / collisions / timeouts",
-         f"{data['simulation']['successes']} / {data['simulation']['collisions']} / {data['simulation']['timeouts']}"),
+        (
+            "HIL successes / collisions / timeouts / faults",
+            f"{data['successes']} / {data['collisions']} / {data['timeouts']} / {data['faults']}",
+        ),
+        (
+            "simulation successes / collisions / timeouts",
+            " / ".join(str(data["simulation"][k]) for k in ("successes", "collisions", "timeouts")),
+        ),
         ("episodes ending differently", str(len(data["outcomes_differing_from_simulation"]))),
         ("steps, max |node - ONNX|", f"{data['steps']}, {'-' if diff is None else f'{diff:.3g}'}"),
         ("frames tx / rx", f"{data['frames_tx']} / {data['frames_rx']}"),
-        ("node CRC / sequence errors, rx timeouts", f"{data['crc_errors']} / {data['sequence_errors']}, "
-                                                    f"{data['rx_timeouts']}"),
+        (
+            "node CRC / sequence errors, rx timeouts",
+            f"{data['crc_errors']} / {data['sequence_errors']}, {data['rx_timeouts']}",
+        ),
         ("round trip p50 / p99 / max [us]", f"{lat['p50']:.0f} / {lat['p99']:.0f} / {lat['max']:.0f}"),
     ]
     if data["injection"]:
@@ -146,7 +194,9 @@ def register(sub: Any) -> None:
     r.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
     r.add_argument("--episodes", type=int, default=10)
     r.add_argument("--seed", type=int, default=0)
-    r.add_argument("--realtime", action="store_true", help="pace at the env's sample time (a report, not a verdict)")
+    r.add_argument(
+        "--realtime", action="store_true", help="pace at the env's sample time (a report, not a verdict)"
+    )
     r.add_argument("--log", type=Path, help="write every frame here (candump format, .log; .blf also works)")
     r.add_argument("--json", type=Path, required=True, help="write the report here")
     r.add_argument("--plot", type=Path, help="write trajectories and the latency histogram into this folder")

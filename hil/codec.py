@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, cast
 
 import can
 import cantools
@@ -34,11 +35,22 @@ class Status:
     inference_us: int
 
 
+def load_database() -> cantools.database.can.Database:
+    db = cantools.database.load_file(str(DBC_PATH))
+    assert isinstance(db, cantools.database.can.Database)
+    return db
+
+
+def decode_fields(message: cantools.database.can.Message, data: bytes) -> dict[str, Any]:
+    """Signal values of an 8-byte frame (raw choices as numbers)."""
+    return cast(dict[str, Any], message.decode(data, decode_choices=False))
+
+
 @dataclass
 class Codec:
     """Both directions of the simulator's side; E2E counters and checks included."""
 
-    db: cantools.database.can.Database = field(default_factory=lambda: cantools.database.load_file(str(DBC_PATH)))
+    db: cantools.database.can.Database = field(default_factory=load_database)
     counters: dict[str, int] = field(default_factory=dict)
     receivers: dict[int, e2e.Receiver] = field(default_factory=dict)
     crc_errors: int = 0
@@ -56,31 +68,33 @@ class Codec:
     def encode_observation(self, obs: np.ndarray, step: int) -> tuple[list[can.Message], np.ndarray]:
         """The three frames of one observation and the observation the node will decode from them."""
         frames, decoded = [], []
-        for name, signals, values in zip(OBSERVATION_MESSAGES, OBSERVATION_SIGNALS, np.reshape(obs, (3, 2)),
-                                         strict=True):
+        for name, signals, values in zip(
+            OBSERVATION_MESSAGES, OBSERVATION_SIGNALS, np.reshape(obs, (3, 2)), strict=True
+        ):
             message = self.db.get_message_by_name(name)
-            payload = {"Crc": 0, "Counter": self._next_counter(name), "Step": step % STEP_MODULO}
+            counter = self._next_counter(name)
+            payload: dict[str, float] = {"Crc": 0, "Counter": counter, "Step": step % STEP_MODULO}
             payload.update({s: float(v) for s, v in zip(signals, values, strict=True)})
             data = e2e.protect(message.frame_id, message.encode(payload, scaling=True, strict=False))
             frames.append(can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False))
-            back = message.decode(data)
+            back = decode_fields(message, data)
             decoded += [back[s] for s in signals]
         return frames, np.array(decoded, dtype=np.float32)
 
-    def _checked(self, msg: can.Message) -> dict[str, float] | None:
+    def _checked(self, msg: can.Message) -> dict[str, Any] | None:
         data = bytes(msg.data)
         if not e2e.crc_ok(msg.arbitration_id, data):
             self.crc_errors += 1
             return None
         message = self.db.get_message_by_frame_id(msg.arbitration_id)
-        fields = message.decode(data, decode_choices=False)
+        fields = decode_fields(message, data)
         receiver = self.receivers.setdefault(msg.arbitration_id, e2e.Receiver())
         verdict = receiver.check(int(fields["Counter"]))
         if verdict != "ok":
             self.sequence_errors += 1
             if verdict in ("repeated", "wrong_sequence"):
                 return None
-        return dict(fields)  # type: ignore[arg-type]
+        return fields
 
     def decode(self, msg: can.Message) -> Action | Status | None:
         """An E2E-valid Action or NodeStatus, or None (other IDs, bad CRC, repeated or old counter)."""

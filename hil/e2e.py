@@ -38,7 +38,7 @@ class Receiver:
     last: int | None = None
 
     def check(self, counter: int) -> str:
-        """"ok", "lost" (accepted after a forward jump), "repeated" or "wrong_sequence" (rejected)."""
+        """ "ok", "lost" (accepted after a forward jump), "repeated" or "wrong_sequence" (rejected)."""
         counter %= COUNTER_MODULO
         if self.last is None:
             self.last = counter

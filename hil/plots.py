@@ -16,8 +16,12 @@ def plot_latency(latencies_us: list[float], path: Path, sandbox: str, realtime: 
     fig, ax = plt.subplots(figsize=(7, 4))
     if latencies_us:
         ax.hist([v / 1000 for v in latencies_us], bins=50, color="tab:blue")
-    ax.set(xlabel="round trip: observation frames out -> action frame in [ms]", ylabel="steps",
-           title=f"HIL round trip ({'real time' if realtime else 'lock-step'}, {sandbox}, n={len(latencies_us)})")
+    ax.set(
+        xlabel="round trip: observation frames out -> action frame in [ms]",
+        ylabel="steps",
+        title=f"HIL round trip ({'real time' if realtime else 'lock-step'}, {sandbox}, "
+        f"n={len(latencies_us)})",
+    )
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
     finally:

@@ -21,7 +21,12 @@ IFACE = "vcan0"
 UML_BINARY = "linux.uml"
 UML_MEMORY = "1G"
 UML_TIMEOUT_S = 3600
-CAN_MODULES = ("net/can/can.ko", "net/can/can-raw.ko", "drivers/net/can/dev/can-dev.ko", "drivers/net/can/vcan.ko")
+CAN_MODULES = (
+    "net/can/can.ko",
+    "net/can/can-raw.ko",
+    "drivers/net/can/dev/can-dev.ko",
+    "drivers/net/can/vcan.ko",
+)
 """Loaded in this order inside the guest (vcan needs can-dev)."""
 
 
@@ -43,7 +48,9 @@ def choose(sandbox: str) -> str:
     if sandbox in ("auto", "host") and host_has_vcan():
         return "host"
     if sandbox == "host":
-        raise HilError(f"no {IFACE} on this host and it cannot be created (no kernel CAN support); use --sandbox uml")
+        raise HilError(
+            f"no {IFACE} on this host and it cannot be created (no kernel CAN support); use --sandbox uml"
+        )
     if shutil.which(UML_BINARY) is None:
         raise HilError(
             f"no {IFACE} on this host and no User-Mode Linux ({UML_BINARY}): install the Debian packages "
@@ -67,7 +74,8 @@ mount -t tmpfs tmpfs /dev/shm
 M=/usr/lib/uml/modules/$(uname -r)/kernel
 for m in {modules}; do insmod "$m" || echo "insmod $m failed"; done
 ip link add dev {IFACE} type vcan && ip link set up {IFACE}
-export HOME={shlex.quote(os.environ.get("HOME", "/root"))} PATH={shlex.quote(os.environ.get("PATH", "/usr/bin:/bin"))}
+export HOME={shlex.quote(os.environ.get("HOME", "/root"))}
+export PATH={shlex.quote(os.environ.get("PATH", "/usr/bin:/bin"))}
 export PYTHONUNBUFFERED=1
 cd {shlex.quote(str(cwd))}
 {" ".join(shlex.quote(a) for a in argv)}
@@ -77,13 +85,25 @@ poweroff -f
 """)
     script.chmod(0o755)
     console = workdir / "uml_console.log"
-    cmd = [UML_BINARY, f"mem={UML_MEMORY}", "rootfstype=hostfs", "rootflags=/", "rw", f"init={script}",
-           "con=null", "con0=fd:0,fd:1"]
+    cmd = [
+        UML_BINARY,
+        f"mem={UML_MEMORY}",
+        "rootfstype=hostfs",
+        "rootflags=/",
+        "rw",
+        f"init={script}",
+        "con=null",
+        "con0=fd:0,fd:1",
+    ]
     with console.open("wb") as out:
         try:
-            subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, timeout=UML_TIMEOUT_S)
+            subprocess.run(
+                cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT, timeout=UML_TIMEOUT_S
+            )
         except subprocess.TimeoutExpired:
-            raise HilError(f"the User-Mode Linux session did not finish within {UML_TIMEOUT_S} s ({console})") from None
+            raise HilError(
+                f"the User-Mode Linux session did not finish within {UML_TIMEOUT_S} s ({console})"
+            ) from None
     if not status_file.is_file():
         raise HilError(f"the User-Mode Linux session ended without a result; see {console}")
     return int(status_file.read_text().strip() or "1")

@@ -134,8 +134,17 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     """Run the episodes; return the results (also written to cfg.results)."""
     stats = Stats()
     node = subprocess.Popen(
-        [cfg.node, "--iface", cfg.iface, "--timeout-ms", str(cfg.node_timeout_ms), "--recover", str(cfg.node_recover)],
-        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+        [
+            cfg.node,
+            "--iface",
+            cfg.iface,
+            "--timeout-ms",
+            str(cfg.node_timeout_ms),
+            "--recover",
+            str(cfg.node_recover),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
     )
     link = Link(cfg, stats)
     session = ort.InferenceSession(cfg.onnx, providers=["CPUExecutionProvider"])
@@ -180,7 +189,9 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                 global_step += 1
                 trajectory.append(tuple(env.unwrapped.trajectory[-1]))  # type: ignore[attr-defined]
                 if terminated or truncated:
-                    outcome = "success" if info["is_success"] else "collision" if info["collided"] else "timeout"
+                    outcome = (
+                        "success" if info["is_success"] else "collision" if info["collided"] else "timeout"
+                    )
                     break
                 if cfg.realtime:
                     next_tick += SAMPLE_TIME
@@ -188,8 +199,17 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                         stats.deadline_misses += 1
                     else:
                         time.sleep(next_tick - time.monotonic())
-            episodes.append({"seed": seed, "outcome": outcome, "steps": steps, "episode_return": total,
-                             "time_s": steps * SAMPLE_TIME, "fault": fault, "trajectory": trajectory})
+            episodes.append(
+                {
+                    "seed": seed,
+                    "outcome": outcome,
+                    "steps": steps,
+                    "episode_return": total,
+                    "time_s": steps * SAMPLE_TIME,
+                    "fault": fault,
+                    "trajectory": trajectory,
+                }
+            )
             if fault and node.poll() is not None:
                 break  # the node is gone: later episodes could only fail the same way
         link.wait_status(0.3)
@@ -208,7 +228,12 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
 
 
 def _inject(
-    cfg: SessionConfig, link: Link, node: subprocess.Popen[bytes], frames: list[can.Message], step: int, stats: Stats
+    cfg: SessionConfig,
+    link: Link,
+    node: subprocess.Popen[bytes],
+    frames: list[can.Message],
+    step: int,
+    stats: Stats,
 ) -> dict[str, Any]:
     """Apply the configured fault at this step; return what was observed."""
     if cfg.inject == "corrupt":
@@ -219,9 +244,12 @@ def _inject(
         link.send(frames)
         action = link.wait_action(step, min(cfg.action_timeout_s, 3 * cfg.node_timeout_ms / 1000))
         after = link.wait_status(1.0)
-        return {"kind": "corrupt", "action_received": action is not None,
-                "node_crc_errors_before": before.crc_errors if before else None,
-                "node_crc_errors_after": after.crc_errors if after else None}
+        return {
+            "kind": "corrupt",
+            "action_received": action is not None,
+            "node_crc_errors_before": before.crc_errors if before else None,
+            "node_crc_errors_after": after.crc_errors if after else None,
+        }
     if cfg.inject == "silent":
         last_sent = time.monotonic()
         deadline = last_sent + 5.0
@@ -238,8 +266,12 @@ def _inject(
                 safe_after_ms = (time.monotonic() - last_sent) * 1000
                 break
         status = link.wait_status(1.0)
-        return {"kind": "silent", "safe_action_after_ms": safe_after_ms, "node_timeout_ms": cfg.node_timeout_ms,
-                "node_state": status.state if status else None}
+        return {
+            "kind": "silent",
+            "safe_action_after_ms": safe_after_ms,
+            "node_timeout_ms": cfg.node_timeout_ms,
+            "node_state": status.state if status else None,
+        }
     if cfg.inject == "kill":
         node.kill()
         node.wait()
@@ -247,7 +279,9 @@ def _inject(
     raise ValueError(f"unknown injection {cfg.inject!r}")
 
 
-def _results(cfg: SessionConfig, stats: Stats, episodes: list[dict[str, Any]], injection: Any) -> dict[str, Any]:
+def _results(
+    cfg: SessionConfig, stats: Stats, episodes: list[dict[str, Any]], injection: Any
+) -> dict[str, Any]:
     lat = np.array(stats.latencies_us) if stats.latencies_us else np.zeros(1)
     status = stats.last_status
     return {
@@ -260,8 +294,11 @@ def _results(cfg: SessionConfig, stats: Stats, episodes: list[dict[str, Any]], i
         "crc_errors": link_errors(status, "crc_errors"),
         "sequence_errors": link_errors(status, "sequence_errors"),
         "rx_timeouts": stats.rx_timeouts,
-        "latency_us": {"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),
-                       "max": float(lat.max())},
+        "latency_us": {
+            "p50": float(np.percentile(lat, 50)),
+            "p99": float(np.percentile(lat, 99)),
+            "max": float(lat.max()),
+        },
         "latencies_us": stats.latencies_us,
         "deadline_misses": stats.deadline_misses if cfg.realtime else None,
         "node_status": asdict(status) if status else None,

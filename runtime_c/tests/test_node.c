@@ -108,7 +108,9 @@ static void fresh(node_t *node)
 static void test_codec_round_trips(void)
 {
     uint8_t buf[8];
-    struct policy_dbc_observation_a_t a = {0}, a2;
+    struct policy_dbc_observation_a_t a, a2;
+    memset(&a, 0, sizeof a); /* padding too: the round trip compares whole structs */
+    memset(&a2, 0, sizeof a2);
     a.crc = 0xA5;
     a.counter = 9;
     a.step = 4095;
@@ -119,7 +121,9 @@ static void test_codec_round_trips(void)
     CHECK(memcmp(&a, &a2, sizeof a) == 0);
     CHECK(fabs(policy_dbc_observation_a_x_decode(a2.x) + 1.75) < 4e-6);
 
-    struct policy_dbc_observation_b_t b = {0}, b2;
+    struct policy_dbc_observation_b_t b, b2;
+    memset(&b, 0, sizeof b); /* padding too: the round trip compares whole structs */
+    memset(&b2, 0, sizeof b2);
     b.counter = 15;
     b.step = 17;
     b.sin_theta = policy_dbc_observation_b_sin_theta_encode(-1.0);
@@ -128,7 +132,9 @@ static void test_codec_round_trips(void)
     CHECK(policy_dbc_observation_b_unpack(&b2, buf, 8) == 0 && memcmp(&b, &b2, sizeof b) == 0);
     CHECK(policy_dbc_observation_b_cos_theta_decode(b2.cos_theta) == 1.0);
 
-    struct policy_dbc_observation_c_t c = {0}, c2;
+    struct policy_dbc_observation_c_t c, c2;
+    memset(&c, 0, sizeof c); /* padding too: the round trip compares whole structs */
+    memset(&c2, 0, sizeof c2);
     c.step = 1;
     c.speed = policy_dbc_observation_c_speed_encode(0.7);
     c.turn_rate = policy_dbc_observation_c_turn_rate_encode(-2.0);
@@ -136,7 +142,9 @@ static void test_codec_round_trips(void)
     CHECK(policy_dbc_observation_c_unpack(&c2, buf, 8) == 0 && memcmp(&c, &c2, sizeof c) == 0);
     CHECK(policy_dbc_observation_c_turn_rate_decode(c2.turn_rate) == -2.0);
 
-    struct policy_dbc_action_t act = {0}, act2;
+    struct policy_dbc_action_t act, act2;
+    memset(&act, 0, sizeof act); /* padding too: the round trip compares whole structs */
+    memset(&act2, 0, sizeof act2);
     act.counter = 3;
     act.step = 200;
     act.force_left = policy_dbc_action_force_left_encode(-1.0);
@@ -145,7 +153,9 @@ static void test_codec_round_trips(void)
     CHECK(policy_dbc_action_unpack(&act2, buf, 8) == 0 && memcmp(&act, &act2, sizeof act) == 0);
     CHECK(fabs(policy_dbc_action_force_right_decode(act2.force_right) - 0.123456) < 4e-6);
 
-    struct policy_dbc_node_status_t s = {0}, s2;
+    struct policy_dbc_node_status_t s, s2;
+    memset(&s, 0, sizeof s); /* padding too: the round trip compares whole structs */
+    memset(&s2, 0, sizeof s2);
     s.counter = 7;
     s.state = 1;
     s.frames_ok = 65535;

@@ -1,0 +1,128 @@
+"""HIL over real SocketCAN (vcan0 on the host, or inside User-Mode Linux where the kernel has no CAN).
+
+The policy is the example TD3 actor (imitating the potential-field controller, so its episodes
+succeed) exported with `embedrl export`; the node is the compiled C policy.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from train.cli import main
+
+pytestmark = pytest.mark.slow
+NODE_TIMEOUT_MS = 200
+SAFE_MARGIN_MS = 150
+"""Allowed lateness of the safe action beyond the watchdog timeout (scheduling inside UML)."""
+
+
+@pytest.fixture(scope="module")
+def export_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("hil")
+    subprocess.run(
+        [sys.executable, "-m", "export.example", str(root / "td3.zip")], check=True, capture_output=True
+    )
+    assert main(["export", str(root / "td3.zip"), "--out", str(root / "export"), "--episodes", "0"]) == 0
+    return root / "export"
+
+
+def _hil(export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
+    out = tmp_path / "hil.json"
+    assert (
+        main(
+            [
+                "hil",
+                "run",
+                "--export-dir",
+                str(export_dir),
+                "--json",
+                str(out),
+                "--timeout-ms",
+                str(NODE_TIMEOUT_MS),
+                *extra,
+            ]
+        )
+        == 0
+    )
+    report: dict[str, Any] = json.loads(out.read_text())
+    return report
+
+
+def test_lock_step_episodes_equal_the_simulation(export_dir: Path, tmp_path: Path) -> None:
+    log = tmp_path / "frames.log"
+    report = _hil(
+        export_dir,
+        tmp_path,
+        "--episodes",
+        "6",
+        "--seed",
+        "0",
+        "--log",
+        str(log),
+        "--plot",
+        str(tmp_path / "plots"),
+    )
+    assert report["sandbox"] in ("host", "uml")
+    assert report["episodes"] == 6 and report["faults"] == 0
+    assert report["successes"] == report["simulation"]["successes"] == 6
+    assert report["outcomes_differing_from_simulation"] == []
+    assert report["max_action_abs_diff"] <= 1e-5 and report["first_divergent_step"] is None
+    assert report["frames_tx"] == 3 * report["steps"] and report["frames_rx"] >= report["steps"]
+    assert report["crc_errors"] == 0 and report["sequence_errors"] == 0 and report["rx_timeouts"] == 0
+    assert 0 < report["latency_us"]["p50"] <= report["latency_us"]["p99"] <= report["latency_us"]["max"]
+    for key in (
+        "episodes",
+        "successes",
+        "collisions",
+        "timeouts",
+        "success_rate",
+        "mean_return",
+        "mean_time_s",
+    ):
+        assert key in report
+    lines = log.read_text().splitlines()
+    assert len(lines) == report["frames_tx"] + report["frames_rx"]
+    assert all(
+        " 100#" in line or " 101#" in line or " 102#" in line or " 200#" in line or " 300#" in line
+        for line in lines
+    )
+    assert (tmp_path / "plots" / "hil_latency.png").is_file()
+    assert (tmp_path / "plots" / "hil_trajectories.png").is_file()
+
+
+def test_corrupted_observation_frame_is_dropped_and_counted(export_dir: Path, tmp_path: Path) -> None:
+    report = _hil(export_dir, tmp_path, "--episodes", "1", "--inject", "corrupt")
+    injection = report["injection"]
+    assert injection["kind"] == "corrupt"
+    assert injection["action_received"] is False  # no action computed from the corrupted observation
+    assert injection["node_crc_errors_after"] == injection["node_crc_errors_before"] + 1
+
+
+def test_silent_simulator_gets_the_safe_action_within_the_timeout(export_dir: Path, tmp_path: Path) -> None:
+    report = _hil(export_dir, tmp_path, "--episodes", "1", "--inject", "silent")
+    injection = report["injection"]
+    assert injection["safe_action_after_ms"] is not None
+    assert injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
+    assert injection["node_state"] == "SAFE"
+
+
+def test_killed_node_ends_the_episode_as_a_fault_not_a_hang(export_dir: Path, tmp_path: Path) -> None:
+    start = time.monotonic()
+    report = _hil(export_dir, tmp_path, "--episodes", "3", "--inject", "kill")
+    assert time.monotonic() - start < 120
+    assert report["injection"]["kind"] == "kill"
+    assert report["faults"] == 1 and report["episodes"] == 1  # the session stops: the node is gone
+    assert report["per_episode"][0]["fault"] == "the node exited with status -9"
+    assert report["rx_timeouts"] == 1
+
+
+def test_missing_export_folder_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["hil", "run", "--export-dir", str(tmp_path), "--json", str(tmp_path / "x.json")]) == 2
+    assert "no c/policy.c" in capsys.readouterr().err
