@@ -29,12 +29,19 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# The main job: the potential-field baseline on seeded episodes, its table, JSON and pictures.
-demo: $(STAMP)
+# The main job, the whole chain: the potential-field baseline; a policy (until the training issue
+# ships trained ones: the example TD3 actor, imitating the baseline); export -> ONNX -> C, verified;
+# the C policy as a CAN node driven by the simulator over vcan (User-Mode Linux where the kernel has
+# no CAN); a short report and the plots in $(OUT)/demo.
+demo: deps $(STAMP)
 	$(VENV)/bin/embedrl eval --controller potential-field --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/eval.json --plot $(OUT)/demo/trajectories.png
 	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
-	@echo "demo: wrote $(OUT)/demo/eval.json, trajectories.png and episode.gif"
+	test -f $(OUT)/example/td3.zip || $(PY) -m export.example $(OUT)/example/td3.zip
+	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/demo/export --force
+	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 \
+	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
+	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, hil.json, frames.log, hil_*.png)"
 
 test: deps $(STAMP)
 	$(PY) -m pytest

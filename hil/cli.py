@@ -13,6 +13,8 @@ from hil.errors import HilError
 
 REPO = Path(__file__).resolve().parents[1]
 INJECTIONS = ("corrupt", "silent", "kill")
+DEFAULT_TIMEOUT_MS = 500
+"""Node watchdog: longer than one control period (0.3 s), so a real-time loop never trips it."""
 
 
 def _onnx_of(export_dir: Path) -> Path:
@@ -151,9 +153,17 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
 
 def cmd_run(args: argparse.Namespace) -> int:
     from train.evaluate import write_json
+    from train.warehouse_env import SAMPLE_TIME
 
     if args.episodes < 1:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")
+    if not 1 <= args.timeout_ms <= 60_000:
+        raise HilError(f"--timeout-ms must be within 1..60000, got {args.timeout_ms}")
+    if args.realtime and args.timeout_ms <= SAMPLE_TIME * 1000:
+        raise HilError(
+            f"--timeout-ms {args.timeout_ms} would trip the node's watchdog between real-time steps: "
+            f"it must exceed the sample time ({SAMPLE_TIME * 1000:.0f} ms)"
+        )
     results = run_hil(args)
     data = _report(args, results)
     lat = data["latency_us"]
@@ -201,7 +211,12 @@ def register(sub: Any) -> None:
     r.add_argument("--json", type=Path, required=True, help="write the report here")
     r.add_argument("--plot", type=Path, help="write trajectories and the latency histogram into this folder")
     r.add_argument("--sandbox", choices=["auto", "host", "uml"], default="auto")
-    r.add_argument("--timeout-ms", type=int, default=200, help="the node's watchdog timeout")
+    r.add_argument(
+        "--timeout-ms",
+        type=int,
+        default=DEFAULT_TIMEOUT_MS,
+        help="the node's watchdog timeout; must exceed the env's sample time (300 ms)",
+    )
     r.add_argument("--inject", choices=INJECTIONS, help="fault injection at step 3 of the first episode")
     r.set_defaults(func=cmd_run)
 

@@ -40,7 +40,7 @@ class SessionConfig:
     iface: str = "vcan0"
     episodes: int = 10
     seed: int = 0
-    node_timeout_ms: int = 200
+    node_timeout_ms: int = 500
     node_recover: int = 3
     action_timeout_s: float = 2.0
     realtime: bool = False

@@ -126,3 +126,22 @@ def test_killed_node_ends_the_episode_as_a_fault_not_a_hang(export_dir: Path, tm
 def test_missing_export_folder_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["hil", "run", "--export-dir", str(tmp_path), "--json", str(tmp_path / "x.json")]) == 2
     assert "no c/policy.c" in capsys.readouterr().err
+
+
+def test_realtime_with_a_watchdog_shorter_than_a_step_is_rejected(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(
+        [
+            "hil",
+            "run",
+            "--export-dir",
+            str(tmp_path),
+            "--json",
+            str(tmp_path / "x.json"),
+            "--realtime",
+            "--timeout-ms",
+            "200",
+        ]
+    )
+    assert code == 2 and "must exceed the sample time (300 ms)" in capsys.readouterr().err
