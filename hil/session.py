@@ -71,11 +71,12 @@ class Link:
         self.codec = Codec()
         self.stats = stats
         self.log = can.Logger(cfg.log) if cfg.log else None
+        self.iface = cfg.iface
 
     def send(self, frames: list[can.Message]) -> None:
         for frame in frames:
             frame.timestamp = time.time()
-            frame.channel = self.bus.channel_info
+            frame.channel = self.iface
             frame.is_rx = False
             self.bus.send(frame)
             self.stats.frames_tx += 1
@@ -92,9 +93,7 @@ class Link:
             msg = self.bus.recv(timeout=remaining)
             if msg is None:
                 return None
-            self.stats.frames_rx += 1
-            if self.log:
-                self.log(msg)
+            self._received(msg)
             decoded = self.codec.decode(msg)
             if isinstance(decoded, Status):
                 self.stats.last_status, self.stats.last_status_time = decoded, time.monotonic()
@@ -107,14 +106,20 @@ class Link:
             msg = self.bus.recv(timeout=remaining)
             if msg is None:
                 break
-            self.stats.frames_rx += 1
-            if self.log:
-                self.log(msg)
+            self._received(msg)
             decoded = self.codec.decode(msg)
             if isinstance(decoded, Status):
                 self.stats.last_status, self.stats.last_status_time = decoded, time.monotonic()
                 return decoded
         return None
+
+    def _received(self, msg: can.Message) -> None:
+        # python-can flags frames from another local socket (the node) as Tx; they are received here.
+        msg.is_rx = True
+        msg.channel = self.iface
+        self.stats.frames_rx += 1
+        if self.log:
+            self.log(msg)
 
     def close(self) -> None:
         if self.log:

@@ -89,10 +89,11 @@ def test_lock_step_episodes_equal_the_simulation(export_dir: Path, tmp_path: Pat
         assert key in report
     lines = log.read_text().splitlines()
     assert len(lines) == report["frames_tx"] + report["frames_rx"]
-    assert all(
-        " 100#" in line or " 101#" in line or " 102#" in line or " 200#" in line or " 300#" in line
-        for line in lines
-    )
+    sent = [line for line in lines if line.endswith(" T")]
+    received = [line for line in lines if line.endswith(" R")]
+    assert len(sent) == report["frames_tx"] and len(received) == report["frames_rx"]
+    assert all(" vcan0 10" in line for line in sent)  # ObservationA..C (0x100..0x102)
+    assert all(" vcan0 200#" in line or " vcan0 300#" in line for line in received)  # Action, NodeStatus
     assert (tmp_path / "plots" / "hil_latency.png").is_file()
     assert (tmp_path / "plots" / "hil_trajectories.png").is_file()
 
