@@ -127,6 +127,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         "sandbox",
         "latency_us",
         "deadline_misses",
+        "jitter_us",
         "node_status",
         "injection",
     )
@@ -187,6 +188,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         ),
         ("round trip p50 / p99 / max [us]", f"{lat['p50']:.0f} / {lat['p99']:.0f} / {lat['max']:.0f}"),
     ]
+    if data["jitter_us"]:
+        jitter = data["jitter_us"]
+        rows.append(
+            (
+                "real time: deadline misses, period jitter std / max [us]",
+                f"{data['deadline_misses']}, {jitter['std']:.0f} / {jitter['max_abs']:.0f}",
+            )
+        )
     if data["injection"]:
         rows.append(("injection", json.dumps(data["injection"])))
     width = max(len(k) for k, _ in rows)

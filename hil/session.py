@@ -59,6 +59,8 @@ class Stats:
     diffs: list[float] = field(default_factory=list)
     first_divergent_step: int | None = None
     deadline_misses: int = 0
+    step_starts: list[list[float]] = field(default_factory=list)
+    """Real time: when each step's observation went out (monotonic seconds), per episode."""
     last_status: Status | None = None
     last_status_time: float = 0.0
 
@@ -176,6 +178,10 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                     frames, decoded = link.codec.encode_observation(obs, global_step)
                 start = time.perf_counter_ns()
                 sent_at = time.monotonic()
+                if cfg.realtime:
+                    if steps == 0:
+                        stats.step_starts.append([])
+                    stats.step_starts[-1].append(sent_at)
                 link.send(frames)
                 action = link.wait_action(global_step, cfg.action_timeout_s)
                 if action is None:
@@ -306,10 +312,23 @@ def _results(
         },
         "latencies_us": stats.latencies_us,
         "deadline_misses": stats.deadline_misses if cfg.realtime else None,
+        "jitter_us": _jitter(stats.step_starts) if cfg.realtime else None,
         "node_status": asdict(status) if status else None,
         "injection": injection,
         "config": asdict(cfg),
     }
+
+
+def _jitter(starts: list[list[float]]) -> dict[str, float] | None:
+    """Deviation of the real-time step period from the sample time: std and max, in microseconds.
+
+    Periods are measured within episodes: a reset is not a control period.
+    """
+    periods = np.concatenate([np.diff(np.array(episode)) for episode in starts]) if starts else np.zeros(0)
+    if len(periods) == 0:
+        return None
+    deviation = (periods - SAMPLE_TIME) * 1e6
+    return {"std": float(np.std(deviation)), "max_abs": float(np.max(np.abs(deviation)))}
 
 
 def link_errors(status: Status | None, key: str) -> int | None:

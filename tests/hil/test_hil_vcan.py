@@ -146,3 +146,12 @@ def test_realtime_with_a_watchdog_shorter_than_a_step_is_rejected(
         ]
     )
     assert code == 2 and "must exceed the sample time (300 ms)" in capsys.readouterr().err
+
+
+def test_realtime_mode_reports_latency_jitter_and_deadline_misses(export_dir: Path, tmp_path: Path) -> None:
+    # A report, not a verdict: timing inside User-Mode Linux is noisy, so only the shape is checked.
+    report = _hil(export_dir, tmp_path, "--episodes", "1", "--realtime", "--timeout-ms", "500")
+    assert report["successes"] == 1 and report["max_action_abs_diff"] <= 1e-5
+    assert isinstance(report["deadline_misses"], int)
+    assert set(report["jitter_us"]) == {"std", "max_abs"}
+    assert report["latency_us"]["max"] > 0
