@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import os
 import sys
 import traceback
 from pathlib import Path
@@ -31,16 +32,32 @@ def _controller(name: str):  # type: ignore[no-untyped-def]
 
 def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     if args.model is not None:
-        raise UsageError(
-            f"cannot evaluate {args.model}: evaluating trained models arrives with the training "
-            "subcommand (not built yet); use --controller potential-field"
-        )
+        return load_model_policy(args.model)
     return _controller(args.controller)
+
+
+def load_model_policy(path: Path):  # type: ignore[no-untyped-def]
+    """A trained SB3 model as a deterministic policy (VecNormalize statistics beside it are applied)."""
+    if path.suffix != ".zip":
+        raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
+    from export.errors import ExportError
+    from export.sb3_onnx import load_sb3
+
+    stats = path.parent / "vecnormalize.pkl"
+    try:
+        loaded = load_sb3(path, stats if stats.is_file() else None)
+    except ExportError as exc:
+        raise UsageError(str(exc)) from None
+
+    def act(obs):  # type: ignore[no-untyped-def]
+        return loaded.predict(obs.reshape(1, -1))[0]
+
+    return act
 
 
 def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("model", nargs="?", type=Path, help="trained model (arrives with training)")
+    src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
     src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
 
 
@@ -109,6 +126,40 @@ def cmd_bench_env(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_train(args: argparse.Namespace) -> int:
+    from train.config import Budget
+    from train.trainer import train
+
+    budget = Budget(
+        max_steps=args.max_steps,
+        max_episodes=args.max_episodes,
+        checkpoint_every=args.checkpoint_every,
+        eval_every=args.eval_every,
+        stop_at_criterion=not args.keep_training,
+    )
+    out = args.resume or args.out
+    if out is None:
+        raise UsageError("give --out DIR for a new run or --resume DIR to continue one")
+    summary = train(
+        args.algo, args.preset, args.seed, out, budget, resume=args.resume is not None, progress=True
+    )
+    for key, value in summary.items():
+        print(f"{key:<36}  {value}")
+    print(f"wrote {out}/ (model.zip, config.json, curve.csv, summary.json, progress.png, checkpoint/, tb/)")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from train.bench import run_bench
+
+    table = run_bench(
+        args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers
+    )
+    print(table)
+    print(f"wrote {args.out}/bench.md and bench.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="embedrl", description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -127,6 +178,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
+
+    from train.config import ALGOS, PRESETS
+
+    p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
+    p.add_argument("--algo", choices=ALGOS, default="td3")
+    p.add_argument("--scenario", choices=["static"], default="static")
+    p.add_argument("--preset", choices=PRESETS, default="tuned")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", type=Path, help="new run directory")
+    p.add_argument("--resume", type=Path, help="continue the run in this directory from its last checkpoint")
+    p.add_argument("--max-steps", type=_positive, default=300_000)
+    p.add_argument("--max-episodes", type=_positive, default=100_000)
+    p.add_argument("--checkpoint-every", type=_positive, default=10_000)
+    p.add_argument("--eval-every", type=_positive, default=5_000)
+    p.add_argument(
+        "--keep-training",
+        action="store_true",
+        help="record the stop criterion but train on to --max-steps (for policies to ship)",
+    )
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")
+    p.add_argument("--scenario", choices=["static"], default="static")
+    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    p.add_argument("--seeds", type=_positive, default=5)
+    p.add_argument("--preset", choices=PRESETS, default="tuned")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--max-steps", type=_positive, default=300_000)
+    p.add_argument("--eval-episodes", type=_positive, default=200)
+    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
     p.add_argument("--steps", type=_positive, default=50_000)

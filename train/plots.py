@@ -44,3 +44,30 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
     finally:
         plt.close(fig)
+
+
+def plot_progress(curve_csv: Path, path: Path, title: str) -> None:
+    """MATLAB-style training progress: episode return, 50-episode average, Episode Q0."""
+    import csv
+
+    with curve_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    episodes = [int(r["episode"]) for r in rows]
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    ax.plot(
+        episodes,
+        [float(r["return"]) for r in rows],
+        color="tab:blue",
+        lw=0.6,
+        alpha=0.5,
+        label="episode return",
+    )
+    ax.plot(episodes, [float(r["average50"]) for r in rows], color="tab:red", lw=1.8, label="average of 50")
+    ax.plot(episodes, [float(r["q0"]) for r in rows], color="tab:orange", lw=1.0, ls="--", label="Episode Q0")
+    ax.axhline(2.0, color="gray", ls=":", lw=1, label="stop criterion (2)")
+    ax.set(xlabel="episode", ylabel="return", title=title)
+    ax.legend(loc="lower right", fontsize="small")
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
+    finally:
+        plt.close(fig)

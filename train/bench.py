@@ -1,0 +1,169 @@
+"""``embedrl bench``: K seeds per algorithm trained in parallel, the reference study's table.
+
+Each run trains until the stop criterion (or the budget), then its final model is evaluated
+deterministically on seeds it was not trained on. Per algorithm the table gives the median over
+seeds with a 95% bootstrap interval, and the study's numbers beside ours; the potential-field
+controller is evaluated on the same seeds.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from train.config import Budget
+from train.evaluate import evaluate, provenance, write_json
+
+EVAL_SEED = 2_000_000
+"""Final evaluations start here: never a training or in-training evaluation seed."""
+BOOTSTRAP_SAMPLES = 2000
+
+STUDY = {
+    "ddpg": {
+        "episodes": 17135,
+        "average_reward": 2.0094,
+        "outcomes": "197 / 3 / 0",
+        "mean_time_s": 6.93,
+        "reliability": 98.5,
+    },
+    "td3": {
+        "episodes": 44268,
+        "average_reward": 2.0648,
+        "outcomes": "147 / 42 / 11",
+        "mean_time_s": 7.23,
+        "reliability": 73.5,
+    },
+    "sac": {
+        "episodes": 7618,
+        "average_reward": 2.0477,
+        "outcomes": "104 / 96 / 0",
+        "mean_time_s": 7.06,
+        "reliability": 52.0,
+    },
+    "ppo": {
+        "episodes": "100,000 (never)",
+        "average_reward": -0.0005,
+        "outcomes": "102 / 98 / 0",
+        "mean_time_s": 7.39,
+        "reliability": 51.0,
+    },
+}
+"""The reference study's table (MATLAB, 200 evaluation runs each)."""
+
+
+def _one_run(job: tuple[str, str, int, str, int, int]) -> dict[str, Any]:
+    algo, preset, seed, out, max_steps, eval_episodes = job
+    from train.cli import load_model_policy
+    from train.trainer import train
+
+    run = Path(out)
+    summary = train(algo, preset, seed, run, Budget(max_steps=max_steps))
+    report = evaluate(load_model_policy(run / "model.zip"), eval_episodes, EVAL_SEED, f"{algo} seed {seed}")
+    return {
+        **summary,
+        "evaluation": {
+            k: getattr(report, k)
+            for k in (
+                "episodes",
+                "successes",
+                "collisions",
+                "timeouts",
+                "success_rate",
+                "mean_return",
+                "mean_time_s",
+            )
+        },
+    }
+
+
+def median_ci(values: list[float], seed: int = 0) -> tuple[float, float, float]:
+    """Median and its 95% bootstrap interval."""
+    data = np.asarray(values, dtype=float)
+    rng = np.random.default_rng(seed)
+    medians = np.median(rng.choice(data, size=(BOOTSTRAP_SAMPLES, len(data)), replace=True), axis=1)
+    return float(np.median(data)), float(np.percentile(medians, 2.5)), float(np.percentile(medians, 97.5))
+
+
+def _cell(values: list[float], fmt: str) -> str:
+    if not values:
+        return "-"
+    m, lo, hi = median_ci(values)
+    return f"{m:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]" if len(values) > 1 else f"{m:{fmt}}"
+
+
+def run_bench(
+    algos: list[str], seeds: int, preset: str, out: Path, max_steps: int, eval_episodes: int, workers: int
+) -> str:
+    jobs = [
+        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes)
+        for a in algos
+        for s in range(seeds)
+    ]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        runs = list(pool.map(_one_run, jobs))
+    from train.potential_field import PotentialFieldController
+
+    pf = evaluate(PotentialFieldController(), eval_episodes, EVAL_SEED, "potential-field")
+    rows: dict[str, dict[str, str]] = {}
+    for algo in algos:
+        mine = [r for r in runs if r["algo"] == algo]
+        reached = [r for r in mine if r["criterion_reached"]]
+        ev = [r["evaluation"] for r in mine]
+        rows[algo] = {
+            "reached": f"{len(reached)} / {len(mine)}",
+            "episodes": _cell([r["episodes_to_criterion"] for r in reached], ".0f"),
+            "steps": _cell([r["steps_to_criterion"] for r in reached], ".0f"),
+            "average_reward": _cell([e["mean_return"] for e in ev], ".3f"),
+            "outcomes": " ; ".join(f"{e['successes']} / {e['collisions']} / {e['timeouts']}" for e in ev),
+            "mean_time_s": _cell([e["mean_time_s"] for e in ev if e["mean_time_s"] is not None], ".2f"),
+            "reliability": _cell([100 * e["success_rate"] for e in ev], ".1f"),
+            "wall_clock_s": _cell([r["wall_clock_s"] for r in mine], ".0f"),
+        }
+    labels = [
+        ("reached", "runs reaching the stop criterion"),
+        ("episodes", "training episodes to the criterion"),
+        ("steps", "env steps to the criterion"),
+        ("average_reward", f"average reward ({eval_episodes} runs)"),
+        ("outcomes", "successful / collisions / no result"),
+        ("mean_time_s", "mean time (s)"),
+        ("reliability", "reliability (%)"),
+        ("wall_clock_s", "wall-clock time (s)"),
+    ]
+    header = "| | " + " | ".join(f"{a.upper()} (ours) | {a.upper()} (study)" for a in algos) + " |"
+    lines = [header, "|---" * (1 + 2 * len(algos)) + "|"]
+    for key, label in labels:
+        cells = []
+        for a in algos:
+            study = STUDY[a].get({"episodes": "episodes"}.get(key, key), "")
+            cells += [rows[a][key], str(study)]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    pf_line = (
+        f"Potential-field controller on the same {eval_episodes} seeds: {pf.successes} / {pf.collisions} / "
+        f"{pf.timeouts}, average reward {pf.mean_return:.3f}, reliability {100 * pf.success_rate:.1f}%."
+    )
+    note = (
+        f"Median [95% bootstrap interval] over {seeds} seed(s), preset `{preset}`, budget {max_steps} steps."
+    )
+    table = "\n".join(lines) + "\n\n" + pf_line + "\n\n" + note + "\n"
+    (out / "bench.md").write_text(table)
+    write_json(
+        {
+            "algos": algos,
+            "seeds": seeds,
+            "preset": preset,
+            "max_steps": max_steps,
+            "rows": rows,
+            "study": STUDY,
+            "runs": runs,
+            "potential_field": {
+                k: getattr(pf, k)
+                for k in ("successes", "collisions", "timeouts", "success_rate", "mean_return")
+            },
+            "provenance": provenance(),
+        },
+        out / "bench.json",
+    )
+    return table

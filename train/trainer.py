@@ -1,0 +1,349 @@
+"""Training runs: SB3 agents on the warehouse env, the study's stop criterion, checkpoints and resume.
+
+A run directory is self-describing::
+
+    config.json        algorithm, preset, seed, hyperparameters, budget, package versions
+    curve.csv          one row per training episode: steps, return, 50-episode average, Episode Q0
+    summary.json       criterion reached?, episodes and env steps to it, first deterministic success, time
+    progress.png       MATLAB-style: episode return, 50-episode average, Episode Q0
+    model.zip          the final policy (plus vecnormalize.pkl when observations are normalised)
+    checkpoint/        model, replay buffer, normalisation and counters of the last checkpoint
+    tb/                TensorBoard logs
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from stable_baselines3 import DDPG, PPO, SAC, TD3
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
+from tqdm import tqdm
+
+from train import ENV_ID
+from train.config import (
+    ALGOS,
+    Budget,
+    DDPGConfig,
+    PPOConfig,
+    RunConfig,
+    SACConfig,
+    TD3Config,
+    preset,
+    to_dict,
+)
+from train.errors import UsageError
+from train.evaluate import evaluate, provenance
+
+STOP_WINDOW = 50
+"""The study's stop criterion: mean return of the last 50 training episodes..."""
+STOP_THRESHOLD = 2.0
+"""... at least 2 (MATLAB's AverageReward)."""
+EVAL_SEED = 1_000_000
+"""Deterministic evaluations during training use seeds from here, far from training resets."""
+CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
+CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0")
+
+
+def make_env(normalize: bool, seed: int) -> VecEnv:
+    env: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(ENV_ID))])
+    env.seed(seed)
+    if normalize:
+        env = VecNormalize(env, norm_obs=True, norm_reward=False)
+    return env
+
+
+def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) -> BaseAlgorithm:
+    """A fresh SB3 model; a new policy_kwargs dict every time (SB3 writes into it)."""
+    common: dict[str, Any] = {
+        "seed": seed,
+        "device": "cpu",
+        "verbose": 0,
+        "gamma": cfg.gamma,
+        "learning_rate": cfg.learning_rate,
+        "tensorboard_log": str(tb) if tb else None,
+    }
+    if isinstance(cfg, PPOConfig):
+        kwargs = {
+            "net_arch": {"pi": list(cfg.net_arch), "vf": list(cfg.net_arch)},
+            "activation_fn": torch.nn.ReLU,
+        }
+        return PPO(
+            "MlpPolicy",
+            env,
+            n_steps=cfg.n_steps,
+            batch_size=cfg.batch_size,
+            n_epochs=cfg.n_epochs,
+            gae_lambda=cfg.gae_lambda,
+            clip_range=cfg.clip_range,
+            ent_coef=cfg.ent_coef,
+            policy_kwargs=kwargs,
+            **common,
+        )
+    off = {
+        "batch_size": cfg.batch_size,
+        "buffer_size": cfg.buffer_size,
+        "tau": cfg.tau,
+        "learning_starts": cfg.learning_starts,
+        "train_freq": cfg.train_freq,
+        "gradient_steps": cfg.gradient_steps,
+        "policy_kwargs": {"net_arch": list(cfg.net_arch), "activation_fn": torch.nn.ReLU},
+    }
+    n = env.action_space.shape[0]  # type: ignore[index]
+    if isinstance(cfg, DDPGConfig):
+        ou = OrnsteinUhlenbeckActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n), theta=cfg.noise_theta)
+        return DDPG("MlpPolicy", env, action_noise=ou, **off, **common)
+    if isinstance(cfg, TD3Config):
+        noise = NormalActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n))
+        return TD3(
+            "MlpPolicy",
+            env,
+            action_noise=noise,
+            policy_delay=cfg.policy_delay,
+            target_policy_noise=cfg.target_policy_noise,
+            **off,
+            **common,
+        )
+    assert isinstance(cfg, SACConfig)
+    return SAC("MlpPolicy", env, ent_coef=cfg.ent_coef, **off, **common)
+
+
+DEMO_SEED = 3_000_000
+"""Demonstration episodes use seeds from here."""
+
+
+def seed_replay_buffer(model: OffPolicyAlgorithm, episodes: int, noise: float, seed: int) -> int:
+    """Put potential-field episodes (noisy actions) into the replay buffer; return the transitions added."""
+    from train.potential_field import PotentialFieldController
+
+    controller = PotentialFieldController()
+    rng = np.random.default_rng(seed)
+    env = gym.make(ENV_ID)
+    added = 0
+    assert model.replay_buffer is not None
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=DEMO_SEED + 1000 * seed + episode)
+        done = False
+        while not done:
+            action = np.clip(controller(obs) + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+            model.replay_buffer.add(
+                obs[None],
+                next_obs[None],
+                action[None],
+                np.array([reward]),
+                np.array([done]),
+                [{"TimeLimit.truncated": truncated and not terminated}],
+            )
+            obs = next_obs
+            added += 1
+    env.close()
+    return added
+
+
+def q0(model: BaseAlgorithm, obs: np.ndarray) -> float:
+    """The critic's estimate of a state's value (MATLAB's Episode Q0)."""
+    with torch.no_grad():
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32).reshape(1, -1))
+        policy: Any = model.policy
+        if isinstance(model, PPO):
+            return float(policy.predict_values(x)[0, 0])
+        action = policy.actor(x, deterministic=True) if isinstance(model, SAC) else policy.actor(x)
+        return float(min(q[0, 0] for q in policy.critic(x, action)))
+
+
+class RunMonitor(BaseCallback):
+    """Episode log, stop criterion, deterministic evaluations, checkpoints and the progress bar."""
+
+    def __init__(
+        self,
+        run: Path,
+        budget: Budget,
+        state: dict[str, Any],
+        save: Callable[[], None],
+        deterministic_return: Callable[[], float],
+        progress: bool,
+    ) -> None:
+        super().__init__()
+        self.run, self.budget, self.state = run, budget, state
+        self.save, self.deterministic_return = save, deterministic_return
+        self.returns: list[float] = list(state.get("returns", []))
+        self.pending_q0: float | None = None
+        self.bar = tqdm(
+            total=budget.max_steps,
+            initial=state.get("steps", 0),
+            unit="step",
+            disable=not progress,
+            desc="train",
+        )
+        self.next_checkpoint = state.get("steps", 0) + budget.checkpoint_every
+        self.next_eval = state.get("steps", 0) + budget.eval_every
+
+    def _on_training_start(self) -> None:
+        self.pending_q0 = q0(self.model, self.model._last_obs[0])  # type: ignore[index]
+
+    def _on_step(self) -> bool:
+        steps = self.num_timesteps
+        self.bar.update(steps - self.bar.n)
+        for done, info, obs in zip(
+            self.locals["dones"], self.locals["infos"], self.locals["new_obs"], strict=True
+        ):
+            if done and "episode" in info:
+                self._episode(float(info["episode"]["r"]), int(info["episode"]["l"]), steps)
+                self.pending_q0 = q0(self.model, obs)
+        if steps >= self.next_eval:
+            self.next_eval += self.budget.eval_every
+            first = self.state.get("first_deterministic_criterion_step") is None
+            if first and self.deterministic_return() >= STOP_THRESHOLD:
+                self.state["first_deterministic_criterion_step"] = steps
+        if steps >= self.next_checkpoint:
+            self.next_checkpoint += self.budget.checkpoint_every
+            self.state.update(steps=steps, returns=self.returns)
+            self.save()
+        stop = self.budget.stop_at_criterion and self.state.get("criterion_step") is not None
+        return not stop and len(self.returns) < self.budget.max_episodes
+
+    def _episode(self, ret: float, length: int, steps: int) -> None:
+        self.returns.append(ret)
+        window = self.returns[-STOP_WINDOW:]
+        average = float(np.mean(window))
+        with (self.run / "curve.csv").open("a", newline="") as f:
+            csv.writer(f).writerow(
+                [len(self.returns), steps, f"{ret:.6f}", length, f"{average:.6f}", f"{self.pending_q0:.6f}"]
+            )
+        if (
+            len(window) == STOP_WINDOW
+            and average >= STOP_THRESHOLD
+            and self.state.get("criterion_step") is None
+        ):
+            self.state.update(criterion_step=steps, criterion_episode=len(self.returns))
+        self.bar.set_postfix(episodes=len(self.returns), avg50=f"{average:.2f}", refresh=False)
+
+    def _on_training_end(self) -> None:
+        self.bar.close()
+
+
+def train(
+    algo: str,
+    preset_name: str,
+    seed: int,
+    out: Path,
+    budget: Budget | None = None,
+    resume: bool = False,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Train one agent into ``out`` (or continue the run there); return its summary."""
+    budget = budget or Budget()
+    if algo not in ALGOS:
+        raise UsageError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
+    torch.set_num_threads(1)  # reproducible, and parallel runs do not fight over cores
+    if resume:
+        if not (out / "config.json").is_file():
+            raise UsageError(f"cannot resume {out}: no config.json (not a run directory)")
+        saved = json.loads((out / "config.json").read_text())
+        algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
+    elif out.exists() and any(out.iterdir()):
+        raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
+    cfg = preset(algo, preset_name)
+    normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "checkpoint"
+    state: dict[str, Any] = {}
+    env = make_env(normalize, seed)
+    if resume and (checkpoint / "state.json").is_file():
+        state = json.loads((checkpoint / "state.json").read_text())
+        if normalize:
+            env = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), env.venv)  # type: ignore[attr-defined]
+        model = CLASSES[algo].load(
+            checkpoint / "model.zip", env=env, device="cpu", tensorboard_log=str(out / "tb")
+        )
+        if isinstance(model, OffPolicyAlgorithm):
+            model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
+        _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
+    else:
+        run_config = RunConfig(algo, preset_name, seed, hyperparameters=to_dict(cfg), budget=vars(budget))
+        (out / "config.json").write_text(
+            json.dumps({**vars(run_config), "provenance": provenance()}, indent=2)
+        )
+        with (out / "curve.csv").open("w", newline="") as f:
+            csv.writer(f).writerow(CURVE_FIELDS)
+        model = build_model(algo, cfg, env, seed, out / "tb")
+        if isinstance(model, OffPolicyAlgorithm) and not isinstance(cfg, PPOConfig) and cfg.demonstrations:
+            seed_replay_buffer(model, cfg.demonstrations, cfg.demonstration_noise, seed)
+    state.setdefault("wall_clock_s", 0.0)
+    started = time.monotonic()
+
+    def save() -> None:
+        tmp = out / "checkpoint.partial"
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir()
+        model.save(tmp / "model.zip")
+        if isinstance(model, OffPolicyAlgorithm):
+            model.save_replay_buffer(tmp / "replay_buffer.pkl")
+        if normalize:
+            env.save(str(tmp / "vecnormalize.pkl"))  # type: ignore[attr-defined]
+        (tmp / "state.json").write_text(
+            json.dumps({**state, "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started})
+        )
+        shutil.rmtree(checkpoint, ignore_errors=True)
+        os.replace(tmp, checkpoint)
+
+    def deterministic_return() -> float:
+        return evaluate(_policy_of(model, env), budget.eval_episodes, EVAL_SEED, "deterministic").mean_return
+
+    monitor = RunMonitor(out, budget, state, save, deterministic_return, progress)
+    remaining = budget.max_steps - int(state.get("steps", 0))
+    if remaining > 0:
+        model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
+    state.update(steps=model.num_timesteps, returns=monitor.returns)
+    save()
+    model.save(out / "model.zip")
+    if normalize:
+        env.save(str(out / "vecnormalize.pkl"))  # type: ignore[attr-defined]
+    summary = {
+        "algo": algo,
+        "preset": preset_name,
+        "seed": seed,
+        "criterion_reached": state.get("criterion_step") is not None,
+        "episodes_to_criterion": state.get("criterion_episode"),
+        "steps_to_criterion": state.get("criterion_step"),
+        "first_deterministic_criterion_step": state.get("first_deterministic_criterion_step"),
+        "total_steps": int(model.num_timesteps),
+        "total_episodes": len(monitor.returns),
+        "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started,
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    from train.plots import plot_progress
+
+    plot_progress(out / "curve.csv", out / "progress.png", f"{algo.upper()} ({preset_name}, seed {seed})")
+    env.close()
+    return summary
+
+
+def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.ndarray]:
+    def act(obs: np.ndarray) -> np.ndarray:
+        x = env.normalize_obs(obs) if isinstance(env, VecNormalize) else obs
+        return np.asarray(model.predict(x, deterministic=True)[0], dtype=np.float32)
+
+    return act
+
+
+def _truncate_curve(path: Path, episodes: int) -> None:
+    """Drop rows logged after the checkpoint: the resumed run repeats those episodes."""
+    rows = path.read_text().splitlines()
+    path.write_text("\n".join(rows[: episodes + 1]) + "\n")
