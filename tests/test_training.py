@@ -1,0 +1,209 @@
+"""Training: short runs of each algorithm, reproducibility, the stop criterion, resume, the benchmark."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from train.cli import load_model_policy, main
+from train.config import ALGOS, Budget
+from train.trainer import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor, train
+
+SHORT = Budget(max_steps=600, checkpoint_every=300, eval_every=10_000)
+
+
+def _curve(run: Path) -> list[dict[str, str]]:
+    with (run / "curve.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+class _FakeMonitor(RunMonitor):
+    """RunMonitor fed by hand: no model, no environment."""
+
+    def __init__(self, run: Path) -> None:
+        (run / "curve.csv").write_text(",".join(CURVE_FIELDS) + "\n")
+        super().__init__(run, Budget(), {}, lambda: None, lambda: 0.0, progress=False)
+        self.pending_q0 = 0.0
+
+
+def test_stop_criterion_fires_exactly_when_the_window_mean_reaches_two(tmp_path: Path) -> None:
+    monitor = _FakeMonitor(tmp_path)
+    returns = [-2.0] * 60 + [3.0] * 100
+    for i, r in enumerate(returns):
+        monitor._episode(r, 10, 10 * (i + 1))
+        window = returns[max(0, i + 1 - STOP_WINDOW) : i + 1]
+        crossed = len(window) == STOP_WINDOW and np.mean(window) >= STOP_THRESHOLD
+        if crossed:
+            break
+        assert monitor.state.get("criterion_step") is None
+    # 60 x -2 then 3s: the window of 50 first averages >= 2 when 40 of its episodes are 3s (i = 99).
+    assert monitor.state["criterion_episode"] == 100 and monitor.state["criterion_step"] == 1000
+    rows = _curve(tmp_path)
+    assert len(rows) == 100 and float(rows[-1]["average50"]) == pytest.approx(2.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("algo", ALGOS)
+def test_short_run_produces_a_model_that_loads_and_evaluates(algo: str, tmp_path: Path) -> None:
+    run = tmp_path / algo
+    summary = train(algo, "thesis", 0, run, SHORT)
+    assert summary["total_steps"] >= 600 and summary["total_episodes"] == len(_curve(run))
+    for name in ("model.zip", "config.json", "curve.csv", "summary.json", "progress.png", "checkpoint"):
+        assert (run / name).exists(), name
+    assert (run / "vecnormalize.pkl").is_file() == (algo == "ppo")
+    config = json.loads((run / "config.json").read_text())
+    assert (
+        config["algo"] == algo and config["seed"] == 0 and config["hyperparameters"]["net_arch"] == [100, 100]
+    )
+    assert config["provenance"]["versions"]["stable-baselines3"] == "2.9.2"
+    out = tmp_path / "eval.json"
+    assert main(["eval", str(run / "model.zip"), "--episodes", "3", "--seed", "5", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["episodes"] == 3
+
+
+@pytest.mark.slow
+def test_same_seed_gives_identical_actions(tmp_path: Path) -> None:
+    budget = Budget(max_steps=1500, checkpoint_every=10_000, eval_every=10_000)
+    train("td3", "thesis", 3, tmp_path / "a", budget)
+    train("td3", "thesis", 3, tmp_path / "b", budget)
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(50, 6)).astype(np.float32)
+    a, b = (load_model_policy(tmp_path / r / "model.zip") for r in ("a", "b"))
+    assert np.stack([a(o) for o in obs]).tobytes() == np.stack([b(o) for o in obs]).tobytes()
+    assert _curve(tmp_path / "a") == _curve(tmp_path / "b")
+
+
+@pytest.mark.slow
+def test_resume_after_a_killed_run_continues_steps_and_episodes(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    cmd = [
+        sys.executable,
+        "-m",
+        "train.cli",
+        "train",
+        "--algo",
+        "sac",
+        "--preset",
+        "thesis",
+        "--seed",
+        "1",
+        "--out",
+        str(run),
+        "--max-steps",
+        "50000",
+        "--checkpoint-every",
+        "1000",
+        "--eval-every",
+        "100000",
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 300
+    while not (run / "checkpoint" / "state.json").is_file() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    state: dict[str, Any] = json.loads((run / "checkpoint" / "state.json").read_text())
+    assert state["steps"] >= 1000 and not (run / "summary.json").exists()
+    assert (
+        main(
+            [
+                "train",
+                "--resume",
+                str(run),
+                "--max-steps",
+                "3000",
+                "--checkpoint-every",
+                "1000",
+                "--eval-every",
+                "100000",
+            ]
+        )
+        == 0
+    )
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["total_steps"] == 3000
+    episodes = [int(r["episode"]) for r in _curve(run)]
+    assert episodes == list(range(1, len(episodes) + 1)) and len(episodes) == summary["total_episodes"]
+    assert len(episodes) >= len(state["returns"])
+    steps = [int(r["steps"]) for r in _curve(run)]
+    assert steps == sorted(steps) and steps[-1] <= 3000
+
+
+def test_new_run_refuses_a_used_directory_and_resume_needs_a_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "x").write_text("x")
+    assert main(["train", "--algo", "td3", "--out", str(tmp_path / "used")]) == 2
+    assert "use --resume" in capsys.readouterr().err
+    assert main(["train", "--resume", str(tmp_path)]) == 2
+    assert "not a run directory" in capsys.readouterr().err
+
+
+def test_eval_rejects_a_model_that_is_not_an_sb3_zip(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "model.pt").write_bytes(b"x")
+    assert main(["eval", str(tmp_path / "model.pt"), "--episodes", "2"]) == 2
+    assert "give a Stable-Baselines3 model" in capsys.readouterr().err
+    (tmp_path / "broken.zip").write_bytes(b"PK broken")
+    assert main(["eval", str(tmp_path / "broken.zip"), "--episodes", "2"]) == 2
+    assert "not a readable Stable-Baselines3 model" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path) -> None:
+    assert (
+        main(
+            [
+                "bench",
+                "--algos",
+                "td3",
+                "ppo",
+                "--seeds",
+                "2",
+                "--preset",
+                "thesis",
+                "--out",
+                str(tmp_path),
+                "--max-steps",
+                "600",
+                "--eval-episodes",
+                "3",
+                "--workers",
+                "2",
+            ]
+        )
+        == 0
+    )
+    table = (tmp_path / "bench.md").read_text()
+    for label in (
+        "runs reaching the stop criterion",
+        "training episodes to the criterion",
+        "env steps to the criterion",
+        "average reward (3 runs)",
+        "successful / collisions / no result",
+        "mean time (s)",
+        "reliability (%)",
+        "wall-clock time (s)",
+        "TD3 (ours)",
+        "TD3 (study)",
+        "PPO (ours)",
+        "44268",
+        "Potential-field controller",
+    ):
+        assert label in table
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert set(data["rows"]) == {"td3", "ppo"} and len(data["runs"]) == 4
+    assert all(
+        (tmp_path / "runs" / f"{a}-seed{s}" / "model.zip").is_file() for a in ("td3", "ppo") for s in (0, 1)
+    )
