@@ -155,7 +155,7 @@ def preset(algo: str, name: str) -> AlgoConfig:
         # from the baseline controller in the replay buffer, wider exploration noise and faster target
         # tracking avoid that.
         "ddpg": replace(DDPGConfig(), tau=5e-3, learning_starts=10_000, demonstrations=100),
-        "td3": replace(TD3Config(), tau=5e-3, learning_starts=10_000, noise_sigma=0.2),
+        "td3": replace(TD3Config(), tau=5e-3, learning_starts=10_000, noise_sigma=0.2, demonstrations=100),
         "sac": replace(
             SACConfig(),
             learning_rate=7.3e-4,
