@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup deps demo test test-fast lint type format bench export-example targets-example clean
+.PHONY: setup deps demo test test-fast lint type format bench export-example targets-example policies clean
 
 setup: $(STAMP)
 
@@ -29,19 +29,28 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $(STAMP)
 
-# The main job, the whole chain: the potential-field baseline; a policy (until the training issue
-# ships trained ones: the example TD3 actor, imitating the baseline); export -> ONNX -> C, verified;
-# the C policy as a CAN node driven by the simulator over vcan (User-Mode Linux where the kernel has
-# no CAN); a short report and the plots in $(OUT)/demo.
+# The main job, the whole chain: the potential-field baseline; the shipped TD3 policy
+# (policies/static/td3.zip; the example actor imitating the baseline if it is missing); export -> ONNX
+# -> C, verified; the C policy as a CAN node driven by the simulator over vcan (User-Mode Linux where the
+# kernel has no CAN); a short report and the plots in $(OUT)/demo.
+DEMO_POLICY ?= $(firstword $(wildcard policies/static/td3.zip) $(OUT)/example/td3.zip)
 demo: deps $(STAMP)
 	$(VENV)/bin/embedrl eval --controller potential-field --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/eval.json --plot $(OUT)/demo/trajectories.png
 	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
-	test -f $(OUT)/example/td3.zip || $(PY) -m export.example $(OUT)/example/td3.zip
-	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/demo/export --force
+	test -f $(DEMO_POLICY) || $(PY) -m export.example $(DEMO_POLICY)
+	$(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export --force
 	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
 	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, hil.json, frames.log, hil_*.png)"
+
+# How policies/static/{td3,sac}.zip were made: trained past the stop criterion, then shipped only if they
+# succeed in >= 95% of 200 episodes on seeds training never used (train/ship.py).
+policies: $(STAMP)
+	for a in td3 sac; do \
+	    $(VENV)/bin/embedrl train --algo $$a --preset tuned --seed 1 --out $(OUT)/ship/$$a --max-steps 100000 \
+	        --keep-training && $(PY) -m train.ship $(OUT)/ship/$$a $$a || exit 1; \
+	done
 
 test: deps $(STAMP)
 	$(PY) -m pytest

@@ -207,3 +207,31 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
     assert all(
         (tmp_path / "runs" / f"{a}-seed{s}" / "model.zip").is_file() for a in ("td3", "ppo") for s in (0, 1)
     )
+
+
+@pytest.mark.slow
+def test_ship_refuses_a_policy_below_95_percent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from train import ship
+
+    monkeypatch.setattr(ship, "POLICIES", tmp_path / "policies")
+    monkeypatch.setattr(ship, "SHIP_EPISODES", 5)
+    train("td3", "thesis", 0, tmp_path / "run", SHORT)  # 600 steps: it cannot drive yet
+    with pytest.raises(SystemExit, match=r"succeeds in .*% < 95%"):
+        ship.ship(tmp_path / "run", "td3")
+    assert not (tmp_path / "policies").exists()
+
+
+def test_shipped_policies_meet_their_bar() -> None:
+    """Every shipped policy's metadata records >= 95% success on seeds its training never used."""
+    from train.ship import MIN_SUCCESS, POLICIES
+
+    shipped = sorted(POLICIES.glob("*.json"))
+    assert shipped, "no shipped policies in policies/static"
+    for meta_file in shipped:
+        meta = json.loads(meta_file.read_text())
+        model = POLICIES / meta["model"]
+        import hashlib
+
+        assert hashlib.sha256(model.read_bytes()).hexdigest() == meta["sha256"]
+        assert meta["evaluation"]["episodes"] == 200 and meta["evaluation"]["success_rate"] >= MIN_SUCCESS
+        assert meta["evaluation"]["seed"] >= 5_000_000  # never a training seed

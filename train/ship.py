@@ -1,0 +1,50 @@
+"""Ship a trained policy: ``python -m train.ship RUN_DIR NAME`` -> policies/static/NAME.zip + NAME.json.
+
+The run's final model is evaluated deterministically on 200 episodes whose seeds training never used;
+below 95% success it is refused. The metadata file records the run's config, its training summary,
+that evaluation and the model's SHA-256.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import sys
+from pathlib import Path
+
+from train.cli import load_model_policy
+from train.evaluate import evaluate, provenance
+
+POLICIES = Path(__file__).resolve().parents[1] / "policies" / "static"
+SHIP_EVAL_SEED = 5_000_000
+SHIP_EPISODES = 200
+MIN_SUCCESS = 0.95
+
+
+def ship(run: Path, name: str) -> dict[str, object]:
+    report = evaluate(load_model_policy(run / "model.zip"), SHIP_EPISODES, SHIP_EVAL_SEED, name)
+    if report.success_rate < MIN_SUCCESS:
+        raise SystemExit(
+            f"error: {run} succeeds in {100 * report.success_rate:.1f}% < {100 * MIN_SUCCESS:.0f}%"
+        )
+    POLICIES.mkdir(parents=True, exist_ok=True)
+    target = POLICIES / f"{name}.zip"
+    shutil.copyfile(run / "model.zip", target)
+    if (run / "vecnormalize.pkl").is_file():
+        raise SystemExit("error: shipping policies with normalisation statistics (PPO) is not supported yet")
+    meta = {
+        "model": target.name,
+        "sha256": hashlib.sha256(target.read_bytes()).hexdigest(),
+        "config": json.loads((run / "config.json").read_text()),
+        "training": json.loads((run / "summary.json").read_text()),
+        "evaluation": report.to_json() | {"per_episode": None},
+        "shipped_by": provenance(),
+    }
+    (POLICIES / f"{name}.json").write_text(json.dumps(meta, indent=2) + "\n")
+    print(report.table())
+    return meta
+
+
+if __name__ == "__main__":
+    ship(Path(sys.argv[1]), sys.argv[2])
