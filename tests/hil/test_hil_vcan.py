@@ -19,7 +19,7 @@ from train.cli import main
 
 pytestmark = pytest.mark.slow
 NODE_TIMEOUT_MS = 200
-SAFE_MARGIN_MS = 150
+SAFE_MARGIN_MS = 200
 """Allowed lateness of the safe action beyond the watchdog timeout (scheduling inside UML)."""
 
 
