@@ -101,15 +101,9 @@ def _print_summary(report: dict[str, Any]) -> None:
 
 def cmd_bench_export(args: argparse.Namespace) -> int:
     from export.bench import run
-    from train.evaluate import provenance, write_json
+    from train.cli import print_measurement
 
-    result = run(args.export_dir, args.seed)
-    width = max(len(k) for k in result)
-    for key, value in result.items():
-        print(f"{key:<{width}}  {' '.join(value) if isinstance(value, list) else value}")
-    if args.json:
-        write_json({**result, "provenance": provenance()}, args.json)
-        print(f"wrote {args.json}")
+    print_measurement(run(args.export_dir, args.seed), args.json)
     return 0
 
 

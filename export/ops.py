@@ -104,10 +104,16 @@ class Unary(Emitter):
     in_place = True
     expression = "{x}"
     """C expression of one element ``{x}``; ``{alpha}`` etc. come from attributes."""
+    helper = ""
+    """Deterministic helper used instead of ``expression`` in quantised code (libm's tanhf and expf
+    differ between C libraries, and quantised policies must equal their Python model bit for bit)."""
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
-        expr = self.expression.format(x=f"{x}[i]", **self.formats(node, ctx))
+        if ctx.quantize and self.helper:
+            expr = f"{ctx.helper(self.helper)}({x}[i])"
+        else:
+            expr = self.expression.format(x=f"{x}[i]", **self.formats(node, ctx))
         return [f"for (int i = 0; i < {n}; ++i) {{", f"    {y}[i] = {expr};", "}"]
 
     def formats(self, node: Node, ctx: EmitContext) -> dict[str, str]:
@@ -128,30 +134,12 @@ class LeakyRelu(Unary):
 
 class Tanh(Unary):
     expression = "tanhf({x})"
-
-    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
-        if ctx.quantize:  # libm's tanhf differs between C libraries: use the exact helper
-            x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
-            return [
-                f"for (int i = 0; i < {n}; ++i) {{",
-                f"    {y}[i] = {ctx.helper('tanh_det')}({x}[i]);",
-                "}",
-            ]
-        return super().emit(node, ctx, n)
+    helper = "tanh_det"
 
 
 class Sigmoid(Unary):
     expression = "1.0f / (1.0f + expf(-{x}))"
-
-    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
-        if ctx.quantize:
-            x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
-            return [
-                f"for (int i = 0; i < {n}; ++i) {{",
-                f"    {y}[i] = {ctx.helper('sigmoid_det')}({x}[i]);",
-                "}",
-            ]
-        return super().emit(node, ctx, n)
+    helper = "sigmoid_det"
 
 
 class Softplus(Unary):

@@ -112,17 +112,22 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_bench_env(args: argparse.Namespace) -> int:
-    from train.bench_env import run
+def print_measurement(result: dict[str, Any], json_path: Path | None) -> None:
+    """A benchmark's numbers as aligned lines; with ``json_path`` also as JSON with provenance."""
     from train.evaluate import provenance, write_json
 
-    result = run(args.steps, args.seed)
     width = max(len(k) for k in result)
     for key, value in result.items():
-        print(f"{key:<{width}}  {value}")
-    if args.json:
-        write_json({**result, "provenance": provenance()}, args.json)
-        print(f"wrote {args.json}")
+        print(f"{key:<{width}}  {' '.join(value) if isinstance(value, list) else value}")
+    if json_path:
+        write_json({**result, "provenance": provenance()}, json_path)
+        print(f"wrote {json_path}")
+
+
+def cmd_bench_env(args: argparse.Namespace) -> int:
+    from train.bench_env import run
+
+    print_measurement(run(args.steps, args.seed), args.json)
     return 0
 
 

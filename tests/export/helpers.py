@@ -50,3 +50,18 @@ def compile_model(
     return build.CPolicy(
         folder / "build" / "libpolicy.so", name, graph.size(graph.input), graph.size(graph.output)
     )
+
+
+def mlp_model(widths: list[int], acts: list[str] | None = None, seed: int = 0) -> onnx.ModelProto:
+    """A Gemm MLP with random weights (seeded): ``acts`` per layer, default ReLU hidden and tanh out."""
+    acts = acts or ["Relu"] * (len(widths) - 2) + ["Tanh"]
+    rng = np.random.default_rng(seed)
+    nodes, inits, last = [], {}, "x"
+    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
+        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
+        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
+        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
+        out = "y" if i == len(acts) - 1 else f"a{i}"
+        nodes.append(helper.make_node(acts[i], [f"g{i}"], [out]))
+        last = out
+    return make_model(nodes, inits, widths[0], widths[-1])

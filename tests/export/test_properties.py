@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import tempfile
 from pathlib import Path
 
@@ -10,10 +9,9 @@ import numpy as np
 import onnxruntime as ort
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from onnx import helper
 
 from export.codegen import c_float
-from tests.export.helpers import compile_model, make_model
+from tests.export.helpers import compile_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "Softplus", "LeakyRelu", "Identity")
 
@@ -31,15 +29,7 @@ def mlps(draw: st.DrawFn) -> tuple[list[int], list[str], int]:
 def test_random_mlps_match_onnxruntime(spec: tuple[list[int], list[str], int]) -> None:
     widths, acts, seed = spec
     rng = np.random.default_rng(seed)
-    nodes, inits, last = [], {}, "x"
-    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
-        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
-        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
-        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
-        out = "y" if i == len(acts) - 1 else f"a{i}"
-        nodes.append(helper.make_node(acts[i], [f"g{i}"], [out]))
-        last = out
-    model = make_model(nodes, inits, widths[0], widths[-1])
+    model = mlp_model(widths, acts, seed)
     with tempfile.TemporaryDirectory() as tmp:
         policy = compile_model(model, Path(tmp))
         session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
@@ -63,16 +53,7 @@ def test_float_literals_round_trip_exactly(bits: int) -> None:
 def test_results_do_not_depend_on_the_optimisation_level(tmp_path: Path) -> None:
     # The study's 6-100-100-2 shape: the blocked, vectorised loops keep every output's summation order.
     rng = np.random.default_rng(5)
-    widths = [6, 100, 100, 2]
-    nodes, inits, last = [], {}, "x"
-    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
-        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
-        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
-        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
-        out = "y" if i == 2 else f"a{i}"
-        nodes.append(helper.make_node("Tanh" if i == 2 else "Relu", [f"g{i}"], [out]))
-        last = out
-    model = make_model(nodes, inits, 6, 2)
+    model = mlp_model([6, 100, 100, 2], seed=5)
     x = rng.uniform(-2, 2, size=(2000, 6)).astype(np.float32)
     o0, _ = compile_model(model, tmp_path, opt="-O0").batch(x)
     o3, _ = compile_model(model, tmp_path, opt="-O3").batch(x)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import tempfile
 from pathlib import Path
 
@@ -17,22 +16,9 @@ from export import build, fixed_point, quantize, verify
 from export.codegen import generate
 from export.errors import UnsupportedOpError
 from export.onnx_import import to_ir
-from tests.export.helpers import make_model
+from tests.export.helpers import make_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")
-
-
-def _mlp(widths: list[int], acts: list[str], seed: int) -> onnx.ModelProto:
-    rng = np.random.default_rng(seed)
-    nodes, inits, last = [], {}, "x"
-    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
-        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
-        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
-        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
-        out = "y" if i == len(acts) - 1 else f"a{i}"
-        nodes.append(helper.make_node(acts[i], [f"g{i}"], [out]))
-        last = out
-    return make_model(nodes, inits, widths[0], widths[-1])
 
 
 def _compile_int8(model: onnx.ModelProto, tmp: Path) -> build.CPolicy:
@@ -58,7 +44,7 @@ def _compile_int8(model: onnx.ModelProto, tmp: Path) -> build.CPolicy:
 )
 def test_generated_int8_c_equals_the_python_model_bit_for_bit(spec: tuple[list[int], list[str], int]) -> None:
     widths, acts, seed = spec
-    model = _mlp(widths, acts, seed)
+    model = mlp_model(widths, acts, seed)
     x = np.random.default_rng(seed).normal(scale=3.0, size=(200, widths[0])).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
         got, codes = _compile_int8(model, Path(tmp)).batch(x)
@@ -69,7 +55,7 @@ def test_generated_int8_c_equals_the_python_model_bit_for_bit(spec: tuple[list[i
 def test_int8_stays_close_to_float() -> None:
     import onnxruntime as ort
 
-    model = _mlp([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    model = mlp_model([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
     x = np.random.default_rng(0).uniform(-2, 2, size=(500, 6)).astype(np.float32)
     float_out = ort.InferenceSession(model.SerializeToString()).run(None, {"x": x})[0]
     assert np.max(np.abs(quantize.evaluate(to_ir(model), x) - float_out)) < 0.05
@@ -133,7 +119,7 @@ def _compile_q15(
 def test_generated_q15_c_equals_the_integer_model_bit_for_bit(spec: tuple[list[int], str, int]) -> None:
     widths, last, seed = spec
     acts = ["Relu"] * (len(widths) - 2) + [last]
-    model = _mlp(widths, acts, seed)
+    model = mlp_model(widths, acts, seed)
     rng = np.random.default_rng(seed)
     calibration = rng.normal(scale=2.0, size=(300, widths[0])).astype(np.float32)
     x = rng.normal(scale=3.0, size=(300, widths[0])).astype(np.float32)  # wider than calibrated: saturation
@@ -147,7 +133,7 @@ def test_generated_q15_c_equals_the_integer_model_bit_for_bit(spec: tuple[list[i
 def test_q15_is_close_to_float_within_the_calibrated_range() -> None:
     import onnxruntime as ort
 
-    model = _mlp([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    model = mlp_model([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
     x = np.random.default_rng(0).uniform(-2, 2, size=(500, 6)).astype(np.float32)
     section = fixed_point.plan(to_ir(model), x)
     float_out = ort.InferenceSession(model.SerializeToString()).run(None, {"x": x})[0]
@@ -155,6 +141,6 @@ def test_q15_is_close_to_float_within_the_calibrated_range() -> None:
 
 
 def test_q15_rejects_layers_joined_by_anything_but_relu() -> None:
-    model = _mlp([4, 8, 2], ["Sigmoid", "Tanh"], 0)
+    model = mlp_model([4, 8, 2], ["Sigmoid", "Tanh"], 0)
     with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* between layers is not supported with q15"):
         fixed_point.plan(to_ir(model), np.zeros((4, 4), np.float32))

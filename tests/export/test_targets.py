@@ -6,40 +6,24 @@ These tests need Debian's gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-sy
 
 from __future__ import annotations
 
-import itertools
 import json
 import subprocess
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import onnx
 import pytest
-from onnx import helper
 
 from export.build import RUNTIME_C
-from tests.export.helpers import make_model
+from tests.export.helpers import mlp_model
 from train.cli import main
 
 pytestmark = pytest.mark.slow
 
 
-def _mlp(widths: list[int], seed: int = 0) -> onnx.ModelProto:
-    rng = np.random.default_rng(seed)
-    nodes, inits, last = [], {}, "x"
-    for i, (n_in, n_out) in enumerate(itertools.pairwise(widths)):
-        inits[f"W{i}"] = rng.normal(scale=1 / np.sqrt(n_in), size=(n_out, n_in)).astype(np.float32)
-        inits[f"b{i}"] = rng.normal(scale=0.1, size=n_out).astype(np.float32)
-        nodes.append(helper.make_node("Gemm", [last, f"W{i}", f"b{i}"], [f"g{i}"], transB=1))
-        out = "y" if i == len(widths) - 2 else f"a{i}"
-        nodes.append(helper.make_node("Tanh" if out == "y" else "Relu", [f"g{i}"], [out]))
-        last = out
-    return make_model(nodes, inits, widths[0], widths[-1])
-
-
 def _export(tmp_path: Path, widths: list[int], *extra: str) -> tuple[int, Path]:
     src = tmp_path / "mlp.onnx"
-    onnx.save(_mlp(widths), str(src))
+    onnx.save(mlp_model(widths), str(src))
     out = tmp_path / "export"
     return main(["export", str(src), "--out", str(out), "--episodes", "0", *extra]), out
 
