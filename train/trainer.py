@@ -81,6 +81,7 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
         kwargs = {
             "net_arch": {"pi": list(cfg.net_arch), "vf": list(cfg.net_arch)},
             "activation_fn": torch.nn.ReLU,
+            "log_std_init": cfg.log_std_init,
         }
         return PPO(
             "MlpPolicy",
@@ -154,6 +155,56 @@ def seed_replay_buffer(model: OffPolicyAlgorithm, episodes: int, noise: float, s
             added += 1
     env.close()
     return added
+
+
+def _demonstrations(episodes: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Observations visited with noisy potential-field actions, labelled with its clean actions."""
+    from train.potential_field import PotentialFieldController
+
+    controller = PotentialFieldController()
+    rng = np.random.default_rng(seed)
+    env = gym.make(ENV_ID)
+    observations, labels = [], []
+    for episode in range(episodes):
+        obs, _ = env.reset(seed=DEMO_SEED + 1000 * seed + episode)
+        done = False
+        while not done:
+            clean = controller(obs)
+            observations.append(obs)
+            labels.append(clean)
+            action = np.clip(clean + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
+            obs, _, terminated, truncated, _ = env.step(action)
+            done = terminated or truncated
+    env.close()
+    return np.array(observations, dtype=np.float32), np.array(labels, dtype=np.float32)
+
+
+def warm_start(model: PPO, env: VecEnv, episodes: int, epochs: int, seed: int) -> float:
+    """Behaviour-clone the potential-field controller into PPO's policy mean; return the final loss."""
+    obs, labels = _demonstrations(episodes, 0.2, seed)
+    if isinstance(env, VecNormalize):
+        rms: Any = env.obs_rms
+        rms.mean, rms.var, rms.count = (
+            obs.mean(0).astype(np.float64),
+            obs.var(0).astype(np.float64),
+            float(len(obs)),
+        )
+        obs = np.asarray(env.normalize_obs(obs), dtype=np.float32)
+    x, y = torch.as_tensor(obs), torch.as_tensor(labels)
+    policy: Any = model.policy
+    optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
+    generator = torch.Generator().manual_seed(seed)
+    loss = torch.zeros(())
+    for _ in range(epochs):
+        order = torch.randperm(len(x), generator=generator)
+        for start in range(0, len(x), 256):
+            idx = order[start : start + 256]
+            mean = policy.get_distribution(x[idx]).distribution.mean
+            loss = torch.nn.functional.mse_loss(mean, y[idx])
+            optimizer.zero_grad()
+            loss.backward()  # type: ignore[no-untyped-call]
+            optimizer.step()
+    return float(loss)
 
 
 def q0(model: BaseAlgorithm, obs: np.ndarray) -> float:
@@ -285,6 +336,8 @@ def train(
         model = build_model(algo, cfg, env, seed, out / "tb")
         if isinstance(model, OffPolicyAlgorithm) and not isinstance(cfg, PPOConfig) and cfg.demonstrations:
             seed_replay_buffer(model, cfg.demonstrations, cfg.demonstration_noise, seed)
+        if isinstance(model, PPO) and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
+            warm_start(model, env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed)
     state.setdefault("wall_clock_s", 0.0)
     started = time.monotonic()
 
