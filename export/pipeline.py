@@ -34,6 +34,14 @@ VECNORMALIZE_FILE = "vecnormalize.pkl"
 """Statistics next to a model with this name are used unless ``--vecnormalize`` says otherwise."""
 
 
+def vecnormalize_beside(model: Path) -> Path | None:
+    """``<model>_vecnormalize.pkl`` (shipped policies share a folder), else ``vecnormalize.pkl`` (a run)."""
+    for candidate in (model.with_name(f"{model.stem}_{VECNORMALIZE_FILE}"), model.parent / VECNORMALIZE_FILE):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
 @dataclass(frozen=True)
 class ExportOptions:
     """What ``embedrl export`` was asked to do."""
@@ -176,9 +184,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
     loaded: LoadedPolicy | None = None
     vecnorm_path = None
     if suffix == ".zip":
-        vecnorm_path = opts.vecnormalize
-        if vecnorm_path is None and (source.parent / VECNORMALIZE_FILE).is_file():
-            vecnorm_path = source.parent / VECNORMALIZE_FILE
+        vecnorm_path = opts.vecnormalize or vecnormalize_beside(source)
         log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
         loaded = load_sb3(source, vecnorm_path)
         model = build_onnx(loaded, tool_version())

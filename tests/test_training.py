@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from stable_baselines3 import PPO
 
 from train.cli import load_model_policy, main
 from train.config import ALGOS, Budget
@@ -235,3 +236,26 @@ def test_shipped_policies_meet_their_bar() -> None:
         assert hashlib.sha256(model.read_bytes()).hexdigest() == meta["sha256"]
         assert meta["evaluation"]["episodes"] == 200 and meta["evaluation"]["success_rate"] >= MIN_SUCCESS
         assert meta["evaluation"]["seed"] >= 5_000_000  # never a training seed
+
+
+@pytest.mark.slow
+def test_ppo_warm_start_clones_the_baseline(tmp_path: Path) -> None:
+    from train.config import preset
+    from train.potential_field import PotentialFieldController
+    from train.trainer import _demonstrations, build_model, make_env, warm_start
+
+    cfg = preset("ppo", "tuned")
+    env = make_env(True, 0)
+    model = build_model("ppo", cfg, env, 0, None)
+    assert isinstance(model, PPO)
+    obs, labels = _demonstrations(20, 0.0, 7)  # held-out states of the baseline
+
+    def error() -> float:
+        x = env.normalize_obs(obs)  # type: ignore[attr-defined]
+        return float(np.mean((model.predict(x, deterministic=True)[0] - labels) ** 2))
+
+    before = error()
+    warm_start(model, env, 100, 40, 0)
+    assert error() < before / 5
+    pf = PotentialFieldController()
+    assert np.allclose(pf(obs[0]), labels[0])

@@ -41,11 +41,11 @@ def load_model_policy(path: Path):  # type: ignore[no-untyped-def]
     if path.suffix != ".zip":
         raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
     from export.errors import ExportError
+    from export.pipeline import vecnormalize_beside
     from export.sb3_onnx import load_sb3
 
-    stats = path.parent / "vecnormalize.pkl"
     try:
-        loaded = load_sb3(path, stats if stats.is_file() else None)
+        loaded = load_sb3(path, vecnormalize_beside(path))
     except ExportError as exc:
         raise UsageError(str(exc)) from None
 

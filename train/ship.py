@@ -32,7 +32,7 @@ def ship(run: Path, name: str) -> dict[str, object]:
     target = POLICIES / f"{name}.zip"
     shutil.copyfile(run / "model.zip", target)
     if (run / "vecnormalize.pkl").is_file():
-        raise SystemExit("error: shipping policies with normalisation statistics (PPO) is not supported yet")
+        shutil.copyfile(run / "vecnormalize.pkl", POLICIES / f"{name}_vecnormalize.pkl")
     meta = {
         "model": target.name,
         "sha256": hashlib.sha256(target.read_bytes()).hexdigest(),

@@ -204,7 +204,7 @@ def warm_start(model: PPO, env: VecEnv, episodes: int, epochs: int, seed: int) -
             optimizer.zero_grad()
             loss.backward()  # type: ignore[no-untyped-call]
             optimizer.step()
-    return float(loss)
+    return float(loss.detach())
 
 
 def q0(model: BaseAlgorithm, obs: np.ndarray) -> float:
