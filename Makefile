@@ -44,13 +44,15 @@ demo: deps $(STAMP)
 	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
 	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, hil.json, frames.log, hil_*.png)"
 
-# How policies/static/{td3,sac}.zip were made: trained past the stop criterion, then shipped only if they
+# How policies/static/{ddpg,td3,sac,ppo}.zip were made: trained past the stop criterion, then shipped only if they
 # succeed in >= 95% of 200 episodes on seeds training never used (train/ship.py).
 policies: $(STAMP)
-	for a in td3 sac; do \
+	for a in ddpg td3 sac; do \
 	    $(VENV)/bin/embedrl train --algo $$a --preset tuned --seed 1 --out $(OUT)/ship/$$a --max-steps 100000 \
 	        --keep-training && $(PY) -m train.ship $(OUT)/ship/$$a $$a || exit 1; \
 	done
+	$(VENV)/bin/embedrl train --algo ppo --preset tuned --seed 1 --out $(OUT)/ship/ppo --max-steps 60000 \
+	    --keep-training && $(PY) -m train.ship $(OUT)/ship/ppo ppo
 
 test: deps $(STAMP)
 	$(PY) -m pytest
