@@ -91,7 +91,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     import numpy as np
     import onnxruntime as ort
 
-    from train.evaluate import EpisodeResult, EvalReport, evaluate
+    from train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
 
     episodes = [
         EpisodeResult(
@@ -133,10 +133,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     )
     extra = {k: results.get(k) for k in keys}
     extra["faults"] = sum(e.outcome == "fault" for e in episodes)
-    extra["simulation"] = {
-        k: getattr(sim, k)
-        for k in ("episodes", "successes", "collisions", "timeouts", "success_rate", "mean_return")
-    }
+    extra["simulation"] = {k: getattr(sim, k) for k in REPORT_KEYS}
     extra["outcomes_differing_from_simulation"] = differing
     data = report.to_json(extra)
     for row, e in zip(data["per_episode"], results["episodes"], strict=True):

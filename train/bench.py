@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from train.config import Budget
-from train.evaluate import evaluate, provenance, write_json
+from train.evaluate import REPORT_KEYS, evaluate, provenance, write_json
 
 EVAL_SEED = 2_000_000
 """Final evaluations start here: never a training or in-training evaluation seed."""
@@ -64,18 +64,7 @@ def _one_run(job: tuple[str, str, int, str, int, int]) -> dict[str, Any]:
     report = evaluate(load_model_policy(run / "model.zip"), eval_episodes, EVAL_SEED, f"{algo} seed {seed}")
     return {
         **summary,
-        "evaluation": {
-            k: getattr(report, k)
-            for k in (
-                "episodes",
-                "successes",
-                "collisions",
-                "timeouts",
-                "success_rate",
-                "mean_return",
-                "mean_time_s",
-            )
-        },
+        "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
     }
 
 
