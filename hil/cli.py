@@ -4,15 +4,23 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import tempfile
+from contextlib import nullcontext
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from hil.errors import HilError
+from hil.sandbox import MODES
+
+if TYPE_CHECKING:
+    from hil.sandbox import Guest
 
 REPO = Path(__file__).resolve().parents[1]
 INJECTIONS = ("corrupt", "silent", "kill")
+SESSION_TIMEOUT_S = 3600.0
+"""A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
 DEFAULT_TIMEOUT_MS = 500
 """Node watchdog: longer than one control period (0.3 s), so a real-time loop never trips it."""
 
@@ -29,11 +37,12 @@ def _onnx_of(export_dir: Path) -> Path:
     raise HilError(f"{export_dir}: no policy.onnx (is it an `embedrl export` folder?)")
 
 
-def run_hil(args: argparse.Namespace) -> dict[str, Any]:
+def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, Any]:
+    """Build the node, then run the session in ``guest`` (or in the sandbox ``args.sandbox`` selects)."""
     from export import build
     from export.errors import BuildError
     from hil import sandbox
-    from hil.session import SessionConfig, run
+    from hil.session import SessionConfig
 
     export_dir: Path = args.export_dir.resolve()
     if not (export_dir / "c" / "policy.c").is_file():
@@ -47,42 +56,40 @@ def run_hil(args: argparse.Namespace) -> dict[str, Any]:
         build.make("node", export_dir / "c", work / "build")
     except BuildError as exc:
         raise HilError(str(exc)) from None
-    where = sandbox.choose(args.sandbox)
-    print(
-        f"sandbox: {where}"
-        + (
-            " (no kernel CAN here: User-Mode Linux gives a real SocketCAN vcan0)"
-            if where == "uml"
-            else " (vcan0)"
+    with nullcontext(guest) if guest else sandbox.opened(args.sandbox, work / "sandbox") as where:
+        scratch = where.scratch()  # the session's results and log: writable from inside the guest
+        log = scratch / f"frames{args.log.suffix}" if args.log else None
+        cfg = SessionConfig(
+            node=str(work / "build" / "policy_node"),
+            onnx=str(onnx),
+            iface=where.iface,
+            episodes=args.episodes,
+            seed=args.seed,
+            node_timeout_ms=args.timeout_ms,
+            realtime=args.realtime,
+            log=str(log) if log else None,
+            results=str(scratch / "results.json"),
+            inject=args.inject,
         )
-    )
-    cfg = SessionConfig(
-        node=str(work / "build" / "policy_node"),
-        onnx=str(onnx),
-        episodes=args.episodes,
-        seed=args.seed,
-        node_timeout_ms=args.timeout_ms,
-        realtime=args.realtime,
-        log=str(args.log.resolve()) if args.log else None,
-        results=str(work / "results.json"),
-        inject=args.inject,
-    )
-    if cfg.log:
-        Path(cfg.log).parent.mkdir(parents=True, exist_ok=True)
-    print(
-        f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
-        + (f", injecting '{args.inject}'" if args.inject else "")
-    )
-    if where == "host":
-        results = run(cfg)
-    else:
-        config_file = work / "session.json"
+        print(
+            f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
+            + (f", injecting '{args.inject}'" if args.inject else "")
+        )
+        config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
-        status = sandbox.run_in_uml([sandbox.python(), "-m", "hil.session", str(config_file)], work, REPO)
-        if status != 0 or not Path(cfg.results).is_file():
-            raise HilError(f"the HIL session failed inside User-Mode Linux (status {status}); see {work}")
-        results = json.loads(Path(cfg.results).read_text())
-    results["sandbox"] = where
+        job = where.run(
+            [where.python, "-m", "hil.session", str(config_file)], REPO, timeout_s=SESSION_TIMEOUT_S
+        )
+        if job.status != 0 or not Path(cfg.results).is_file():
+            raise HilError(
+                f"the HIL session failed in {where.description} (status {job.status}): {job.last_lines()}"
+            )
+        results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
+        if log:
+            args.log.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(log, args.log)
+        results["sandbox"] = where.provider
+        results["sandbox_detail"] = where.description
     return results
 
 
@@ -125,6 +132,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         "sequence_errors",
         "rx_timeouts",
         "sandbox",
+        "sandbox_detail",
         "latency_us",
         "deadline_misses",
         "jitter_us",
@@ -149,7 +157,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     return data
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
     from train.evaluate import write_json
     from train.warehouse_env import SAMPLE_TIME
 
@@ -162,12 +170,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"--timeout-ms {args.timeout_ms} would trip the node's watchdog between real-time steps: "
             f"it must exceed the sample time ({SAMPLE_TIME * 1000:.0f} ms)"
         )
-    results = run_hil(args)
+    results = run_hil(args, guest)
     data = _report(args, results)
     lat = data["latency_us"]
     diff = data["max_action_abs_diff"]
     rows = [
-        ("sandbox", data["sandbox"]),
+        ("sandbox", data["sandbox_detail"]),
         (
             "HIL successes / collisions / timeouts / faults",
             f"{data['successes']} / {data['collisions']} / {data['timeouts']} / {data['faults']}",
@@ -203,6 +211,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from hil.doctor import doctor, print_table
+    from train.evaluate import write_json
+
+    report = doctor(say=print)
+    print_table(report)
+    if args.json:
+        write_json(report, args.json)
+        print(f"wrote {args.json}")
+    return 0 if report["first_working"] else 1
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser("hil", help="hardware-in-the-loop over virtual SocketCAN")
     hil_sub = p.add_subparsers(dest="hil_command", required=True, metavar="COMMAND")
@@ -216,7 +236,12 @@ def register(sub: Any) -> None:
     r.add_argument("--log", type=Path, help="write every frame here (candump format, .log; .blf also works)")
     r.add_argument("--json", type=Path, required=True, help="write the report here")
     r.add_argument("--plot", type=Path, help="write trajectories and the latency histogram into this folder")
-    r.add_argument("--sandbox", choices=["auto", "host", "uml"], default="auto")
+    r.add_argument(
+        "--sandbox",
+        choices=MODES,
+        default="auto",
+        help="where vcan0 comes from (auto: the first of host, uml, qemu that passes its self-test)",
+    )
     r.add_argument(
         "--timeout-ms",
         type=int,
@@ -225,6 +250,11 @@ def register(sub: Any) -> None:
     )
     r.add_argument("--inject", choices=INJECTIONS, help="fault injection at step 3 of the first episode")
     r.set_defaults(func=cmd_run)
+    d = hil_sub.add_parser(
+        "doctor", help="check every CAN sandbox provider on this machine (run this first when HIL fails)"
+    )
+    d.add_argument("--json", type=Path, help="also write the checks here")
+    d.set_defaults(func=cmd_doctor)
 
 
 ERRORS: tuple[type[Exception], ...] = (HilError,)

@@ -1,0 +1,74 @@
+"""``embedrl hil doctor``: every CAN sandbox provider on this machine, booted and self-tested.
+
+Prints the machine's CPU (whether it has AMX decides which UML kernels run) and one row per provider:
+works or not, boot time, and the reason (the self-test's result or the diagnosed failure).
+"""
+
+from __future__ import annotations
+
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+from hil import sandbox
+
+CPUINFO = Path("/proc/cpuinfo")
+
+
+def machine() -> dict[str, Any]:
+    """CPU model and the flags that matter to the sandboxes, the host kernel."""
+    model, flags = "unknown", set[str]()
+    try:
+        for line in CPUINFO.read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key.strip() == "model name" and model == "unknown":
+                model = value.strip()
+            elif key.strip() == "flags" and not flags:
+                flags = set(value.split())
+    except OSError:
+        pass
+    return {
+        "cpu": model,
+        "amx": any(f.startswith("amx") for f in flags),
+        "cores": len([1 for line in _lines(CPUINFO) if line.startswith("processor")]) or None,
+        "host_kernel": platform.release(),
+        "kvm_device": Path("/dev/kvm").exists(),
+    }
+
+
+def _lines(path: Path) -> list[str]:
+    try:
+        return path.read_text().splitlines()
+    except OSError:
+        return []
+
+
+def doctor(say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Check every provider (``auto``'s order); the report with ``first_working`` (what ``auto`` picks)."""
+    info = machine()
+    say(f"machine: {info['cpu']}, AMX {'yes' if info['amx'] else 'no'}, host kernel {info['host_kernel']}")
+    checks = []
+    with tempfile.TemporaryDirectory(prefix="embedrl-doctor-") as tmp:
+        for provider in sandbox.providers("auto"):
+            say(f"checking {provider.label} ...")
+            start = time.monotonic()
+            result = sandbox.check(provider, Path(tmp))
+            checks.append({**asdict(result), "check_s": round(time.monotonic() - start, 2)})
+    first = next((c["label"] for c in checks if c["works"]), None)
+    return {"machine": info, "providers": checks, "first_working": first}
+
+
+def print_table(report: dict[str, Any], say: Callable[[str], None] = print) -> None:
+    rows = [("provider", "works", "boot [s]", "reason")]
+    for c in report["providers"]:
+        boot = "-" if c["boot_s"] is None else f"{c['boot_s']:.1f}"
+        rows.append((c["label"], "yes" if c["works"] else "no", boot, c["reason"]))
+    widths = [max(len(r[i]) for r in rows) for i in range(3)]
+    for r in rows:
+        say(f"{r[0]:<{widths[0]}}  {r[1]:<{widths[1]}}  {r[2]:>{widths[2]}}  {r[3]}")
+    first = report["first_working"]
+    say(f"--sandbox auto uses: {first}" if first else "no provider works: see the reasons above")

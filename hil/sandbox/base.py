@@ -1,0 +1,263 @@
+"""The provider interface, and the guest that runs the host's commands inside a virtual machine.
+
+A virtual-machine guest (User-Mode Linux or QEMU) boots once, brings ``vcan0`` up, then runs the jobs
+the host drops into a shared queue folder, one after another, until the host asks it to stop. Every
+result (a job's exit status and output) comes back through that folder: a guest's own exit code says
+nothing about the commands it ran. When the guest dies, its console log says why.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shlex
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from pathlib import Path
+
+from hil.errors import HilError
+from hil.sandbox.console import Diagnosis, diagnose
+
+REPO = Path(__file__).resolve().parents[2]
+IFACE = "vcan0"
+POLL_S = 0.02
+STOP_TIMEOUT_S = 30.0
+"""How long a guest may take to shut down after the host asked it to."""
+OUTPUT_LINES = 6
+"""Lines of a failed job's output quoted in an error."""
+
+
+class SandboxError(HilError):
+    """No working CAN sandbox, or a guest that died (the message carries the diagnosis)."""
+
+    def __init__(self, message: str | Diagnosis) -> None:
+        super().__init__(str(message))
+        self.diagnosis = message if isinstance(message, Diagnosis) else None
+
+
+@dataclass(frozen=True)
+class JobResult:
+    status: int
+    output: str
+
+    def last_lines(self, n: int = OUTPUT_LINES) -> str:
+        lines = [line.strip() for line in self.output.splitlines() if line.strip()]
+        return " | ".join(lines[-n:]) or "no output"
+
+
+class Guest(ABC):
+    """A place where ``vcan0`` is up and commands run with the host's files visible."""
+
+    provider: str
+    """``host``, ``uml`` or ``qemu``."""
+    description: str
+    """What exactly runs, e.g. ``uml: User-Mode Linux 6.1.176 (Debian package)``."""
+    boot_s: float
+    iface: str = IFACE
+    python: str = sys.executable
+
+    @abstractmethod
+    def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:
+        """Run ``argv`` in ``cwd`` inside the guest: its status and output; SandboxError if the guest dies."""
+
+    def scratch(self) -> Path:
+        """A new empty folder that both the host and the guest can write."""
+        return Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
+
+    def diagnose(self, context: str) -> Diagnosis:
+        """Why the guest failed, for an error message: ``context`` plus what the console says."""
+        return Diagnosis("self-test", context, ())
+
+    def close(self) -> None:  # noqa: B027 (a guest without a machine has nothing to shut down)
+        """Shut the guest down (idempotent)."""
+
+    def __enter__(self) -> Guest:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class Provider(ABC):
+    """A way to get a ``vcan0``: checked cheaply by :meth:`missing`, then booted."""
+
+    name: str
+    label: str
+    """The provider and its variant, e.g. ``uml (Debian 6.1um4+b13)``, for reports."""
+
+    @property
+    def slug(self) -> str:
+        """A folder name for this provider's work files."""
+        return "".join(c if c.isalnum() or c in ".-" else "-" for c in self.label).strip("-")
+
+    @abstractmethod
+    def missing(self) -> str | None:
+        """Why this provider cannot work here without trying to boot it (``None``: worth trying)."""
+
+    @abstractmethod
+    def boot(self, workdir: Path) -> Guest:
+        """Start a guest with ``vcan0`` up; SandboxError with the diagnosis if it does not come up."""
+
+
+class VmGuest(Guest):
+    """A virtual machine started by ``command``, running ``guest.sh`` as its job loop.
+
+    ``setup`` is the provider's shell code that makes the CAN modules available (run before ``vcan0``
+    is created); ``shutdown`` ends the guest after the loop (``poweroff -f`` for a UML PID 1).
+    """
+
+    def __init__(
+        self,
+        provider: str,
+        description: str,
+        command: list[str],
+        workdir: Path,
+        setup: str,
+        shutdown: str,
+        boot_timeout_s: float,
+        env: dict[str, str] | None = None,
+    ) -> None:
+        self.provider = provider
+        self.description = description
+        self.workdir = workdir
+        self.queue = workdir / "queue"
+        self.console = workdir / "console.log"
+        self.closed = False
+        self._jobs = 0
+        self.queue.mkdir(parents=True, exist_ok=True)
+        for stale in self.queue.iterdir():
+            stale.unlink()
+        script = workdir / "guest.sh"
+        script.write_text(_guest_script(self.queue, setup, shutdown))
+        script.chmod(0o755)
+        self.script = script
+        start = time.monotonic()
+        with self.console.open("wb") as out:
+            self.process = subprocess.Popen(
+                [*command],
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,  # UML forks helpers: stop the whole group
+                env=env,
+            )
+        ready = self.queue / "ready"
+        while not ready.is_file():
+            if self.process.poll() is not None:
+                raise SandboxError(self._died("exited while booting"))
+            if time.monotonic() - start > boot_timeout_s:
+                self._kill()
+                raise SandboxError(diagnose(self._log(), timed_out=True, timeout_s=boot_timeout_s))
+            time.sleep(POLL_S)
+        self.boot_s = time.monotonic() - start
+        self.kernel = ready.read_text().strip()
+
+    def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:
+        if self.closed:
+            raise SandboxError(f"{self.description}: the guest is shut down")
+        self._jobs += 1
+        name = f"job-{self._jobs}"
+        env = {
+            "HOME": os.environ.get("HOME", "/root"),
+            "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
+            "PYTHONUNBUFFERED": "1",
+            "PYTHONDONTWRITEBYTECODE": "1",
+        }
+        lines = [f"export {k}={shlex.quote(v)}" for k, v in env.items()]
+        lines += [f"cd {shlex.quote(str(cwd))} || exit 125", shlex.join(argv)]
+        tmp = self.queue / f"{name}.tmp"
+        tmp.write_text("\n".join(lines) + "\n")
+        tmp.rename(self.queue / f"{name}.sh")  # the guest only picks up complete job files
+        status_file = self.queue / f"{name}.rc"
+        deadline = time.monotonic() + timeout_s
+        while not status_file.is_file():
+            if self.process.poll() is not None:
+                self.closed = True
+                raise SandboxError(self._died(f"died while running `{shlex.join(argv)}`"))
+            if time.monotonic() > deadline:
+                self.close()
+                so_far = JobResult(0, _read(self.queue / f"{name}.out")).last_lines()
+                raise SandboxError(
+                    f"`{shlex.join(argv)}` gave no result within {timeout_s:.0f} s "
+                    f"inside {self.description}; its output so far: {so_far}"
+                )
+            time.sleep(POLL_S)
+        status = int(status_file.read_text().strip() or "1")
+        return JobResult(status, _read(self.queue / f"{name}.out"))
+
+    def scratch(self) -> Path:
+        # A QEMU guest sees the host read-only except its work folder.
+        return Path(tempfile.mkdtemp(prefix="run-", dir=self.workdir))
+
+    def diagnose(self, context: str) -> Diagnosis:
+        found = diagnose(self._log())
+        if found.cause in ("unknown", "no-output"):
+            return Diagnosis("self-test", f"{self.description}: {context}", found.evidence)
+        return Diagnosis(found.cause, f"{self.description}: {found.explanation}; {context}", found.evidence)
+
+    def close(self) -> None:
+        if self.closed and self.process.poll() is not None:
+            return
+        self.closed = True
+        (self.queue / "stop").touch()
+        try:
+            self.process.wait(timeout=STOP_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            self._kill()
+        else:
+            self._kill()  # helpers UML left behind
+
+    def _died(self, what: str) -> Diagnosis:
+        found = diagnose(self._log())
+        return Diagnosis(
+            found.cause,
+            f"{self.description} {what} (exit status {self.process.returncode}): {found.explanation}",
+            found.evidence,
+        )
+
+    def _log(self) -> str:
+        return _read(self.console)
+
+    def _kill(self) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.process.pid, signal.SIGKILL)
+        self.process.wait()
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text(errors="replace")
+    except FileNotFoundError:
+        return ""
+
+
+def _guest_script(queue: Path, setup: str, shutdown: str) -> str:
+    q = shlex.quote(str(queue))
+    return f"""#!/bin/sh
+# Written by embedrl (hil/sandbox/base.py): bring vcan0 up, then run the jobs the host puts in the queue.
+Q={q}
+{setup}
+if ip link add dev {IFACE} type vcan || [ -e /sys/class/net/{IFACE} ]; then
+    ip link set up {IFACE} || echo "embedrl: no {IFACE} (ip link set up failed)"
+else
+    echo "embedrl: no {IFACE} (ip link add failed)"
+fi
+uname -r > "$Q/ready.tmp" && mv "$Q/ready.tmp" "$Q/ready"
+while [ ! -e "$Q/stop" ]; do
+    for job in "$Q"/job-*.sh; do
+        [ -e "$job" ] || continue
+        n="${{job%.sh}}"
+        sh "$job" > "$n.out" 2>&1
+        echo $? > "$n.rc.tmp" && mv "$n.rc.tmp" "$n.rc"
+        rm -f "$job"
+    done
+    sleep 0.05
+done
+sync
+{shutdown}
+"""
