@@ -5,15 +5,21 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup deps demo test test-fast lint type format bench export-example targets-example policies clean
+.PHONY: setup deps apt-packages demo test test-fast lint type format bench export-example targets-example policies clean
 
 setup: $(STAMP)
 
-# Debian packages the tests need: cross compiler, newlib, QEMU (Cortex-M); User-Mode Linux, kmod and
-# iproute2 (vcan for the HIL tests where the kernel has no CAN). Installed when missing
-# (as root or with passwordless sudo); otherwise the command to run is printed.
-APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2
-deps:
+# Debian packages the tests need: cross compiler, newlib, QEMU (Cortex-M); for the CAN sandboxes where the
+# kernel has no CAN (hil/sandbox): User-Mode Linux, kmod, iproute2, patchelf (uml); QEMU, busybox and
+# Debian's stable kernel with its vcan module (qemu). Installed when missing (as root or with passwordless
+# sudo); otherwise the command to run is printed. Then a User-Mode Linux >= 7.2 is cached for CPUs on
+# which Debian stable's UML dies (python -m hil.sandbox.provision; no network once cached).
+APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
+    patchelf qemu-system-x86 busybox-static linux-image-amd64
+deps: apt-packages
+	$(PYTHON) -m hil.sandbox.provision
+
+apt-packages:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	echo "installing Debian packages:$$missing"; \
