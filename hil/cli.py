@@ -81,9 +81,8 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
             [where.python, "-m", "hil.session", str(config_file)], REPO, timeout_s=SESSION_TIMEOUT_S
         )
         if job.status != 0 or not Path(cfg.results).is_file():
-            raise HilError(
-                f"the HIL session failed in {where.description} (status {job.status}): {job.last_lines()}"
-            )
+            why = where.diagnose(f"the HIL session failed (status {job.status}): {job.last_lines()}")
+            raise HilError(str(why))
         results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
         if log:
             args.log.parent.mkdir(parents=True, exist_ok=True)

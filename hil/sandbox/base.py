@@ -28,6 +28,12 @@ IFACE = "vcan0"
 POLL_S = 0.02
 STOP_TIMEOUT_S = 30.0
 """How long a guest may take to shut down after the host asked it to."""
+VCAN_UP = f"""if ip link add dev {IFACE} type vcan || [ -e /sys/class/net/{IFACE} ]; then
+    ip link set up {IFACE} || echo "embedrl: no {IFACE} (ip link set up failed)"
+else
+    echo "embedrl: no {IFACE} (ip link add failed)"
+fi"""
+"""Guest shell code that brings ``vcan0`` up once the CAN modules are loaded; failures go to the console."""
 OUTPUT_LINES = 6
 """Lines of a failed job's output quoted in an error."""
 
@@ -71,7 +77,7 @@ class Guest(ABC):
 
     def diagnose(self, context: str) -> Diagnosis:
         """Why the guest failed, for an error message: ``context`` plus what the console says."""
-        return Diagnosis("self-test", context, ())
+        return Diagnosis("command-failed", f"{self.description}: {context}", ())
 
     def close(self) -> None:  # noqa: B027 (a guest without a machine has nothing to shut down)
         """Shut the guest down (idempotent)."""
@@ -107,8 +113,9 @@ class Provider(ABC):
 class VmGuest(Guest):
     """A virtual machine started by ``command``, running ``guest.sh`` as its job loop.
 
-    ``setup`` is the provider's shell code that makes the CAN modules available (run before ``vcan0``
-    is created); ``shutdown`` ends the guest after the loop (``poweroff -f`` for a UML PID 1).
+    ``setup`` is the provider's shell code that loads the CAN modules and brings ``vcan0`` up (ending
+    with :data:`VCAN_UP`), run before the guest reports ready; ``shutdown`` ends the guest after the
+    loop (``poweroff -f`` for a UML PID 1).
     """
 
     def __init__(
@@ -180,7 +187,8 @@ class VmGuest(Guest):
                 self.closed = True
                 raise SandboxError(self._died(f"died while running `{shlex.join(argv)}`"))
             if time.monotonic() > deadline:
-                self.close()
+                self.closed = True
+                self._kill()  # the guest is busy with the stuck job: it would not hear a stop request
                 so_far = JobResult(0, _read(self.queue / f"{name}.out")).last_lines()
                 raise SandboxError(
                     f"`{shlex.join(argv)}` gave no result within {timeout_s:.0f} s "
@@ -197,7 +205,7 @@ class VmGuest(Guest):
     def diagnose(self, context: str) -> Diagnosis:
         found = diagnose(self._log())
         if found.cause in ("unknown", "no-output"):
-            return Diagnosis("self-test", f"{self.description}: {context}", found.evidence)
+            return Diagnosis("command-failed", f"{self.description}: {context}", found.evidence)
         return Diagnosis(found.cause, f"{self.description}: {found.explanation}; {context}", found.evidence)
 
     def close(self) -> None:
@@ -239,14 +247,9 @@ def _read(path: Path) -> str:
 def _guest_script(queue: Path, setup: str, shutdown: str) -> str:
     q = shlex.quote(str(queue))
     return f"""#!/bin/sh
-# Written by embedrl (hil/sandbox/base.py): bring vcan0 up, then run the jobs the host puts in the queue.
+# Written by embedrl (hil/sandbox/base.py): set up (vcan0), then run the jobs the host puts in the queue.
 Q={q}
 {setup}
-if ip link add dev {IFACE} type vcan || [ -e /sys/class/net/{IFACE} ]; then
-    ip link set up {IFACE} || echo "embedrl: no {IFACE} (ip link set up failed)"
-else
-    echo "embedrl: no {IFACE} (ip link add failed)"
-fi
 uname -r > "$Q/ready.tmp" && mv "$Q/ready.tmp" "$Q/ready"
 while [ ! -e "$Q/stop" ]; do
     for job in "$Q"/job-*.sh; do

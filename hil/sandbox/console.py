@@ -57,7 +57,9 @@ RULES = (
     ),
     Rule(
         "out-of-memory",
-        re.compile(r"Out of memory|oom-kill|invoked oom-killer|Cannot allocate memory", re.I),
+        re.compile(
+            r"Out of memory|oom-kill|invoked oom-killer|Cannot allocate memory|no enough memory", re.I
+        ),
         "the guest ran out of memory",
     ),
     Rule(

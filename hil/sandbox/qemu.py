@@ -15,7 +15,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from hil.sandbox.base import Guest, Provider, SandboxError, VmGuest
+from hil.sandbox.base import VCAN_UP, Guest, Provider, SandboxError, VmGuest
 
 KERNELS = Path("/boot")
 MODULES = Path("/lib/modules")
@@ -25,8 +25,9 @@ CPUS = 2
 KVM_BOOT_TIMEOUT_S = 30.0
 """A KVM guest boots in seconds; one that takes longer has hung (seen with nested virtualisation)."""
 TCG_BOOT_TIMEOUT_S = 300.0
-SETUP = """for m in can can-raw vcan; do modprobe "$m" || echo "embedrl: modprobe $m failed"; done
-mkdir -p /dev/shm && (mountpoint -q /dev/shm || mount -t tmpfs tmpfs /dev/shm)"""
+SETUP = f"""for m in can can-raw vcan; do modprobe "$m" || echo "embedrl: modprobe $m failed"; done
+mkdir -p /dev/shm && (mountpoint -q /dev/shm || mount -t tmpfs tmpfs /dev/shm)
+{VCAN_UP}"""
 
 
 def vng_binary() -> Path | None:

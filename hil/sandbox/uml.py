@@ -18,7 +18,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
-from hil.sandbox.base import Guest, Provider, VmGuest
+from hil.sandbox.base import VCAN_UP, Guest, Provider, VmGuest
 
 PACKAGED_BINARY = "linux.uml"
 PACKAGED_MODULES = Path("/usr/lib/uml/modules")
@@ -73,7 +73,8 @@ class UmlProvider(Provider):
 mount -t sysfs sys /sys
 mount -t tmpfs tmpfs /dev/shm
 M={shlex.quote(str(self.kernel.modules))}/$(uname -r)/kernel
-for m in {modules}; do insmod "$m" || echo "embedrl: insmod $m failed"; done"""
+for m in {modules}; do insmod "$m" || echo "embedrl: insmod $m failed"; done
+{VCAN_UP}"""
         command = [
             str(self.kernel.binary),
             f"mem={MEMORY}",
