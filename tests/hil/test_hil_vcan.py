@@ -1,20 +1,20 @@
-"""HIL over real SocketCAN (vcan0 on the host, or inside User-Mode Linux where the kernel has no CAN).
+"""HIL over real SocketCAN, in the sandbox ``--sandbox auto`` picks on this machine.
 
 The policy is the example TD3 actor (imitating the potential-field controller, so its episodes
-succeed) exported with `embedrl export`; the node is the compiled C policy.
+succeed) exported with `embedrl export`; the node is the compiled C policy. One sandbox guest serves
+the whole module (the ``guest`` fixture); the first test boots its own, as the command does.
 """
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from hil.sandbox import Guest
+from tests.hil.helpers import hil
 from train.cli import main
 
 pytestmark = pytest.mark.slow
@@ -23,41 +23,14 @@ SAFE_MARGIN_MS = 200
 """Allowed lateness of the safe action beyond the watchdog timeout (scheduling inside UML)."""
 
 
-@pytest.fixture(scope="module")
-def export_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    root = tmp_path_factory.mktemp("hil")
-    subprocess.run(
-        [sys.executable, "-m", "export.example", str(root / "td3.zip")], check=True, capture_output=True
-    )
-    assert main(["export", str(root / "td3.zip"), "--out", str(root / "export"), "--episodes", "0"]) == 0
-    return root / "export"
-
-
-def _hil(export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
-    out = tmp_path / "hil.json"
-    assert (
-        main(
-            [
-                "hil",
-                "run",
-                "--export-dir",
-                str(export_dir),
-                "--json",
-                str(out),
-                "--timeout-ms",
-                str(NODE_TIMEOUT_MS),
-                *extra,
-            ]
-        )
-        == 0
-    )
-    report: dict[str, Any] = json.loads(out.read_text())
-    return report
+def _hil(guest: Guest | None, export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
+    return hil(guest, export_dir, tmp_path, "--timeout-ms", str(NODE_TIMEOUT_MS), *extra)
 
 
 def test_lock_step_episodes_equal_the_simulation(export_dir: Path, tmp_path: Path) -> None:
     log = tmp_path / "frames.log"
     report = _hil(
+        None,
         export_dir,
         tmp_path,
         "--episodes",
@@ -69,7 +42,7 @@ def test_lock_step_episodes_equal_the_simulation(export_dir: Path, tmp_path: Pat
         "--plot",
         str(tmp_path / "plots"),
     )
-    assert report["sandbox"] in ("host", "uml")
+    assert report["sandbox"] in ("host", "uml", "qemu")
     assert report["episodes"] == 6 and report["faults"] == 0
     assert report["successes"] == report["simulation"]["successes"] == 6
     assert report["outcomes_differing_from_simulation"] == []
@@ -98,25 +71,31 @@ def test_lock_step_episodes_equal_the_simulation(export_dir: Path, tmp_path: Pat
     assert (tmp_path / "plots" / "hil_trajectories.png").is_file()
 
 
-def test_corrupted_observation_frame_is_dropped_and_counted(export_dir: Path, tmp_path: Path) -> None:
-    report = _hil(export_dir, tmp_path, "--episodes", "1", "--inject", "corrupt")
+def test_corrupted_observation_frame_is_dropped_and_counted(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    report = _hil(guest, export_dir, tmp_path, "--episodes", "1", "--inject", "corrupt")
     injection = report["injection"]
     assert injection["kind"] == "corrupt"
     assert injection["action_received"] is False  # no action computed from the corrupted observation
     assert injection["node_crc_errors_after"] == injection["node_crc_errors_before"] + 1
 
 
-def test_silent_simulator_gets_the_safe_action_within_the_timeout(export_dir: Path, tmp_path: Path) -> None:
-    report = _hil(export_dir, tmp_path, "--episodes", "1", "--inject", "silent")
+def test_silent_simulator_gets_the_safe_action_within_the_timeout(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    report = _hil(guest, export_dir, tmp_path, "--episodes", "1", "--inject", "silent")
     injection = report["injection"]
     assert injection["safe_action_after_ms"] is not None
     assert injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
     assert injection["node_state"] == "SAFE"
 
 
-def test_killed_node_ends_the_episode_as_a_fault_not_a_hang(export_dir: Path, tmp_path: Path) -> None:
+def test_killed_node_ends_the_episode_as_a_fault_not_a_hang(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
     start = time.monotonic()
-    report = _hil(export_dir, tmp_path, "--episodes", "3", "--inject", "kill")
+    report = _hil(guest, export_dir, tmp_path, "--episodes", "3", "--inject", "kill")
     assert time.monotonic() - start < 120
     assert report["injection"]["kind"] == "kill"
     assert report["faults"] == 1 and report["episodes"] == 1  # the session stops: the node is gone
@@ -148,9 +127,11 @@ def test_realtime_with_a_watchdog_shorter_than_a_step_is_rejected(
     assert code == 2 and "must exceed the sample time (300 ms)" in capsys.readouterr().err
 
 
-def test_realtime_mode_reports_latency_jitter_and_deadline_misses(export_dir: Path, tmp_path: Path) -> None:
+def test_realtime_mode_reports_latency_jitter_and_deadline_misses(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
     # A report, not a verdict: timing inside User-Mode Linux is noisy, so only the shape is checked.
-    report = _hil(export_dir, tmp_path, "--episodes", "1", "--realtime", "--timeout-ms", "500")
+    report = _hil(guest, export_dir, tmp_path, "--episodes", "1", "--realtime", "--timeout-ms", "500")
     assert report["successes"] == 1 and report["max_action_abs_diff"] <= 1e-5
     assert isinstance(report["deadline_misses"], int)
     assert set(report["jitter_us"]) == {"std", "max_abs"}

@@ -1,0 +1,47 @@
+"""HIL test helpers: running `embedrl hil run` on a given guest, booting a provider or skipping.
+
+``EMBEDRL_REQUIRE_SANDBOXES`` (e.g. ``uml,qemu``, set by CI) turns a provider that is not installed
+from a skip into a failure.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import hil.sandbox as sandbox
+from hil.cli import cmd_run
+from hil.sandbox import Guest, Provider, SandboxError
+from train.cli import build_parser
+
+REQUIRED = {p for p in os.environ.get("EMBEDRL_REQUIRE_SANDBOXES", "").split(",") if p}
+
+
+def boot_or_skip(provider: Provider, workdir: Path) -> Guest:
+    """Boot ``provider`` (self-tested); skip, saying why, only where it really cannot work here."""
+    reason = provider.missing()
+    if reason:
+        if provider.name in REQUIRED:
+            pytest.fail(f"{provider.label} is required here but unavailable: {reason}")
+        pytest.skip(f"{provider.label} unavailable on this machine: {reason}")
+    try:
+        return sandbox.open_guest(provider, workdir)
+    except SandboxError as exc:
+        if exc.diagnosis is not None and exc.diagnosis.cause in ("cpu-fpu", "kvm"):
+            pytest.skip(f"{provider.label} cannot run on this CPU: {exc}")  # another provider covers it
+        raise
+
+
+def hil(guest: Guest | None, export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
+    """``embedrl hil run`` on ``guest`` (None: the command boots its own sandbox); the JSON report."""
+    out = tmp_path / "hil.json"
+    args = build_parser().parse_args(
+        ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), *extra]
+    )
+    assert cmd_run(args, guest) == 0
+    report: dict[str, Any] = json.loads(out.read_text())
+    return report
