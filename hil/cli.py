@@ -38,12 +38,10 @@ def _onnx_of(export_dir: Path) -> Path:
 
 
 def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, Any]:
-    """Build the node, then run the session in ``guest`` (or in the sandbox ``args.sandbox`` selects)."""
-    from export import build
-    from export.errors import BuildError
-    from hil import sandbox
-    from hil.session import SessionConfig
+    """Build the node, then run the session in ``guest`` (or in the sandbox ``args.sandbox`` selects).
 
+    The temporary work folder is removed after a successful run and kept, and named, after a failure.
+    """
     export_dir: Path = args.export_dir.resolve()
     if not (export_dir / "c" / "policy.c").is_file():
         raise HilError(
@@ -51,6 +49,22 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
         )
     onnx = _onnx_of(export_dir)
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
+    try:
+        results = _build_and_run(args, guest, export_dir, onnx, work)
+    except HilError as exc:
+        raise HilError(f"{exc} [node build and guest console kept in {work}]") from None
+    shutil.rmtree(work, ignore_errors=True)
+    return results
+
+
+def _build_and_run(
+    args: argparse.Namespace, guest: Guest | None, export_dir: Path, onnx: Path, work: Path
+) -> dict[str, Any]:
+    from export import build
+    from export.errors import BuildError
+    from hil import sandbox
+    from hil.session import SessionConfig
+
     print(f"building the node: make -C runtime_c node POLICY_DIR={export_dir / 'c'}")
     try:
         build.make("node", export_dir / "c", work / "build")
@@ -89,6 +103,7 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
             shutil.move(log, args.log)
         results["sandbox"] = where.provider
         results["sandbox_detail"] = where.description
+        shutil.rmtree(scratch, ignore_errors=True)
     return results
 
 

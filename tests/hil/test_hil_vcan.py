@@ -7,13 +7,17 @@ the whole module (the ``guest`` fixture); the first test boots its own, as the c
 
 from __future__ import annotations
 
+import shutil
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from hil.errors import HilError
 from hil.sandbox import Guest
+from hil.sandbox.base import JobResult
 from tests.hil.helpers import hil
 from train.cli import main
 
@@ -136,3 +140,33 @@ def test_realtime_mode_reports_latency_jitter_and_deadline_misses(
     assert isinstance(report["deadline_misses"], int)
     assert set(report["jitter_us"]) == {"std", "max_abs"}
     assert report["latency_us"]["max"] > 0
+
+
+class _FailingGuest(Guest):
+    """A guest whose session dies with a Python error, as a broken environment inside a guest would."""
+
+    provider, description, boot_s = "uml", "uml: failing", 0.1
+
+    def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:
+        return JobResult(
+            1, "Traceback (most recent call last):\nModuleNotFoundError: No module named 'can'\n"
+        )
+
+
+def test_a_session_failing_inside_the_guest_names_the_cause_and_keeps_the_files(
+    export_dir: Path, tmp_path: Path
+) -> None:
+    with pytest.raises(HilError) as caught:
+        hil(_FailingGuest(), export_dir, tmp_path, "--episodes", "1")
+    message = str(caught.value)
+    assert message.startswith("uml: failing: the HIL session failed (status 1): ")
+    assert "No module named 'can'" in message
+    kept = Path(message.rsplit(" kept in ", 1)[1].rstrip("]"))
+    assert (kept / "build" / "policy_node").is_file()
+    shutil.rmtree(kept)
+
+
+def test_a_successful_run_leaves_no_temporary_folder(guest: Guest, export_dir: Path, tmp_path: Path) -> None:
+    before = set(Path(tempfile.gettempdir()).glob("embedrl-hil-*"))
+    _hil(guest, export_dir, tmp_path, "--episodes", "1")
+    assert set(Path(tempfile.gettempdir()).glob("embedrl-hil-*")) == before
