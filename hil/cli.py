@@ -173,7 +173,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
 
 def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
     from train.evaluate import write_json
-    from train.warehouse_env import SAMPLE_TIME
+    from train.robot import SAMPLE_TIME
 
     if args.episodes < 1:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")

@@ -26,7 +26,7 @@ import onnxruntime as ort
 
 import train
 from hil.codec import STEP_MODULO, Action, Codec, Status
-from train.warehouse_env import SAMPLE_TIME
+from train.robot import SAMPLE_TIME
 
 INJECT_STEP = 3
 """Fault injections happen at this step of the first episode."""

@@ -1,19 +1,19 @@
-"""embedrl training: the warehouse environment, controllers, evaluation and (later) RL agents.
+"""embedrl training: the warehouse environment, its scenario specs, controllers, evaluation, RL agents.
 
 Importing this package registers ``embedrl/WarehouseRobot-v0`` with gymnasium.
 """
 
 from gymnasium.envs.registration import register, registry
 
-from train.warehouse_env import MAX_EPISODE_STEPS
+from train.scenarios import STATIC
 
-ENV_ID = "embedrl/WarehouseRobot-v0"
+ENV_ID = STATIC.env_id
 
 if ENV_ID not in registry:
     register(
         id=ENV_ID,
         entry_point="train.warehouse_env:WarehouseRobotEnv",
-        max_episode_steps=MAX_EPISODE_STEPS,
+        max_episode_steps=STATIC.max_steps,
     )
 
 __all__ = ["ENV_ID"]

@@ -92,7 +92,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     from train import ENV_ID
     from train.rendering import save_episode
-    from train.warehouse_env import SAMPLE_TIME
+    from train.robot import SAMPLE_TIME
 
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from train import ENV_ID
 from train.files import atomic_write
-from train.warehouse_env import SAMPLE_TIME
+from train.robot import SAMPLE_TIME
 
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (float32[6]) in, action (float32[2]) out."""

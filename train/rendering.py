@@ -11,7 +11,7 @@ from PIL import Image, ImageDraw
 
 from train import layout
 from train.files import atomic_write
-from train.warehouse_env import ROBOT_LENGTH, ROBOT_WIDTH
+from train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 
 PIXELS_PER_METRE = 160
 """Frame resolution: the 3.8 m x 1.9 m view becomes 608 x 304 pixels."""

@@ -1,0 +1,171 @@
+"""A policy's interface: its observation and action fields in order, their ranges, timing, safe action.
+
+One :class:`Interface` per scenario is the single source of the contract between the simulator and a
+deployed policy. The env's spaces, the env docstring's tables (checked by a test), the ONNX metadata and
+the named constants of an export, the CAN database and the HIL harness's mapping are all derived from it.
+For an environment without a spec, :func:`from_spaces` derives a generic one (fields ``obs0, obs1, ...``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+NAME = re.compile(r"[a-z][a-z0-9_]*")
+"""Field names are lower-case identifiers: they become C macros and CAN signal names."""
+FORMAT_VERSION = 1
+
+
+class InterfaceError(ValueError):
+    """An interface that cannot describe a deployable policy (bad names, ranges, safe action)."""
+
+
+@dataclass(frozen=True)
+class Field:
+    """One observation or action value."""
+
+    name: str
+    """Lower-case identifier, e.g. ``sin_theta`` (C: ``POLICY_OBS_SIN_THETA``, CAN: ``SinTheta``)."""
+    description: str
+    low: float
+    high: float
+    unit: str = ""
+
+    @property
+    def camel(self) -> str:
+        """The CAN signal name: ``sin_theta`` -> ``SinTheta``."""
+        return "".join(part[:1].upper() + part[1:] for part in self.name.split("_"))
+
+
+@dataclass(frozen=True)
+class Interface:
+    """The contract of a policy with its plant."""
+
+    name: str
+    """The scenario, e.g. ``static``."""
+    env_id: str
+    observation: tuple[Field, ...]
+    action: tuple[Field, ...]
+    sample_time_s: float
+    """The control period: one observation in, one action out."""
+    safe_action: tuple[float, ...]
+    """What the deployed node applies when it cannot trust its input (watchdog, bad values)."""
+    max_steps: int
+    """Episodes end (truncated) after this many steps."""
+
+    def __post_init__(self) -> None:
+        for kind, fields in (("observation", self.observation), ("action", self.action)):
+            if not fields:
+                raise InterfaceError(f"{self.name}: no {kind} fields")
+            names = [f.name for f in fields]
+            if len(set(names)) != len(names):
+                raise InterfaceError(f"{self.name}: duplicate {kind} field names {names}")
+            for f in fields:
+                if not NAME.fullmatch(f.name):
+                    raise InterfaceError(
+                        f"{self.name}: {kind} field {f.name!r} is not a lower-case identifier"
+                    )
+                if not (math.isfinite(f.low) and math.isfinite(f.high) and f.low < f.high):
+                    raise InterfaceError(
+                        f"{self.name}: {kind} field {f.name} needs finite low < high, got [{f.low}, {f.high}]"
+                    )
+        if len(self.safe_action) != len(self.action):
+            raise InterfaceError(
+                f"{self.name}: the safe action has {len(self.safe_action)} values "
+                f"for {len(self.action)} actions"
+            )
+        for f, v in zip(self.action, self.safe_action, strict=True):
+            if not f.low <= v <= f.high:
+                raise InterfaceError(f"{self.name}: safe action {f.name}={v} is outside [{f.low}, {f.high}]")
+        if not (self.sample_time_s > 0 and self.max_steps > 0):
+            raise InterfaceError(f"{self.name}: sample time and step limit must be positive")
+
+    @property
+    def obs_low(self) -> np.ndarray:
+        return np.array([f.low for f in self.observation], dtype=np.float32)
+
+    @property
+    def obs_high(self) -> np.ndarray:
+        return np.array([f.high for f in self.observation], dtype=np.float32)
+
+    @property
+    def act_low(self) -> np.ndarray:
+        return np.array([f.low for f in self.action], dtype=np.float32)
+
+    @property
+    def act_high(self) -> np.ndarray:
+        return np.array([f.high for f in self.action], dtype=np.float32)
+
+    def with_safe_action(self, safe: tuple[float, ...] | None) -> Interface:
+        """This interface with another safe action (validated), or itself for ``None``."""
+        if safe is None:
+            return self
+        return Interface(
+            self.name,
+            self.env_id,
+            self.observation,
+            self.action,
+            self.sample_time_s,
+            tuple(safe),
+            self.max_steps,
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {"format": FORMAT_VERSION, **asdict(self)}
+
+    def dumps(self) -> str:
+        """Canonical JSON text (sorted keys): the same interface always gives the same bytes."""
+        return json.dumps(self.to_json(), indent=2, sort_keys=True) + "\n"
+
+    @staticmethod
+    def from_json(data: Any) -> Interface:
+        """Parse an ``interface.json`` (untrusted: every field is checked)."""
+        try:
+            if data.get("format") != FORMAT_VERSION:
+                raise InterfaceError(f"unsupported interface format {data.get('format')!r}")
+            return Interface(
+                str(data["name"]),
+                str(data["env_id"]),
+                tuple(_field(f) for f in data["observation"]),
+                tuple(_field(f) for f in data["action"]),
+                float(data["sample_time_s"]),
+                tuple(float(v) for v in data["safe_action"]),
+                int(data["max_steps"]),
+            )
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, InterfaceError):
+                raise
+            raise InterfaceError(f"not a valid interface description: {exc!r}") from None
+
+
+def _field(data: Any) -> Field:
+    return Field(
+        str(data["name"]),
+        str(data["description"]),
+        float(data["low"]),
+        float(data["high"]),
+        str(data["unit"]),
+    )
+
+
+def from_spaces(
+    env_id: str, obs_low: np.ndarray, obs_high: np.ndarray, act_low: np.ndarray, act_high: np.ndarray,
+    sample_time_s: float, max_steps: int,
+) -> Interface:  # fmt: skip
+    """A generic interface for an env without a spec: fields ``obs0..``, ``act0..``, safe action at
+    the middle of each action range (zero for symmetric ranges)."""
+    observation = tuple(
+        Field(f"obs{i}", f"observation {i}", float(lo), float(hi))
+        for i, (lo, hi) in enumerate(zip(obs_low, obs_high, strict=True))
+    )
+    action = tuple(
+        Field(f"act{i}", f"action {i}", float(lo), float(hi))
+        for i, (lo, hi) in enumerate(zip(act_low, act_high, strict=True))
+    )
+    safe = tuple(float((lo + hi) / 2) for lo, hi in zip(act_low, act_high, strict=True))
+    return Interface(env_id.split("/")[-1], env_id, observation, action, sample_time_s, safe, max_steps)
