@@ -122,7 +122,11 @@ def register(sub: Any) -> None:
         "--vecnormalize", type=Path, help="VecNormalize statistics (default: vecnormalize.pkl beside)"
     )
     p.add_argument(
-        "--safe-action", type=_safe_action, help="action on non-finite input, e.g. 0,0 (default zeros)"
+        "--safe-action",
+        type=_safe_action,
+        help="what the policy writes on non-finite input and the CAN node sends when it cannot trust "
+        "its input, "
+        "e.g. 0,0 (default: the scenario's safe action)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument(

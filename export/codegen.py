@@ -20,6 +20,7 @@ from export.errors import ExportError
 from export.fixed_point import FixedSection
 from export.ir import Graph
 from export.ops import EMITTERS
+from train.interface import Interface
 
 NAME_PATTERN = re.compile(r"[a-z_][a-z0-9_]{0,30}")
 """Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol."""
@@ -283,6 +284,23 @@ static float {prefix}_exp_det(float x)
 }}"""
 
 
+def _interface_block(up: str, interface: Interface | None) -> str:
+    """Named indices of the interface's fields and its sample time (empty without an interface)."""
+    if interface is None:
+        return ""
+    lines = [
+        "",
+        f"/* Interface {interface.name!r} ({interface.env_id}): index of each value in obs[] and act[]. */",
+    ]
+    for kind, fields in (("OBS", interface.observation), ("ACT", interface.action)):
+        for i, f in enumerate(fields):
+            unit = f" {f.unit}" if f.unit else ""
+            text = f"{f.description}: [{f.low:.9g}, {f.high:.9g}]{unit}".replace("*/", "* /")
+            lines.append(f"#define {up}_{kind}_{f.name.upper()} {i} /* {text} */")
+    lines.append(f"#define {up}_SAMPLE_TIME_S {c_float(interface.sample_time_s)} /* control period */")
+    return "\n".join(lines) + "\n"
+
+
 def generate(
     graph: Graph,
     name: str = "policy",
@@ -290,11 +308,14 @@ def generate(
     provenance: Mapping[str, str] | None = None,
     quantize: str | None = None,
     section: FixedSection | None = None,
+    interface: Interface | None = None,
 ) -> dict[str, str]:
     """Generate ``{name}.h`` and ``{name}.c`` for ``graph``.
 
     ``safe_action`` is written instead of the action when the observation or the result is not
-    finite (default zeros). ``provenance`` lines (e.g. hashes) go into both file headers.
+    finite (default zeros); ``{NAME}_SAFE_ACTION`` in the header gives it to the CAN node's watchdog.
+    ``interface`` adds a named index constant per observation and action field (``{NAME}_OBS_X``) and
+    the sample time. ``provenance`` lines (e.g. hashes) go into both file headers.
     ``quantize`` is None, "int8" or "q15"; q15 needs the ``section`` planned by
     :func:`export.fixed_point.plan`.
     """
@@ -360,6 +381,9 @@ def generate(
 
 #define {up}_OBS_DIM {obs_dim}
 #define {up}_ACT_DIM {act_dim}
+{_interface_block(up, interface)}
+/* What {name}_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
+#define {up}_SAFE_ACTION {{{", ".join(c_float(v) for v in safe)}}}
 
 /* Return codes of {name}_step. */
 #define {up}_OK 0
@@ -375,9 +399,7 @@ int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
     buffers = [
         f"static float {name}_buf{i}[{size}];" for i, size in enumerate(plan.buffer_sizes)
     ] + int16_buffers
-    safe_decl = (
-        f"static const float {name}_safe_action[{up}_ACT_DIM] = {{{', '.join(c_float(v) for v in safe)}}};"
-    )
+    safe_decl = f"static const float {name}_safe_action[{up}_ACT_DIM] = {up}_SAFE_ACTION;"
     indented = "\n".join(("    " + line) if line else "" for line in body)
     source = f"""{banner}
 #include "{name}.h"

@@ -29,7 +29,11 @@ from export.errors import ExportError, UnsupportedModelError, VerificationError
 from export.onnx_import import load_onnx, to_ir
 from export.sb3_onnx import LoadedPolicy, build_onnx, load_sb3
 from train.evaluate import provenance
+from train.interface import INTERFACE_FILE, Interface, InterfaceError
+from train.scenarios import interface_of
 
+INTERFACE_METADATA_KEY = "embedrl.interface"
+"""The same JSON in the ONNX model's ``metadata_props``."""
 VECNORMALIZE_FILE = "vecnormalize.pkl"
 """Statistics next to a model with this name are used unless ``--vecnormalize`` says otherwise."""
 
@@ -61,6 +65,15 @@ class ExportOptions:
     quantize: str | None = None
     """None (float32) or "int8" (see export.quantize)."""
     """Cortex-M targets to build, run under QEMU and measure (names in export.target.TARGETS)."""
+
+
+def _set_metadata(model: onnx.ModelProto, key: str, value: str) -> None:
+    for prop in model.metadata_props:
+        if prop.key == key:
+            prop.value = value
+            return
+    entry = model.metadata_props.add()
+    entry.key, entry.value = key, value
 
 
 def sha256(path: Path) -> str:
@@ -188,8 +201,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
         loaded = load_sb3(source, vecnorm_path)
         model = build_onnx(loaded, tool_version())
-        onnx_path = staging / "policy.onnx"
-        onnx.save(model, str(onnx_path))
+        onnx_path = staging / "policy.onnx"  # saved below, with the interface in its metadata
         files["policy.onnx"] = onnx_path
     else:
         log(f"[1/5] loading {source}")
@@ -200,6 +212,11 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     env = gym.make(opts.env_id)
     obs_space, act_space = env.observation_space, env.action_space
+    try:
+        interface: Interface | None = interface_of(opts.env_id, env)
+        interface_problem = None
+    except InterfaceError as exc:
+        interface, interface_problem = None, str(exc)
     env.close()
     if not isinstance(obs_space, gym.spaces.Box) or obs_space.shape != (obs_dim,):
         raise ExportError(
@@ -217,6 +234,15 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
                 f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
             )
 
+    if interface is not None:
+        interface = interface.with_safe_action(opts.safe_action)
+        (staging / INTERFACE_FILE).write_text(interface.dumps())
+        files[INTERFACE_FILE] = staging / INTERFACE_FILE
+    if loaded is not None:
+        if interface is not None:
+            _set_metadata(model, INTERFACE_METADATA_KEY, interface.dumps())
+        onnx.save(model, str(onnx_path))
+
     reference = loaded.predict if loaded is not None else _ort_policy(model)
     onnx_policy = _ort_policy(model)
     # Observations for verification (and for calibrating q15's fixed-point scales).
@@ -229,7 +255,10 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         "source": f"{source.name} sha256 {sha256(source)}",
         "onnx": f"sha256 {sha256(onnx_path)}",
     }
-    sources = generate(graph, opts.name, opts.safe_action, header, quantize=opts.quantize, section=section)
+    safe_action = interface.safe_action if interface is not None else opts.safe_action
+    sources = generate(
+        graph, opts.name, safe_action, header, quantize=opts.quantize, section=section, interface=interface
+    )
     c_dir = staging / "c"
     c_dir.mkdir()
     for filename, text in sources.items():
@@ -341,6 +370,7 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         "name": opts.name,
         "quantize": opts.quantize,
         "env_id": opts.env_id,
+        "interface": interface.to_json() if interface is not None else {"unavailable": interface_problem},
         "observation_dim": obs_dim,
         "action_dim": act_dim,
         "ops": [n.op for n in graph.nodes],

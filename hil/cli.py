@@ -11,8 +11,10 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from hil import candb
 from hil.errors import HilError
 from hil.sandbox import MODES
+from train.interface import INTERFACE_FILE
 
 if TYPE_CHECKING:
     from hil.sandbox import Guest
@@ -21,8 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 INJECTIONS = ("corrupt", "silent", "kill")
 SESSION_TIMEOUT_S = 3600.0
 """A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
-DEFAULT_TIMEOUT_MS = 500
-"""Node watchdog: longer than one control period (0.3 s), so a real-time loop never trips it."""
+DEFAULT_TIMEOUT_MS = candb.WATCHDOG_MS
 
 
 def _onnx_of(export_dir: Path) -> Path:
@@ -48,6 +49,18 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
             f"{export_dir}: no c/policy.c (is it an `embedrl export` folder with the default --name?)"
         )
     onnx = _onnx_of(export_dir)
+    if not (export_dir / INTERFACE_FILE).is_file():
+        raise HilError(
+            f"{export_dir}: no {INTERFACE_FILE} (the policy's interface, from which the CAN database is "
+            "generated): export it again with `embedrl export`"
+        )
+    interface = candb.load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
+    period_ms = interface.sample_time_s * 1000
+    if args.realtime and args.timeout_ms <= period_ms:
+        raise HilError(
+            f"--timeout-ms {args.timeout_ms} would trip the node's watchdog between real-time steps: "
+            f"it must exceed the policy's sample time ({period_ms:.0f} ms)"
+        )
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
     try:
         results = _build_and_run(args, guest, export_dir, onnx, work)
@@ -76,6 +89,7 @@ def _build_and_run(
         cfg = SessionConfig(
             node=str(work / "build" / "policy_node"),
             onnx=str(onnx),
+            interface=str(export_dir / INTERFACE_FILE),
             iface=where.iface,
             episodes=args.episodes,
             seed=args.seed,
@@ -173,17 +187,11 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
 
 def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
     from train.evaluate import write_json
-    from train.robot import SAMPLE_TIME
 
     if args.episodes < 1:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")
     if not 1 <= args.timeout_ms <= 60_000:
         raise HilError(f"--timeout-ms must be within 1..60000, got {args.timeout_ms}")
-    if args.realtime and args.timeout_ms <= SAMPLE_TIME * 1000:
-        raise HilError(
-            f"--timeout-ms {args.timeout_ms} would trip the node's watchdog between real-time steps: "
-            f"it must exceed the sample time ({SAMPLE_TIME * 1000:.0f} ms)"
-        )
     results = run_hil(args, guest)
     data = _report(args, results)
     lat = data["latency_us"]
@@ -260,7 +268,7 @@ def register(sub: Any) -> None:
         "--timeout-ms",
         type=int,
         default=DEFAULT_TIMEOUT_MS,
-        help="the node's watchdog timeout; must exceed the env's sample time (300 ms)",
+        help=f"the node's watchdog (default {candb.WATCHDOG_MS}); must exceed the policy's sample time",
     )
     r.add_argument("--inject", choices=INJECTIONS, help="fault injection at step 3 of the first episode")
     r.set_defaults(func=cmd_run)

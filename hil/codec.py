@@ -1,22 +1,22 @@
-"""Encode observations and decode actions and status with cantools, from hil/policy.dbc."""
+"""The simulator's side of the CAN contract: encode observations, decode actions and status, with E2E.
+
+The database and the frame layout come from the policy's interface (:mod:`hil.candb`), the same
+generator the node's C is built from.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, cast
 
 import can
 import cantools
 import numpy as np
 
-from hil import e2e
+from hil import candb, e2e
+from train.interface import Interface
 
-DBC_PATH = Path(__file__).with_name("policy.dbc")
-OBSERVATION_MESSAGES = ("ObservationA", "ObservationB", "ObservationC")
-OBSERVATION_SIGNALS = (("X", "Y"), ("SinTheta", "CosTheta"), ("Speed", "TurnRate"))
-"""Signals of each observation frame, in the observation's order (x, y, sin, cos, v, w)."""
-STEP_MODULO = 4096
+STEP_MODULO = candb.STEP_MODULO
 
 
 @dataclass(frozen=True)
@@ -35,30 +35,26 @@ class Status:
     inference_us: int
 
 
-def load_database() -> cantools.database.can.Database:
-    db = cantools.database.load_file(str(DBC_PATH))
-    assert isinstance(db, cantools.database.can.Database)
-    return db
-
-
 def decode_fields(message: cantools.database.can.Message, data: bytes) -> dict[str, Any]:
     """Signal values of an 8-byte frame (raw choices as numbers)."""
     return cast(dict[str, Any], message.decode(data, decode_choices=False))
 
 
-@dataclass
 class Codec:
     """Both directions of the simulator's side; E2E counters and checks included."""
 
-    db: cantools.database.can.Database = field(default_factory=load_database)
-    counters: dict[str, int] = field(default_factory=dict)
-    receivers: dict[int, e2e.Receiver] = field(default_factory=dict)
-    crc_errors: int = 0
-    sequence_errors: int = 0
-
-    def __post_init__(self) -> None:
-        self.action_id = self.db.get_message_by_name("Action").frame_id
-        self.status_id = self.db.get_message_by_name("NodeStatus").frame_id
+    def __init__(self, interface: Interface) -> None:
+        self.interface = interface
+        self.db = candb.database(interface)
+        self.plan = candb.layout(interface)
+        self.counters: dict[str, int] = {}
+        self.receivers: dict[int, e2e.Receiver] = {}
+        self.crc_errors = 0
+        self.sequence_errors = 0
+        self.action_parts = {frame_id: slots for _, frame_id, slots in self.plan.action}
+        self.status_id = candb.STATUS_ID
+        self._pending: dict[int, tuple[np.ndarray, set[int]]] = {}
+        """Per step: the action values received so far and the frame IDs they came in."""
 
     def _next_counter(self, name: str) -> int:
         value = self.counters.get(name, 0)
@@ -66,20 +62,24 @@ class Codec:
         return value
 
     def encode_observation(self, obs: np.ndarray, step: int) -> tuple[list[can.Message], np.ndarray]:
-        """The three frames of one observation and the observation the node will decode from them."""
-        frames, decoded = [], []
-        for name, signals, values in zip(
-            OBSERVATION_MESSAGES, OBSERVATION_SIGNALS, np.reshape(obs, (3, 2)), strict=True
-        ):
-            message = self.db.get_message_by_name(name)
-            counter = self._next_counter(name)
-            payload: dict[str, float] = {"Crc": 0, "Counter": counter, "Step": step % STEP_MODULO}
-            payload.update({s: float(v) for s, v in zip(signals, values, strict=True)})
-            data = e2e.protect(message.frame_id, message.encode(payload, scaling=True, strict=False))
-            frames.append(can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False))
+        """The frames of one observation and the observation the node will decode from them."""
+        values = np.asarray(obs, dtype=np.float32).reshape(-1)
+        frames = []
+        decoded = np.zeros(len(self.interface.observation), dtype=np.float32)
+        for name, frame_id, slots in self.plan.observation:
+            message = self.db.get_message_by_frame_id(frame_id)
+            payload: dict[str, float] = {
+                "Crc": 0,
+                "Counter": self._next_counter(name),
+                "Step": step % STEP_MODULO,
+            }
+            payload.update({s.signal: float(values[s.index]) for s in slots})
+            data = e2e.protect(frame_id, message.encode(payload, scaling=True, strict=False))
+            frames.append(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
             back = decode_fields(message, data)
-            decoded += [back[s] for s in signals]
-        return frames, np.array(decoded, dtype=np.float32)
+            for s in slots:
+                decoded[s.index] = back[s.signal]
+        return frames, decoded
 
     def _checked(self, msg: can.Message) -> dict[str, Any] | None:
         data = bytes(msg.data)
@@ -97,20 +97,30 @@ class Codec:
         return fields
 
     def decode(self, msg: can.Message) -> Action | Status | None:
-        """An E2E-valid Action or NodeStatus, or None (other IDs, bad CRC, repeated or old counter)."""
-        if msg.is_extended_id or msg.arbitration_id not in (self.action_id, self.status_id) or msg.dlc != 8:
+        """A complete E2E-valid action (all its frames for one step) or a NodeStatus, else None
+        (other IDs, bad CRC, repeated or old counter, an action still missing frames)."""
+        known = msg.arbitration_id == self.status_id or msg.arbitration_id in self.action_parts
+        if msg.is_extended_id or not known or msg.dlc != candb.FRAME_BYTES:
             return None
         fields = self._checked(msg)
         if fields is None:
             return None
-        if msg.arbitration_id == self.action_id:
-            action = np.array([fields["ForceLeft"], fields["ForceRight"]], dtype=np.float32)
-            return Action(int(fields["Step"]), action)
-        return Status(
-            "SAFE" if int(fields["State"]) == 1 else "RUN",
-            int(fields["FramesOk"]),
-            int(fields["CrcErrors"]),
-            int(fields["SequenceErrors"]),
-            int(fields["Timeouts"]),
-            int(fields["InferenceUs"]),
-        )
+        if msg.arbitration_id == self.status_id:
+            return Status(
+                candb.STATUS_STATES.get(int(fields["State"]), "UNKNOWN"),
+                int(fields["FramesOk"]),
+                int(fields["CrcErrors"]),
+                int(fields["SequenceErrors"]),
+                int(fields["Timeouts"]),
+                int(fields["InferenceUs"]),
+            )
+        step = int(fields["Step"])
+        values, seen = self._pending.get(step, (np.zeros(len(self.interface.action), np.float32), set()))
+        for s in self.action_parts[msg.arbitration_id]:
+            values[s.index] = fields[s.signal]
+        seen.add(msg.arbitration_id)
+        if len(seen) < len(self.action_parts):
+            self._pending = {step: (values, seen)}  # only the newest step can still complete
+            return None
+        self._pending.pop(step, None)
+        return Action(step, values)

@@ -24,9 +24,9 @@ import gymnasium as gym
 import numpy as np
 import onnxruntime as ort
 
-import train
+from hil import candb
 from hil.codec import STEP_MODULO, Action, Codec, Status
-from train.robot import SAMPLE_TIME
+from train.interface import Interface
 
 INJECT_STEP = 3
 """Fault injections happen at this step of the first episode."""
@@ -37,10 +37,12 @@ TOLERANCE = 1e-5
 class SessionConfig:
     node: str
     onnx: str
+    interface: str
+    """The export's interface.json: the env, the CAN layout, the sample time and the safe action."""
     iface: str = "vcan0"
     episodes: int = 10
     seed: int = 0
-    node_timeout_ms: int = 500
+    node_timeout_ms: int = candb.WATCHDOG_MS
     node_recover: int = 3
     action_timeout_s: float = 2.0
     realtime: bool = False
@@ -68,9 +70,9 @@ class Stats:
 class Link:
     """The simulator's end of the bus: send observation frames, collect actions and status, log all."""
 
-    def __init__(self, cfg: SessionConfig, stats: Stats) -> None:
+    def __init__(self, cfg: SessionConfig, interface: Interface, stats: Stats) -> None:
         self.bus = can.Bus(interface="socketcan", channel=cfg.iface, receive_own_messages=False)
-        self.codec = Codec()
+        self.codec = Codec(interface)
         self.stats = stats
         self.log = can.Logger(cfg.log) if cfg.log else None
         self.iface = cfg.iface
@@ -153,10 +155,12 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
     )
-    link = Link(cfg, stats)
+    interface = candb.load_interface(Path(cfg.interface))
+    sample_time = interface.sample_time_s
+    link = Link(cfg, interface, stats)
     session = ort.InferenceSession(cfg.onnx, providers=["CPUExecutionProvider"])
     input_name = session.get_inputs()[0].name
-    env = gym.make(train.ENV_ID)
+    env = gym.make(interface.env_id)
     episodes: list[dict[str, Any]] = []
     injection: dict[str, Any] | None = None
     global_step = 0
@@ -171,7 +175,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             while True:
                 frames, decoded = link.codec.encode_observation(obs, global_step)
                 if cfg.inject and index == 0 and steps == INJECT_STEP:
-                    injection = _inject(cfg, link, node, frames, global_step, stats)
+                    injection = _inject(cfg, interface, link, node, frames, global_step, stats)
                     outcome, fault = "fault", f"injected: {cfg.inject}"
                     if cfg.inject != "kill":
                         break
@@ -201,11 +205,15 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                 trajectory.append(tuple(env.unwrapped.trajectory[-1]))  # type: ignore[attr-defined]
                 if terminated or truncated:
                     outcome = (
-                        "success" if info["is_success"] else "collision" if info["collided"] else "timeout"
+                        "success"
+                        if info.get("is_success")
+                        else "collision"
+                        if info.get("collided")
+                        else "timeout"
                     )
                     break
                 if cfg.realtime:
-                    next_tick += SAMPLE_TIME
+                    next_tick += sample_time
                     if time.monotonic() > next_tick:
                         stats.deadline_misses += 1
                     else:
@@ -216,7 +224,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                     "outcome": outcome,
                     "steps": steps,
                     "episode_return": total,
-                    "time_s": steps * SAMPLE_TIME,
+                    "time_s": steps * sample_time,
                     "fault": fault,
                     "trajectory": trajectory,
                 }
@@ -233,13 +241,14 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                 node.kill()
         link.close()
         env.close()
-    results = _results(cfg, stats, episodes, injection)
+    results = _results(cfg, stats, episodes, injection, sample_time)
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
 
 
 def _inject(
     cfg: SessionConfig,
+    interface: Interface,
     link: Link,
     node: subprocess.Popen[bytes],
     frames: list[can.Message],
@@ -264,7 +273,7 @@ def _inject(
     if cfg.inject == "silent":
         last_sent = time.monotonic()
         deadline = last_sent + 5.0
-        safe_after_ms = None
+        safe_after_ms, safe_seen = None, None
         while time.monotonic() < deadline:
             msg = link.bus.recv(timeout=deadline - time.monotonic())
             if msg is None:
@@ -273,13 +282,16 @@ def _inject(
             decoded = link.codec.decode(msg)
             if isinstance(decoded, Status):
                 stats.last_status = decoded
-            if isinstance(decoded, Action) and not decoded.action.any():
+            if isinstance(decoded, Action) and _is_safe(decoded.action, interface):
                 safe_after_ms = (time.monotonic() - last_sent) * 1000
+                safe_seen = decoded.action.tolist()
                 break
         status = link.wait_status(1.0)
         return {
             "kind": "silent",
             "safe_action_after_ms": safe_after_ms,
+            "safe_action": safe_seen,
+            "expected_safe_action": list(interface.safe_action),
             "node_timeout_ms": cfg.node_timeout_ms,
             "node_state": status.state if status else None,
         }
@@ -290,8 +302,14 @@ def _inject(
     raise ValueError(f"unknown injection {cfg.inject!r}")
 
 
+def _is_safe(action: np.ndarray, interface: Interface) -> bool:
+    """Whether ``action`` is the interface's safe action, within the CAN quantisation."""
+    step = max(slot.scale for slot in candb.layout(interface).action_slots)
+    return bool(np.max(np.abs(action - np.asarray(interface.safe_action))) <= step)
+
+
 def _results(
-    cfg: SessionConfig, stats: Stats, episodes: list[dict[str, Any]], injection: Any
+    cfg: SessionConfig, stats: Stats, episodes: list[dict[str, Any]], injection: Any, sample_time: float
 ) -> dict[str, Any]:
     lat = np.array(stats.latencies_us) if stats.latencies_us else np.zeros(1)
     status = stats.last_status
@@ -312,14 +330,14 @@ def _results(
         },
         "latencies_us": stats.latencies_us,
         "deadline_misses": stats.deadline_misses if cfg.realtime else None,
-        "jitter_us": _jitter(stats.step_starts) if cfg.realtime else None,
+        "jitter_us": _jitter(stats.step_starts, sample_time) if cfg.realtime else None,
         "node_status": asdict(status) if status else None,
         "injection": injection,
         "config": asdict(cfg),
     }
 
 
-def _jitter(starts: list[list[float]]) -> dict[str, float] | None:
+def _jitter(starts: list[list[float]], sample_time: float) -> dict[str, float] | None:
     """Deviation of the real-time step period from the sample time: std and max, in microseconds.
 
     Periods are measured within episodes: a reset is not a control period.
@@ -327,7 +345,7 @@ def _jitter(starts: list[list[float]]) -> dict[str, float] | None:
     periods = np.concatenate([np.diff(np.array(episode)) for episode in starts]) if starts else np.zeros(0)
     if len(periods) == 0:
         return None
-    deviation = (periods - SAMPLE_TIME) * 1e6
+    deviation = (periods - sample_time) * 1e6
     return {"std": float(np.std(deviation)), "max_abs": float(np.max(np.abs(deviation)))}
 
 

@@ -19,6 +19,8 @@ import numpy as np
 NAME = re.compile(r"[a-z][a-z0-9_]*")
 """Field names are lower-case identifiers: they become C macros and CAN signal names."""
 FORMAT_VERSION = 1
+INTERFACE_FILE = "interface.json"
+"""An export's interface, beside its ``policy.onnx`` and ``c/``."""
 
 
 class InterfaceError(ValueError):

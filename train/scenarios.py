@@ -7,11 +7,16 @@ database and the HIL harness's mapping.
 
 from __future__ import annotations
 
+from typing import Any
+
+from gymnasium import spaces
+
 from train import layout
-from train.interface import Field, Interface
+from train.interface import Field, Interface, InterfaceError, from_spaces
 from train.robot import MAX_SPEED, MAX_TURN_RATE, SAMPLE_TIME
 
 STATIC_ENV_ID = "embedrl/WarehouseRobot-v0"
+GENERIC_MAX_STEPS = 1000
 
 STATIC = Interface(
     name="static",
@@ -36,3 +41,29 @@ STATIC = Interface(
 
 SCENARIOS = {STATIC.name: STATIC}
 BY_ENV_ID = {spec.env_id: spec for spec in SCENARIOS.values()}
+
+
+def interface_of(env_id: str, env: Any) -> Interface:
+    """The spec of a scenario's env, or a generic interface derived from another env's Box spaces.
+
+    A generic interface takes its sample time from the env's ``dt`` (or ``1 / render_fps``) and its
+    step limit from the registration (1,000 if none).
+    """
+    if env_id in BY_ENV_ID:
+        return BY_ENV_ID[env_id]
+    obs, act = env.observation_space, env.action_space
+    if not (isinstance(obs, spaces.Box) and isinstance(act, spaces.Box)):
+        raise InterfaceError(
+            f"{env_id}: only Box observation and action spaces can be deployed, got {obs}, {act}"
+        )
+    dt = getattr(env.unwrapped, "dt", None)
+    fps = env.metadata.get("render_fps")
+    sample_time = float(dt) if dt else 1.0 / float(fps) if fps else None
+    if sample_time is None or not sample_time > 0:
+        raise InterfaceError(f"{env_id}: cannot tell its sample time (no dt and no render_fps)")
+    spec = getattr(env, "spec", None)
+    max_steps = spec.max_episode_steps if spec is not None and spec.max_episode_steps else GENERIC_MAX_STEPS
+    return from_spaces(
+        env_id, obs.low.reshape(-1), obs.high.reshape(-1), act.low.reshape(-1), act.high.reshape(-1),
+        sample_time, int(max_steps),
+    )  # fmt: skip

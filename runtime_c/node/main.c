@@ -11,9 +11,7 @@
 
 #include "node.h"
 
-#define DEFAULT_TIMEOUT_MS 200u
 #define DEFAULT_RECOVER 3u
-#define DEFAULT_STATUS_MS 100u
 
 static volatile sig_atomic_t stop;
 
@@ -44,7 +42,7 @@ static int usage(void)
 int main(int argc, char **argv)
 {
     const char *iface = NULL;
-    node_config config = {DEFAULT_TIMEOUT_MS, DEFAULT_RECOVER, DEFAULT_STATUS_MS};
+    node_config config = {POLICY_IO_WATCHDOG_MS, DEFAULT_RECOVER, POLICY_IO_STATUS_PERIOD_MS};
     for (int i = 1; i < argc; ++i) {
         if (i + 1 >= argc) {
             return usage();

@@ -4,12 +4,16 @@
 
 #include "policy_dbc.h"
 
-#define STEP_MODULO 4096u
 #define U8_MAX 255u
 #define U16_MAX 65535u
 #define INFERENCE_US_MAX 1023u
 
-static const float safe_action[POLICY_ACT_DIM] = {0.0f};
+/* The generated CAN glue and the generated policy must describe the same vectors. */
+typedef char node_obs_dims_agree[(POLICY_IO_OBS_DIM == POLICY_OBS_DIM) ? 1 : -1];
+typedef char node_act_dims_agree[(POLICY_IO_ACT_DIM == POLICY_ACT_DIM) ? 1 : -1];
+typedef char node_frames_fit[(POLICY_IO_OBS_FRAMES <= 32u) ? 1 : -1];
+
+static const float safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;
 
 static uint32_t saturate(uint32_t value, uint32_t max)
 {
@@ -28,18 +32,14 @@ void node_init(node_t *node, const node_config *config, uint32_t now_ms)
 
 static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t step)
 {
-    struct policy_dbc_action_t msg;
-    can_frame_t frame = {POLICY_DBC_ACTION_FRAME_ID, POLICY_DBC_ACTION_LENGTH, {0}};
-    memset(&msg, 0, sizeof msg);
-    msg.counter = node->action_counter;
-    msg.step = step;
-    msg.force_left = policy_dbc_action_force_left_encode((double)act[0]);
-    msg.force_right = policy_dbc_action_force_right_encode((double)act[1]);
-    policy_dbc_action_pack(frame.data, &msg, sizeof frame.data);
-    e2e_protect(frame.id, frame.data);
-    node->action_counter = (uint8_t)((node->action_counter + 1u) % E2E_COUNTER_MODULO);
+    for (unsigned part = 0; part < POLICY_IO_ACT_FRAMES; ++part) {
+        can_frame_t frame = {POLICY_IO_ACT_FIRST_ID + part, POLICY_IO_FRAME_BYTES, {0}};
+        policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
+        e2e_protect(frame.id, frame.data);
+        node->action_counter[part] = (uint8_t)((node->action_counter[part] + 1u) % E2E_COUNTER_MODULO);
+        (void)transport_send(&frame);
+    }
     node->actions_sent++;
-    (void)transport_send(&frame);
 }
 
 static void send_status(node_t *node)
@@ -69,35 +69,6 @@ static void enter_safe(node_t *node, uint32_t now_ms)
     send_status(node);
 }
 
-/* Decode one validated observation frame into the pending observation; returns its step. */
-static uint16_t decode_part(node_t *node, unsigned part, const uint8_t *data, uint8_t *counter)
-{
-    uint16_t step = 0;
-    if (part == 0u) {
-        struct policy_dbc_observation_a_t m;
-        policy_dbc_observation_a_unpack(&m, data, E2E_FRAME_BYTES);
-        node->pending_obs[0] = (float)policy_dbc_observation_a_x_decode(m.x);
-        node->pending_obs[1] = (float)policy_dbc_observation_a_y_decode(m.y);
-        step = m.step;
-        *counter = m.counter;
-    } else if (part == 1u) {
-        struct policy_dbc_observation_b_t m;
-        policy_dbc_observation_b_unpack(&m, data, E2E_FRAME_BYTES);
-        node->pending_obs[2] = (float)policy_dbc_observation_b_sin_theta_decode(m.sin_theta);
-        node->pending_obs[3] = (float)policy_dbc_observation_b_cos_theta_decode(m.cos_theta);
-        step = m.step;
-        *counter = m.counter;
-    } else {
-        struct policy_dbc_observation_c_t m;
-        policy_dbc_observation_c_unpack(&m, data, E2E_FRAME_BYTES);
-        node->pending_obs[4] = (float)policy_dbc_observation_c_speed_decode(m.speed);
-        node->pending_obs[5] = (float)policy_dbc_observation_c_turn_rate_decode(m.turn_rate);
-        step = m.step;
-        *counter = m.counter;
-    }
-    return step;
-}
-
 static void complete_observation(node_t *node, uint32_t now_ms)
 {
     float act[POLICY_ACT_DIM];
@@ -122,31 +93,37 @@ static void complete_observation(node_t *node, uint32_t now_ms)
 
 void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
 {
-    if (frame->id < POLICY_DBC_OBSERVATION_A_FRAME_ID || frame->id > POLICY_DBC_OBSERVATION_C_FRAME_ID ||
-        frame->len != E2E_FRAME_BYTES) {
+    if (frame->id < POLICY_IO_OBS_FIRST_ID || frame->id >= POLICY_IO_OBS_FIRST_ID + POLICY_IO_OBS_FRAMES ||
+        frame->len != POLICY_IO_FRAME_BYTES) {
         node->rejected++;
         return;
     }
-    unsigned part = (unsigned)(frame->id - POLICY_DBC_OBSERVATION_A_FRAME_ID);
+    unsigned part = (unsigned)(frame->id - POLICY_IO_OBS_FIRST_ID);
     if (!e2e_crc_ok(frame->id, frame->data)) {
         node->crc_errors++;
         node->consecutive_valid = 0;
         return;
     }
-    /* Decode into a scratch copy first: a frame rejected by its counter must change nothing. */
-    float saved[POLICY_OBS_DIM];
-    memcpy(saved, node->pending_obs, sizeof saved);
+    /* Decode into a scratch copy: a frame rejected by its counter or a range must change nothing. */
+    float scratch[POLICY_OBS_DIM];
+    memcpy(scratch, node->pending_obs, sizeof scratch);
+    uint16_t step = 0;
     uint8_t counter = 0;
-    uint16_t step = decode_part(node, part, frame->data, &counter);
+    policy_io_status decoded = policy_io_decode_observation(part, frame->data, scratch, &step, &counter);
     e2e_status status = e2e_check_counter(&node->rx[part], counter);
     if (status != E2E_OK) {
         node->sequence_errors++; /* lost, repeated or out-of-order frames */
         node->consecutive_valid = 0;
     }
     if (status != E2E_OK && status != E2E_OK_SOME_LOST) {
-        memcpy(node->pending_obs, saved, sizeof saved);
         return;
     }
+    if (decoded != POLICY_IO_OK) {
+        node->range_errors++; /* a value the interface does not allow: never given to the policy */
+        node->consecutive_valid = 0;
+        return;
+    }
+    memcpy(node->pending_obs, scratch, sizeof scratch);
     node->frames_ok++;
     if (!node->pending_valid || step != node->pending_step) {
         if (node->pending_valid && node->pending_parts != 0u) {
@@ -157,8 +134,8 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
         node->pending_step = step;
         node->pending_parts = 0;
     }
-    node->pending_parts = (uint8_t)(node->pending_parts | (1u << part));
-    if (node->pending_parts == (1u << NODE_OBS_FRAMES) - 1u) {
+    node->pending_parts |= 1u << part;
+    if (node->pending_parts == (uint32_t)((1ull << POLICY_IO_OBS_FRAMES) - 1u)) {
         complete_observation(node, now_ms);
     }
 }

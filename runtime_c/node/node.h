@@ -1,14 +1,15 @@
 /*
  * The policy node: untrusted CAN frames in, actions and status out.
  *
- * Every frame is validated at the boundary (ID, length, CRC, alive counter); only then are its
- * signals decoded (with the cantools-generated codec from hil/policy.dbc). An observation is the
- * three frames ObservationA..C of one Step; when all three have arrived the policy runs once and
- * the action echoes the Step. Once the first observation has arrived, no valid observation for
- * timeout_ms -> SAFE: the safe action (0, 0)
- * is sent (and repeated every timeout_ms); back to RUN only after recover_count consecutive valid
- * observations, answered with the safe action until then. A non-finite policy output also gives
- * the safe action (policy_step guarantees it). No malloc; every loop is bounded.
+ * Every frame is validated at the boundary (ID, length, CRC, alive counter, and each signal's range
+ * in the DBC); only then are its signals used. The frame layout comes from code generated from the
+ * policy's interface (policy_io.h: which fields travel in which frame; policy_dbc.h: cantools' codec).
+ * An observation is the POLICY_IO_OBS_FRAMES frames of one Step; when all have arrived the policy runs
+ * once and the action echoes the Step. Once the first observation has arrived, no valid observation
+ * for timeout_ms -> SAFE: the export's safe action (POLICY_SAFE_ACTION) is sent (and repeated every
+ * timeout_ms); back to RUN only after recover_count consecutive valid observations, answered with the
+ * safe action until then. A non-finite policy output also gives the safe action (policy_step
+ * guarantees it). No malloc; every loop is bounded.
  */
 #ifndef EMBEDRL_NODE_H
 #define EMBEDRL_NODE_H
@@ -19,8 +20,7 @@
 #include "e2e.h"
 #include "platform.h"
 #include "policy.h"
-
-#define NODE_OBS_FRAMES 3u
+#include "policy_io.h"
 
 typedef enum { NODE_RUN = 0, NODE_SAFE = 1 } node_state;
 
@@ -39,14 +39,15 @@ typedef struct {
     uint32_t sequence_errors;
     uint32_t timeouts;
     uint32_t inference_us;
-    uint32_t rejected;   /* unknown ID or wrong length: dropped before any decoding */
+    uint32_t rejected;     /* unknown ID or wrong length: dropped before any decoding */
+    uint32_t range_errors; /* a signal outside its range in the DBC: frame dropped */
     uint32_t incomplete; /* observation steps abandoned before all frames arrived */
     uint32_t actions_sent;
-    e2e_receiver rx[NODE_OBS_FRAMES];
+    e2e_receiver rx[POLICY_IO_OBS_FRAMES];
     /* observation being assembled */
     bool pending_valid;
     uint16_t pending_step;
-    uint8_t pending_parts;
+    uint32_t pending_parts; /* bit k: observation frame k of pending_step has arrived */
     float pending_obs[POLICY_OBS_DIM];
     uint16_t last_step;
     uint32_t last_valid_ms;
@@ -54,7 +55,7 @@ typedef struct {
     uint32_t next_status_ms;
     uint32_t consecutive_valid;
     bool armed; /* the watchdog runs from the first valid observation on */
-    uint8_t action_counter;
+    uint8_t action_counter[POLICY_IO_ACT_FRAMES];
     uint8_t status_counter;
 } node_t;
 

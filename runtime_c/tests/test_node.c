@@ -178,13 +178,13 @@ static void test_valid_observation_gives_one_action(void)
 {
     node_t node;
     fresh(&node);
-    const float obs[6] = {1.0f, -0.5f, 0.0f, 1.0f, 0.1f, 0.2f};
+    const float obs[6] = {1.0f, 0.5f, 0.0f, 1.0f, 0.1f, 0.2f};
     send_observation(&node, 42, obs, 1000);
     float act[2];
     uint16_t step;
     CHECK(count_actions() == 1);
     CHECK(last_action(act, &step) && step == 42);
-    CHECK(fabsf(act[0] - 0.5f) < 4e-6f && fabsf(act[1] + 0.25f) < 4e-6f);
+    CHECK(fabsf(act[0] - 0.5f) < 4e-6f && fabsf(act[1] - 0.25f) < 4e-6f);
     CHECK(node.frames_ok == 3 && node.crc_errors == 0 && node.sequence_errors == 0);
 }
 
@@ -278,7 +278,8 @@ static void test_watchdog_safe_and_recovery(void)
     CHECK(node.state == NODE_RUN && count_actions() == 1);
     node_poll(&node, 2000 + TIMEOUT_MS);
     CHECK(node.state == NODE_SAFE && node.timeouts == 1);
-    CHECK(count_actions() == 2 && last_action(act, &step) && act[0] == 0.0f && act[1] == 0.0f);
+    /* the policy's own safe action (POLICY_SAFE_ACTION), not zeros */
+    CHECK(count_actions() == 2 && last_action(act, &step) && act[0] == 0.25f && act[1] == -0.5f);
     /* still silent: the safe action is repeated every timeout */
     node_poll(&node, 2000 + 2 * TIMEOUT_MS);
     CHECK(count_actions() == 3);
@@ -286,7 +287,7 @@ static void test_watchdog_safe_and_recovery(void)
     uint32_t t = 2000 + 2 * TIMEOUT_MS + 10;
     for (uint16_t s = 2; s < 2 + RECOVER - 1; ++s) {
         send_observation(&node, s, obs, t);
-        CHECK(node.state == NODE_SAFE && last_action(act, &step) && step == s && act[0] == 0.0f);
+        CHECK(node.state == NODE_SAFE && last_action(act, &step) && step == s && act[0] == 0.25f);
     }
     /* a corrupted frame restarts the count */
     can_frame_t frames[3];
@@ -305,11 +306,28 @@ static void test_non_finite_output_gives_the_safe_action(void)
 {
     node_t node;
     fresh(&node);
-    const float obs[6] = {1.9f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f}; /* the fake network overflows */
+    const float obs[6] = {1.7f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f}; /* the fake network overflows */
     send_observation(&node, 7, obs, 1000);
     float act[2];
     uint16_t step;
-    CHECK(last_action(act, &step) && step == 7 && act[0] == 0.0f && act[1] == 0.0f);
+    CHECK(last_action(act, &step) && step == 7 && act[0] == 0.25f && act[1] == -0.5f);
+}
+
+static void test_a_value_outside_its_range_is_never_given_to_the_policy(void)
+{
+    node_t node;
+    fresh(&node);
+    /* y = -0.5 m is below the interface's -0.15 m: the frame carrying it is dropped and counted */
+    const float bad[6] = {1.0f, -0.5f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 3, bad, 1000);
+    CHECK(count_actions() == 0 && node.range_errors == 1 && node.frames_ok == 2);
+    /* the frames of the next step are all in range: one action, computed from them only */
+    const float good[6] = {1.0f, 1.3f, 0.0f, 1.0f, 0.0f, 0.0f}; /* y exactly at its upper bound */
+    send_observation(&node, 4, good, 1010);
+    float act[2];
+    uint16_t step;
+    CHECK(count_actions() == 1 && last_action(act, &step) && step == 4 && fabsf(act[1] - 0.65f) < 4e-6f);
+    CHECK(node.range_errors == 1 && node.incomplete == 1);
 }
 
 static void test_status_frame_reports_counters(void)
@@ -337,6 +355,7 @@ int main(void)
     test_never_assembles_two_steps();
     test_watchdog_safe_and_recovery();
     test_non_finite_output_gives_the_safe_action();
+    test_a_value_outside_its_range_is_never_given_to_the_policy();
     test_status_frame_reports_counters();
     printf("%d checks, %d failures\n", checks, failures);
     return failures == 0 ? 0 : 1;

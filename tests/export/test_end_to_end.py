@@ -17,6 +17,8 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 import train
 from export.verify import MAX_DIFFERING_OUTCOMES, MIN_SAMPLES, TOLERANCE
 from train.cli import main
+from train.interface import Interface
+from train.scenarios import STATIC
 
 pytestmark = pytest.mark.slow
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
@@ -64,10 +66,22 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
     assert loop["episodes"] == 20 and loop["differing_outcomes"] <= MAX_DIFFERING_OUTCOMES
     for who in ("reference", "c"):
         assert loop[who]["successes"] + loop[who]["collisions"] + loop[who]["timeouts"] == 20
-    assert sorted(report["files"]) == ["c/policy.c", "c/policy.h", "policy.onnx", "test/test_vectors.c"]
+    assert sorted(report["files"]) == [
+        "c/policy.c",
+        "c/policy.h",
+        "interface.json",
+        "policy.onnx",
+        "test/test_vectors.c",
+    ]
     assert report["compiler"]["command"].startswith("cc -std=c99 -Wall -Wextra -Werror -pedantic")
     assert report["code_size"]["text"] > 0
-    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json", "policy.onnx", "test"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "c",
+        "export_report.json",
+        "interface.json",
+        "policy.onnx",
+        "test",
+    ]
     expected_class = {"ddpg": "TD3Policy", "td3": "TD3Policy", "sac": "SACPolicy", "ppo": "ActorCriticPolicy"}
     assert report["source"]["policy_class"] == expected_class[algo]
 
@@ -88,6 +102,26 @@ def test_onnx_is_opset_17_with_inline_weights_and_in_env_units(
     session = ort.InferenceSession(str(out / "policy.onnx"))
     obs = gym.make(train.ENV_ID).observation_space.sample().reshape(1, -1)
     assert session.run(None, {"obs": obs})[0].shape == (1, 2)
+
+
+def test_the_export_carries_the_scenarios_interface(models: dict[str, Path], tmp_path: Path) -> None:
+    """One contract: interface.json, the ONNX metadata, policy.h's constants and the report agree with
+    the scenario spec the env is built from."""
+    import onnx
+
+    out = tmp_path / "export"
+    report = _export(models["td3"], out, "--episodes", "0")
+    text = (out / "interface.json").read_text()
+    assert Interface.from_json(json.loads(text)) == STATIC and text == STATIC.dumps()
+    metadata = {p.key: p.value for p in onnx.load(str(out / "policy.onnx")).metadata_props}
+    assert metadata["embedrl.interface"] == text
+    assert report["interface"] == json.loads(text)
+    header = (out / "c" / "policy.h").read_text()
+    for kind, fields in (("OBS", STATIC.observation), ("ACT", STATIC.action)):
+        for i, f in enumerate(fields):
+            assert f"#define POLICY_{kind}_{f.name.upper()} {i} /* {f.description}: [" in header
+    assert "#define POLICY_SAMPLE_TIME_S 0.300000012f" in header
+    assert "#define POLICY_SAFE_ACTION {0.0f, 0.0f}" in header
 
 
 def test_exports_are_deterministic(models: dict[str, Path], tmp_path: Path) -> None:
@@ -143,6 +177,9 @@ def test_action_unscaling_on_an_env_with_a_wider_action_space(tmp_path: Path) ->
     assert report["verification"]["onnx_vs_sb3_max_abs_error"] <= TOLERANCE
     assert report["verification"]["c_vs_onnxruntime_max_abs_error"] <= TOLERANCE
     assert "skipped" in report["closed_loop"]
+    generic = report["interface"]
+    assert [f["name"] for f in generic["observation"]] == ["obs0", "obs1", "obs2"]
+    assert generic["sample_time_s"] == 0.05 and generic["safe_action"] == [0.0]
     # Actions reach beyond [-1, 1]: the unscaling to Pendulum's [-2, 2] is inside the graph.
     import onnxruntime as ort
 
@@ -159,7 +196,8 @@ def test_onnx_source_and_name_prefix(models: dict[str, Path], tmp_path: Path) ->
         first / "policy.onnx", tmp_path / "second", "--name", "drive", "--safe-action", "0.5,-0.5"
     )
     assert report["source"]["kind"] == "onnx" and report["name"] == "drive"
-    assert sorted(report["files"]) == ["c/drive.c", "c/drive.h", "test/test_vectors.c"]
+    assert sorted(report["files"]) == ["c/drive.c", "c/drive.h", "interface.json", "test/test_vectors.c"]
+    assert json.loads((tmp_path / "second" / "interface.json").read_text())["safe_action"] == [0.5, -0.5]
     assert report["verification"]["onnx_vs_sb3_max_abs_error"] is None
     assert report["verification"]["non_finite_observation"] == {"return_code": 1, "action": [0.5, -0.5]}
     assert report["closed_loop"]["differing_outcomes"] == 0

@@ -1,4 +1,4 @@
-"""The Python side of the CAN contract: E2E as the C node does it, codec from the same DBC."""
+"""The Python side of the CAN contract: E2E as the C node does it, codec from the same generated DBC."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 from export.build import RUNTIME_C
 from hil import e2e
 from hil.codec import Action, Codec, Status, decode_fields
+from train.scenarios import STATIC
 
 
 def test_crc8_reference_vector_matches_the_c_node() -> None:
@@ -33,7 +34,7 @@ def test_receiver_accepts_increments_and_rejects_repeats_and_old_frames() -> Non
 
 
 def test_observation_frames_round_trip_within_the_signal_resolution() -> None:
-    codec = Codec()
+    codec = Codec(STATIC)
     obs = np.array([-1.7, 1.25, -0.6, 0.8, -0.69, 1.99], dtype=np.float32)
     frames, decoded = codec.encode_observation(obs, step=4097)
     assert [f.arbitration_id for f in frames] == [0x100, 0x101, 0x102]
@@ -53,7 +54,7 @@ def _frame(codec: Codec, name: str, fields: dict[str, float]) -> can.Message:
 
 
 def test_actions_and_status_are_decoded_only_when_e2e_valid() -> None:
-    codec = Codec()
+    codec = Codec(STATIC)
     good = _frame(codec, "Action", {"Counter": 0, "Step": 12, "ForceLeft": 0.5, "ForceRight": -1.0})
     decoded = codec.decode(good)
     assert isinstance(decoded, Action) and decoded.step == 12

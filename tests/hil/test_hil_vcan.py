@@ -7,6 +7,7 @@ the whole module (the ``guest`` fixture); the first test boots its own, as the c
 
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 import time
@@ -93,6 +94,33 @@ def test_silent_simulator_gets_the_safe_action_within_the_timeout(
     assert injection["safe_action_after_ms"] is not None
     assert injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
     assert injection["node_state"] == "SAFE"
+    assert injection["expected_safe_action"] == [0.0, 0.0] and injection["safe_action"] == [0.0, 0.0]
+
+
+def test_the_watchdog_sends_the_exports_own_safe_action(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    # An export with --safe-action 0.1,0: the node's watchdog must send (0.1, 0), not zeros.
+    safe = tmp_path / "safe-export"
+    source = export_dir.parent / "td3.zip"
+    assert main(["export", str(source), "--out", str(safe), "--episodes", "0", "--safe-action", "0.1,0"]) == 0
+    assert json.loads((safe / "interface.json").read_text())["safe_action"] == [0.1, 0.0]
+    assert "#define POLICY_SAFE_ACTION {0.100000001f, 0.0f}" in (safe / "c" / "policy.h").read_text()
+    report = _hil(guest, safe, tmp_path, "--episodes", "1", "--inject", "silent")
+    injection = report["injection"]
+    assert injection["expected_safe_action"] == [0.1, 0.0]
+    assert injection["safe_action"] == pytest.approx([0.1, 0.0], abs=4e-6)
+    assert injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
+
+
+def test_an_export_without_an_interface_is_a_clear_error(
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    old = tmp_path / "old-export"
+    shutil.copytree(export_dir, old)
+    (old / "interface.json").unlink()
+    assert main(["hil", "run", "--export-dir", str(old), "--json", str(tmp_path / "x.json")]) == 2
+    assert "no interface.json" in capsys.readouterr().err
 
 
 def test_killed_node_ends_the_episode_as_a_fault_not_a_hang(
@@ -113,14 +141,14 @@ def test_missing_export_folder_is_a_clear_error(tmp_path: Path, capsys: pytest.C
 
 
 def test_realtime_with_a_watchdog_shorter_than_a_step_is_rejected(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     code = main(
         [
             "hil",
             "run",
             "--export-dir",
-            str(tmp_path),
+            str(export_dir),
             "--json",
             str(tmp_path / "x.json"),
             "--realtime",
@@ -128,7 +156,7 @@ def test_realtime_with_a_watchdog_shorter_than_a_step_is_rejected(
             "200",
         ]
     )
-    assert code == 2 and "must exceed the sample time (300 ms)" in capsys.readouterr().err
+    assert code == 2 and "must exceed the policy's sample time (300 ms)" in capsys.readouterr().err
 
 
 def test_realtime_mode_reports_latency_jitter_and_deadline_misses(

@@ -7,6 +7,8 @@
 #define POLICY_OK 0
 #define POLICY_ERR_OBS_NOT_FINITE 1
 #define POLICY_ERR_ACT_NOT_FINITE 2
+/* Not zero: the node's watchdog must send the policy's own safe action. */
+#define POLICY_SAFE_ACTION {0.25f, -0.5f}
 
 /* act = (obs[0] / 2, obs[1] / 2); if obs[0] > 1.5 the "network" overflows: safe action, code 2. */
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);

@@ -53,7 +53,7 @@ static const float policy_w5_b2[2] = {
     0.100000001f, -0.200000003f
 };
 
-static const float policy_safe_action[POLICY_ACT_DIM] = {0.0f, 0.0f};
+static const float policy_safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;
 
 /* Scratch buffers (28 bytes). */
 static float policy_buf0[3];

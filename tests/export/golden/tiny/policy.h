@@ -11,6 +11,9 @@
 #define POLICY_OBS_DIM 3
 #define POLICY_ACT_DIM 2
 
+/* What policy_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
+#define POLICY_SAFE_ACTION {0.0f, 0.0f}
+
 /* Return codes of policy_step. */
 #define POLICY_OK 0
 #define POLICY_ERR_OBS_NOT_FINITE 1 /* an observation was NaN or infinite: safe action written */

@@ -1,0 +1,375 @@
+"""The CAN database of a policy node, generated from the policy's interface with cantools' database API.
+
+Layout (classic CAN, 8-byte frames, every frame E2E protected, see :mod:`hil.e2e`):
+
+- ``ObservationA, B, ...`` (IDs from 0x100, simulator -> node): ``Crc`` (8 bits), ``Counter`` (4),
+  ``Step`` (12, the same in every frame of one step), then two observation fields of 20 bits each, in
+  the interface's order;
+- ``Action`` (0x200; ``ActionA, B, ...`` from 0x200 if there are more than two actions, node ->
+  simulator): the same header, ``Step`` echoing the observation it answers, two action fields per frame;
+- ``NodeStatus`` (0x300, node -> simulator, every :data:`STATUS_PERIOD_MS`, the DBC's cycle time): RUN or
+  SAFE and the node's error counters.
+
+Each field is a signed 20-bit signal with a power-of-two scale: the finest, :data:`FINEST_SCALE`,
+unless the field's range needs a coarser one. The DBC's minimum and maximum are the field's range, so
+cantools' generated ``*_is_in_range`` checks it at the node's trust boundary. Besides the DBC, this
+module generates the node's C: cantools' codec (``policy_dbc.c/h``) and the glue that maps frames to the
+policy's observation and action vectors (``policy_io.c/h``), both never edited by hand.
+
+Run as ``python -m hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import string
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from cantools.database.can import Database, Message, Node, Signal
+from cantools.database.can.c_source import camel_to_snake_case
+from cantools.database.can.c_source import generate as generate_c
+from cantools.database.conversion import BaseConversion
+
+from hil.errors import HilError
+from train.interface import Field, Interface, InterfaceError
+from train.scenarios import SCENARIOS
+
+OBSERVATION_FIRST_ID = 0x100
+ACTION_FIRST_ID = 0x200
+STATUS_ID = 0x300
+FRAME_BYTES = 8
+VALUE_BITS = 20
+VALUES_PER_FRAME = 2
+VALUE_START_BITS = (24, 44)
+FINEST_SCALE = 2.0**-18
+"""Quantisation step of every field unless its range needs a coarser one: the rounding error is at most
+half of it, 1.9e-6, five times below the export's verification tolerance of 1e-5."""
+STEP_MODULO = 4096
+"""``Step`` is 12 bits: the simulation step modulo 4096."""
+STATUS_PERIOD_MS = 100
+"""The node sends NodeStatus this often (the DBC's cycle time of NodeStatus)."""
+WATCHDOG_MS = 500
+"""The node's default watchdog: no valid observation for this long -> SAFE. Longer than the control
+period of every scenario, so a real-time loop never trips it."""
+DATABASE_NAME = "policy_dbc"
+SIMULATOR, NODE = "SIM", "NODE"
+MAX_FRAMES = len(string.ascii_uppercase)
+STATUS_STATES = {0: "RUN", 1: "SAFE"}
+CRC_COMMENT = "CRC-8 SAE J1850 over the data ID (the CAN ID, low byte then high byte) and bytes 1..7"
+COUNTER_COMMENT = "4-bit alive counter of this message"
+
+
+@dataclass(frozen=True)
+class Slot:
+    """Where one field travels: its message, signal name and scale."""
+
+    index: int
+    field: Field
+    message: str
+    signal: str
+    scale: float
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The messages of one interface, in frame order."""
+
+    observation: tuple[tuple[str, int, tuple[Slot, ...]], ...]
+    """(message name, frame ID, slots) per observation frame."""
+    action: tuple[tuple[str, int, tuple[Slot, ...]], ...]
+
+    @property
+    def observation_slots(self) -> tuple[Slot, ...]:
+        return tuple(s for _, _, slots in self.observation for s in slots)
+
+    @property
+    def action_slots(self) -> tuple[Slot, ...]:
+        return tuple(s for _, _, slots in self.action for s in slots)
+
+
+def scale_of(field: Field) -> float:
+    """The power-of-two scale for ``field``: :data:`FINEST_SCALE`, or coarser if its range needs it.
+
+    A signed 20-bit signal with scale ``s`` covers ``[-2**19 s, (2**19 - 1) s]``.
+    """
+    bound = max(abs(field.low), abs(field.high))
+    exponent = math.floor(math.log2(bound)) + 1  # the smallest power of two strictly above the bound
+    return float(max(FINEST_SCALE, 2.0**exponent / 2 ** (VALUE_BITS - 1)))
+
+
+def _frames(
+    prefix: str, first_id: int, fields: tuple[Field, ...]
+) -> tuple[tuple[str, int, tuple[Slot, ...]], ...]:
+    count = math.ceil(len(fields) / VALUES_PER_FRAME)
+    if count > MAX_FRAMES:
+        raise HilError(
+            f"{len(fields)} {prefix.lower()} fields need {count} classic CAN frames; at most {MAX_FRAMES}"
+        )
+    frames = []
+    for k in range(count):
+        name = prefix if count == 1 and prefix == "Action" else f"{prefix}{string.ascii_uppercase[k]}"
+        chunk = range(k * VALUES_PER_FRAME, min(len(fields), (k + 1) * VALUES_PER_FRAME))
+        slots = tuple(Slot(i, fields[i], name, fields[i].camel, scale_of(fields[i])) for i in chunk)
+        frames.append((name, first_id + k, slots))
+    return tuple(frames)
+
+
+def layout(interface: Interface) -> Layout:
+    return Layout(
+        _frames("Observation", OBSERVATION_FIRST_ID, interface.observation),
+        _frames("Action", ACTION_FIRST_ID, interface.action),
+    )
+
+
+def _header(receiver: str, step_comment: str) -> list[Signal]:
+    return [
+        Signal("Crc", 0, 8, receivers=[receiver], minimum=0, maximum=255, comment=CRC_COMMENT),
+        Signal("Counter", 8, 4, receivers=[receiver], minimum=0, maximum=15, comment=COUNTER_COMMENT),
+        Signal(
+            "Step", 12, 12, receivers=[receiver], minimum=0, maximum=STEP_MODULO - 1, comment=step_comment
+        ),
+    ]
+
+
+def _value(slot: Slot, receiver: str, start: int) -> Signal:
+    return Signal(
+        slot.signal,
+        start,
+        VALUE_BITS,
+        is_signed=True,
+        conversion=BaseConversion.factory(scale=slot.scale, offset=0),
+        minimum=_round(slot.field.low),
+        maximum=_round(slot.field.high),
+        unit=slot.field.unit or None,
+        receivers=[receiver],
+        comment=slot.field.description,
+    )
+
+
+def _round(value: float) -> float:
+    """9 significant digits: the float32 value the env sends, written without binary noise."""
+    return float(f"{value:.9g}")
+
+
+def database(interface: Interface) -> Database:
+    """The cantools database of a node running a policy with this interface."""
+    plan = layout(interface)
+    messages = []
+    for group, sender, receiver, step_comment in (
+        (
+            plan.observation,
+            SIMULATOR,
+            NODE,
+            "Simulation step (mod 4096); every observation frame of one step carries it",
+        ),
+        (plan.action, NODE, SIMULATOR, "Step of the observation this action answers"),
+    ):
+        for name, frame_id, slots in group:
+            signals = _header(receiver, step_comment)
+            signals += [_value(s, receiver, VALUE_START_BITS[i]) for i, s in enumerate(slots)]
+            messages.append(
+                Message(frame_id, name, FRAME_BYTES, signals, senders=[sender], comment=_comment(name, slots))
+            )
+    status = [
+        Signal("Crc", 0, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
+        Signal("Counter", 8, 4, receivers=[SIMULATOR], minimum=0, maximum=15),
+        Signal("State", 12, 2, receivers=[SIMULATOR], minimum=0, maximum=3,
+               conversion=BaseConversion.factory(choices=STATUS_STATES)),  # type: ignore[arg-type]
+        Signal("FramesOk", 14, 16, receivers=[SIMULATOR], minimum=0, maximum=65535),
+        Signal("CrcErrors", 30, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
+        Signal("SequenceErrors", 38, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
+        Signal("Timeouts", 46, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
+        Signal("InferenceUs", 54, 10, receivers=[SIMULATOR], minimum=0, maximum=1023, unit="us",
+               comment="Duration of the last policy_step in microseconds (saturates)"),
+    ]  # fmt: skip
+    messages.append(
+        Message(
+            STATUS_ID,
+            "NodeStatus",
+            FRAME_BYTES,
+            status,
+            senders=[NODE],
+            cycle_time=STATUS_PERIOD_MS,
+            comment="Node state and error counters (saturating), sent periodically",
+        )
+    )
+    return Database(messages, [Node(SIMULATOR, None), Node(NODE, None)], version=f"embedrl {interface.name}")
+
+
+def _comment(name: str, slots: tuple[Slot, ...]) -> str:
+    return f"{name}: " + ", ".join(f"{s.field.name} (field {s.index})" for s in slots)
+
+
+def dbc_text(interface: Interface) -> str:
+    return str(database(interface).as_dbc_string())
+
+
+def c_sources(interface: Interface) -> dict[str, str]:
+    """The node's generated C for this interface: cantools' codec and the frame <-> vector glue."""
+    db = database(interface)
+    header, source, _, _ = generate_c(
+        db, DATABASE_NAME, f"{DATABASE_NAME}.h", f"{DATABASE_NAME}.c", "unused_fuzzer.c"
+    )
+    io_h, io_c = _glue(interface, layout(interface))
+    return {
+        f"{DATABASE_NAME}.h": header,
+        f"{DATABASE_NAME}.c": source,
+        "policy_io.h": io_h,
+        "policy_io.c": io_c,
+    }
+
+
+def _c_name(message: str) -> str:
+    """cantools' C name of a message or signal: ``ObservationA`` -> ``observation_a``."""
+    return camel_to_snake_case(message)
+
+
+def _glue(interface: Interface, plan: Layout) -> tuple[str, str]:
+    banner = (
+        f"/* Generated by embedrl (hil/candb.py) from the interface {interface.name!r} "
+        f"({interface.env_id}):\n * do not edit. Maps CAN frames to the policy's observation and action "
+        "vectors. */\n"
+    )
+    h = f"""{banner}#ifndef POLICY_IO_H
+#define POLICY_IO_H
+
+#include <stdint.h>
+
+#define POLICY_IO_OBS_DIM {len(interface.observation)}u
+#define POLICY_IO_ACT_DIM {len(interface.action)}u
+#define POLICY_IO_OBS_FRAMES {len(plan.observation)}u
+#define POLICY_IO_OBS_FIRST_ID 0x{OBSERVATION_FIRST_ID:X}u
+#define POLICY_IO_ACT_FRAMES {len(plan.action)}u
+#define POLICY_IO_ACT_FIRST_ID 0x{ACTION_FIRST_ID:X}u
+#define POLICY_IO_STATUS_ID 0x{STATUS_ID:X}u
+#define POLICY_IO_FRAME_BYTES {FRAME_BYTES}u
+#define POLICY_IO_STEP_MODULO {STEP_MODULO}u
+#define POLICY_IO_STATUS_PERIOD_MS {STATUS_PERIOD_MS}u /* NodeStatus cycle time in the DBC */
+#define POLICY_IO_WATCHDOG_MS {WATCHDOG_MS}u /* default: no valid observation this long -> SAFE */
+
+typedef enum {{ POLICY_IO_OK = 0, POLICY_IO_OUT_OF_RANGE = 1 }} policy_io_status;
+
+/* Decode observation frame `part` (0 .. POLICY_IO_OBS_FRAMES - 1, the frame ID minus
+ * POLICY_IO_OBS_FIRST_ID) from an E2E-checked payload: its fields go to their places in obs, its Step
+ * and Counter to *step and *counter. A field outside its range in the DBC gives POLICY_IO_OUT_OF_RANGE
+ * and leaves obs unchanged. */
+policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[POLICY_IO_FRAME_BYTES],
+                                              float obs[POLICY_IO_OBS_DIM], uint16_t *step, uint8_t *counter);
+
+/* Pack action frame `part` (0 .. POLICY_IO_ACT_FRAMES - 1) with its fields of act, Step and Counter
+ * (the E2E CRC byte is left for the caller). */
+void policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,
+                             uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES]);
+
+#endif /* POLICY_IO_H */
+"""
+    db = DATABASE_NAME
+    decode_cases = []
+    for k, (name, _, slots) in enumerate(plan.observation):
+        m = _c_name(name)
+        checks = " ||\n            ".join(
+            f"!{db}_{m}_{_c_name(s.signal)}_is_in_range(msg.{_c_name(s.signal)})" for s in slots
+        )
+        stores = "\n".join(
+            f"        obs[{s.index}] = (float){db}_{m}_{_c_name(s.signal)}_decode(msg.{_c_name(s.signal)});"
+            for s in slots
+        )
+        decode_cases.append(f"""    case {k}u: {{ /* {name}: {", ".join(s.field.name for s in slots)} */
+        struct {db}_{m}_t msg;
+        (void){db}_{m}_unpack(&msg, data, POLICY_IO_FRAME_BYTES);
+        *step = msg.step;
+        *counter = msg.counter;
+        if ({checks}) {{
+            return POLICY_IO_OUT_OF_RANGE;
+        }}
+{stores}
+        return POLICY_IO_OK;
+    }}""")
+    encode_cases = []
+    for k, (name, _, slots) in enumerate(plan.action):
+        m = _c_name(name)
+        stores = "\n".join(
+            f"        msg.{_c_name(s.signal)} = {db}_{m}_{_c_name(s.signal)}_encode((double)act[{s.index}]);"
+            for s in slots
+        )
+        encode_cases.append(f"""    case {k}u: {{ /* {name}: {", ".join(s.field.name for s in slots)} */
+        struct {db}_{m}_t msg;
+        memset(&msg, 0, sizeof msg);
+        msg.counter = counter;
+        msg.step = step;
+{stores}
+        (void){db}_{m}_pack(data, &msg, POLICY_IO_FRAME_BYTES);
+        return;
+    }}""")
+    c = f"""{banner}#include "policy_io.h"
+
+#include <string.h>
+
+#include "{db}.h"
+
+policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[POLICY_IO_FRAME_BYTES],
+                                              float obs[POLICY_IO_OBS_DIM], uint16_t *step, uint8_t *counter)
+{{
+    switch (part) {{
+{chr(10).join(decode_cases)}
+    default:
+        return POLICY_IO_OUT_OF_RANGE;
+    }}
+}}
+
+void policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,
+                             uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES])
+{{
+    memset(data, 0, POLICY_IO_FRAME_BYTES);
+    switch (part) {{
+{chr(10).join(encode_cases)}
+    default:
+        return;
+    }}
+}}
+"""
+    return h, c
+
+
+def load_interface(path: Path) -> Interface:
+    """An export's ``interface.json`` (untrusted input: validated)."""
+    try:
+        return Interface.from_json(json.loads(path.read_text()))
+    except (OSError, ValueError) as exc:
+        raise HilError(f"{path}: {exc}") from None
+
+
+def write(interface: Interface, out: Path, dbc_only: bool = False) -> list[Path]:
+    """Write ``policy.dbc`` (and unless ``dbc_only`` the node's generated C) into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    files = {"policy.dbc": dbc_text(interface)} | ({} if dbc_only else c_sources(interface))
+    written = []
+    for name, text in files.items():
+        (out / name).write_text(text)
+        written.append(out / name)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m hil.candb", description=__doc__.split("\n")[0])
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--scenario", choices=sorted(SCENARIOS))
+    source.add_argument("--interface", type=Path, help="an export's interface.json")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--dbc-only", action="store_true")
+    args = parser.parse_args(argv)
+    try:
+        interface = SCENARIOS[args.scenario] if args.scenario else load_interface(args.interface)
+        write(interface, args.out, args.dbc_only)
+    except (HilError, InterfaceError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
