@@ -13,11 +13,11 @@ setup: $(STAMP)
 # kernel has no CAN (hil/sandbox): User-Mode Linux, kmod, iproute2, patchelf (uml); QEMU, busybox and
 # Debian's stable kernel with its vcan module (qemu). Installed when missing (as root or with passwordless
 # sudo); otherwise the command to run is printed. Then a User-Mode Linux >= 7.2 is cached for CPUs on
-# which Debian stable's UML dies (python -m hil.sandbox.provision; no network once cached).
+# which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision; no network once cached).
 APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
     patchelf qemu-system-x86 busybox-static linux-image-amd64
 deps: apt-packages
-	$(PYTHON) -m hil.sandbox.provision
+	$(PYTHON) -m embedrl.hil.sandbox.provision
 
 apt-packages:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -44,7 +44,7 @@ demo: deps $(STAMP)
 	$(VENV)/bin/embedrl eval --controller potential-field --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/eval.json --plot $(OUT)/demo/trajectories.png
 	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
-	test -f $(DEMO_POLICY) || $(PY) -m export.example $(DEMO_POLICY)
+	test -f $(DEMO_POLICY) || $(PY) -m embedrl.export.example $(DEMO_POLICY)
 	$(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export --force
 	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
@@ -55,10 +55,10 @@ demo: deps $(STAMP)
 policies: $(STAMP)
 	for a in ddpg td3 sac; do \
 	    $(VENV)/bin/embedrl train --algo $$a --preset tuned --seed 1 --out $(OUT)/ship/$$a --max-steps 100000 \
-	        --keep-training && $(PY) -m train.ship $(OUT)/ship/$$a $$a || exit 1; \
+	        --keep-training && $(PY) -m embedrl.train.ship $(OUT)/ship/$$a $$a || exit 1; \
 	done
 	$(VENV)/bin/embedrl train --algo ppo --preset tuned --seed 1 --out $(OUT)/ship/ppo --max-steps 60000 \
-	    --keep-training && $(PY) -m train.ship $(OUT)/ship/ppo ppo
+	    --keep-training && $(PY) -m embedrl.train.ship $(OUT)/ship/ppo ppo
 
 test: deps $(STAMP)
 	$(PY) -m pytest
@@ -84,12 +84,12 @@ bench: $(STAMP)
 # Until the training issue ships policies: a briefly trained TD3 with the study's 6-100-100-2 actor,
 # exported with the full verification (10,000 samples, 200 closed-loop episodes).
 export-example: $(STAMP)
-	$(PY) -m export.example $(OUT)/example/td3.zip
+	$(PY) -m embedrl.export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force
 
 # The same policy on bare-metal Cortex-M4F and Cortex-M3 under QEMU: float32, int8 and q15.
 targets-example: deps $(STAMP)
-	test -f $(OUT)/example/td3.zip || $(PY) -m export.example $(OUT)/example/td3.zip
+	test -f $(OUT)/example/td3.zip || $(PY) -m embedrl.export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/float32 --force \
 	    --target cortex-m4 --target cortex-m3
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/int8 --force --quantize int8 \

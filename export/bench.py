@@ -20,11 +20,11 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-import train
-from export import build
-from export.errors import ExportError
-from export.pipeline import ExportOptions, run_export
-from export.sb3_onnx import load_sb3
+from embedrl import train
+from embedrl.export import build
+from embedrl.export.errors import ExportError
+from embedrl.export.pipeline import ExportOptions, run_export
+from embedrl.train.models import load_sb3
 
 STUDY_ARCH = [100, 100]
 """The reference study's actor: 6 -> 100 -> 100 -> 2, ReLU, tanh output."""

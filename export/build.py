@@ -5,14 +5,16 @@ from __future__ import annotations
 import ctypes
 import re
 import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from export.errors import BuildError
+from embedrl.export.errors import BuildError
 
 RUNTIME_C = Path(__file__).resolve().parents[1] / "runtime_c"
-"""The make project that builds generated policies (beside the Python packages in the repo)."""
+"""The make project that builds generated policies: beside this package in the repository, and inside
+the ``embedrl`` package (as package data) in an installed wheel."""
 
 
 def make(
@@ -23,7 +25,7 @@ def make(
     Errors carry the last lines of make's output.
     """
     if not (RUNTIME_C / "Makefile").is_file():
-        raise BuildError(f"{RUNTIME_C}/Makefile not found: run embedrl from its source tree")
+        raise BuildError(f"{RUNTIME_C}/Makefile not found: the installation is incomplete")
     cmd = [
         "make",
         "--no-print-directory",
@@ -32,6 +34,7 @@ def make(
         target,
         f"POLICY_DIR={c_dir.resolve()}",
         f"BUILD_DIR={build_dir.resolve()}",
+        f"PYTHON={sys.executable}",  # generates the node's CAN code with this installation
     ]
     if opt is not None:
         cmd.append(f"OPT={opt}")

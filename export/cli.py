@@ -7,7 +7,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from export.errors import ExportError
+from embedrl.common import table
+from embedrl.export.errors import ExportError
 
 
 def _safe_action(text: str) -> tuple[float, ...]:
@@ -21,7 +22,7 @@ def _safe_action(text: str) -> tuple[float, ...]:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    from export.pipeline import ExportOptions, run_export
+    from embedrl.export.pipeline import ExportOptions, run_export
 
     opts = ExportOptions(
         source=args.source,
@@ -94,14 +95,12 @@ def _print_summary(report: dict[str, Any]) -> None:
         )
     size = report["code_size"]
     rows.append(("object size", f"text {size['text']} B, data {size['data']} B, bss {size['bss']} B"))
-    width = max(len(k) for k, _ in rows)
-    for key, value in rows:
-        print(f"{key:<{width}}  {value}")
+    print(table(rows))
 
 
 def cmd_bench_export(args: argparse.Namespace) -> int:
-    from export.bench import run
-    from train.cli import print_measurement
+    from embedrl.common import print_measurement
+    from embedrl.export.bench import run
 
     print_measurement(run(args.export_dir, args.seed), args.json)
     return 0

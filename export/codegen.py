@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from export.errors import ExportError
-from export.fixed_point import FixedSection
-from export.ir import Graph
-from export.ops import EMITTERS
-from train.interface import Interface
+from embedrl.export.errors import ExportError
+from embedrl.export.fixed_point import FixedSection
+from embedrl.export.ir import Graph
+from embedrl.export.ops import EMITTERS
+from embedrl.train.interface import Interface
 
 NAME_PATTERN = re.compile(r"[a-z_][a-z0-9_]{0,30}")
 """Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol."""
@@ -245,7 +245,7 @@ def _section_lines(section: FixedSection, ctx: _Context) -> tuple[list[str], lis
 
 def _helper_source(prefix: str, name: str) -> str:
     """C of a deterministic math helper; mirrored operation by operation in export.quantize."""
-    from export import quantize as q
+    from embedrl.export import quantize as q
 
     if name == "exp_det":
         lo, hi = c_float(q.EXP_CLAMP[0]), c_float(q.EXP_CLAMP[1])
@@ -332,7 +332,7 @@ def generate(
     if (quantize == "q15") != (section is not None):
         raise ExportError("q15 code needs its fixed-point section (and only q15 takes one)")
     if quantize:
-        from export.quantize import check_supported
+        from embedrl.export.quantize import check_supported
 
         check_supported(graph)
     if section is not None:

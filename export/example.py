@@ -1,4 +1,4 @@
-"""An example policy to export while no shipped policies exist: ``python -m export.example OUT.zip``.
+"""An example policy to export while no shipped policies exist: ``python -m embedrl.export.example OUT.zip``.
 
 A TD3 model with the reference study's actor (6 -> 100 -> 100 -> 2, ReLU, tanh) whose actor is
 trained by imitation of the potential-field controller (DAgger: roll out the learner, label every
@@ -16,8 +16,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import train
-from train.potential_field import PotentialFieldController
+from embedrl import train
+from embedrl.common import EXAMPLE_SEED
+from embedrl.train.potential_field import PotentialFieldController
 
 ROUNDS = 4
 """DAgger rounds after the initial demonstrations."""
@@ -26,8 +27,6 @@ EPOCHS = 60
 BATCH = 256
 LEARNING_RATE = 1e-3
 SEED = 0
-SEED_BASE = 900_000
-"""Episodes for imitation use seeds far from the evaluation seeds (0..)."""
 
 
 def _rollouts(env: gym.Env[np.ndarray, np.ndarray], act: object, first_seed: int) -> np.ndarray:
@@ -56,12 +55,12 @@ def main(out: Path) -> None:
     def learner(obs: np.ndarray) -> np.ndarray:
         return np.asarray(model.predict(obs, deterministic=True)[0], dtype=np.float32)
 
-    data = _rollouts(env, expert, SEED_BASE)
+    data = _rollouts(env, expert, EXAMPLE_SEED)
     optimizer = torch.optim.Adam(actor.parameters(), lr=LEARNING_RATE)
     generator = torch.Generator().manual_seed(SEED)
     for round_ in range(ROUNDS + 1):
         if round_:
-            data = np.concatenate([data, _rollouts(env, learner, SEED_BASE + round_ * EPISODES_PER_ROUND)])
+            data = np.concatenate([data, _rollouts(env, learner, EXAMPLE_SEED + round_ * EPISODES_PER_ROUND)])
         x = torch.as_tensor(data)
         y = torch.as_tensor(np.array([expert(o) for o in data]))
         for _ in range(EPOCHS):

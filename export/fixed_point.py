@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from export.errors import UnsupportedOpError
-from export.ir import Graph, Node
+from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.ir import Graph, Node
 
 F = np.float32
 Q_MAX = 32767

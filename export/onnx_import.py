@@ -14,9 +14,9 @@ import onnx
 from google.protobuf.message import DecodeError
 from onnx import numpy_helper
 
-from export.errors import InvalidModelError, UnsupportedOpError
-from export.ir import AttrValue, Graph, Node
-from export.ops import EMITTERS
+from embedrl.export.errors import InvalidModelError, UnsupportedOpError
+from embedrl.export.ir import AttrValue, Graph, Node
+from embedrl.export.ops import EMITTERS
 
 MIN_OPSET = 13
 """Oldest default-domain opset accepted (Clip bounds as inputs, Softplus/Gemm semantics fixed)."""

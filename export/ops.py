@@ -15,8 +15,8 @@ from typing import ClassVar, Protocol
 
 import numpy as np
 
-from export.errors import UnsupportedOpError
-from export.ir import AttrValue, Node
+from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.ir import AttrValue, Node
 
 Shape = tuple[int, ...]
 
@@ -288,7 +288,7 @@ def _quantized_lines(
     node: Node, ctx: EmitContext, w: np.ndarray, bias: str | None, x: str, y: str, n: int
 ) -> list[str]:
     """int8 weights per output channel: acc = sum x[k] * q[k][n]; y[n] = b[n] + s[n] * acc[n]."""
-    from export.quantize import quantize_columns
+    from embedrl.export.quantize import quantize_columns
 
     q, scale = quantize_columns(w)
     k = w.shape[0]

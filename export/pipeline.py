@@ -22,28 +22,20 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 
-import train
-from export import build, fixed_point, quantize, target, verify
-from export.codegen import NAME_PATTERN, generate
-from export.errors import ExportError, UnsupportedModelError, VerificationError
-from export.onnx_import import load_onnx, to_ir
-from export.sb3_onnx import LoadedPolicy, build_onnx, load_sb3
-from train.evaluate import provenance
-from train.interface import INTERFACE_FILE, Interface, InterfaceError
-from train.scenarios import interface_of
+from embedrl import train
+from embedrl.common import provenance
+from embedrl.export import build, fixed_point, quantize, target, verify
+from embedrl.export.codegen import NAME_PATTERN, generate
+from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
+from embedrl.export.onnx_import import load_onnx, to_ir
+from embedrl.export.sb3_onnx import build_onnx
+from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
+from embedrl.train.interface import INTERFACE_FILE, Interface, InterfaceError
+from embedrl.train.models import LoadedPolicy, load_sb3, vecnormalize_beside
+from embedrl.train.scenarios import interface_of
 
 INTERFACE_METADATA_KEY = "embedrl.interface"
 """The same JSON in the ONNX model's ``metadata_props``."""
-VECNORMALIZE_FILE = "vecnormalize.pkl"
-"""Statistics next to a model with this name are used unless ``--vecnormalize`` says otherwise."""
-
-
-def vecnormalize_beside(model: Path) -> Path | None:
-    """``<model>_vecnormalize.pkl`` (shipped policies share a folder), else ``vecnormalize.pkl`` (a run)."""
-    for candidate in (model.with_name(f"{model.stem}_{VECNORMALIZE_FILE}"), model.parent / VECNORMALIZE_FILE):
-        if candidate.is_file():
-            return candidate
-    return None
 
 
 @dataclass(frozen=True)
@@ -199,7 +191,12 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
     if suffix == ".zip":
         vecnorm_path = opts.vecnormalize or vecnormalize_beside(source)
         log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
-        loaded = load_sb3(source, vecnorm_path)
+        try:
+            loaded = load_sb3(source, vecnorm_path)
+        except UnsupportedModelFileError as exc:
+            raise UnsupportedModelError(str(exc)) from None
+        except InvalidModelFileError as exc:
+            raise InvalidModelError(str(exc)) from None
         model = build_onnx(loaded, tool_version())
         onnx_path = staging / "policy.onnx"  # saved below, with the interface in its metadata
         files["policy.onnx"] = onnx_path

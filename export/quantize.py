@@ -19,10 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from export import fixed_point
-from export.errors import UnsupportedOpError
-from export.fixed_point import FixedSection
-from export.ir import Graph
+from embedrl.export import fixed_point
+from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.fixed_point import FixedSection
+from embedrl.export.ir import Graph
 
 F = np.float32
 SCHEMES = {

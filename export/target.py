@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from export import build
-from export.codegen import c_float
-from export.errors import BuildError, ExportError
+from embedrl.export import build
+from embedrl.export.codegen import c_float
+from embedrl.export.errors import BuildError, ExportError
 
 TEST_VECTOR_COUNT = 256
 """Observations embedded in the test image (half uniform, half recorded from rollouts)."""

@@ -13,8 +13,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-import train
-from train.evaluate import REPORT_KEYS, EvalReport, evaluate
+from embedrl import train
+from embedrl.common import ROLLOUT_SEED_OFFSET
+from embedrl.train.evaluate import REPORT_KEYS, EvalReport, evaluate
 
 TOLERANCE = 1e-5
 """Max abs action error allowed between two export steps."""
@@ -23,8 +24,6 @@ ROLLOUT_SAMPLES = 5_000
 MIN_SAMPLES = 10_000
 MAX_ROLLOUT_EPISODES = 1_000
 """Rollouts continue until ROLLOUT_SAMPLES observations are recorded or this many episodes ran."""
-ROLLOUT_SEED_OFFSET = 1_000_000
-"""Rollouts for samples use seeds far from the closed-loop seeds."""
 UNBOUNDED_RANGE = 10.0
 """Infinite observation bounds are sampled within +-this."""
 MAX_DIFFERING_OUTCOMES = 2

@@ -16,7 +16,7 @@ cantools' generated ``*_is_in_range`` checks it at the node's trust boundary. Be
 module generates the node's C: cantools' codec (``policy_dbc.c/h``) and the glue that maps frames to the
 policy's observation and action vectors (``policy_io.c/h``), both never edited by hand.
 
-Run as ``python -m hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]``.
+Run as ``python -m embedrl.hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]``.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from cantools.database.can.c_source import camel_to_snake_case
 from cantools.database.can.c_source import generate as generate_c
 from cantools.database.conversion import BaseConversion
 
-from hil.errors import HilError
-from train.interface import Field, Interface, InterfaceError
-from train.scenarios import SCENARIOS
+from embedrl.hil.errors import HilError
+from embedrl.train.interface import Field, Interface, InterfaceError
+from embedrl.train.scenarios import SCENARIOS
 
 OBSERVATION_FIRST_ID = 0x100
 ACTION_FIRST_ID = 0x200
@@ -355,7 +355,7 @@ def write(interface: Interface, out: Path, dbc_only: bool = False) -> list[Path]
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hil.candb", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m embedrl.hil.candb", description=__doc__.split("\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--scenario", choices=sorted(SCENARIOS))
     source.add_argument("--interface", type=Path, help="an export's interface.json")

@@ -11,13 +11,13 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from hil import candb
-from hil.errors import HilError
-from hil.sandbox import MODES
-from train.interface import INTERFACE_FILE
+from embedrl.hil import candb
+from embedrl.hil.errors import HilError
+from embedrl.hil.sandbox import MODES
+from embedrl.train.interface import INTERFACE_FILE
 
 if TYPE_CHECKING:
-    from hil.sandbox import Guest
+    from embedrl.hil.sandbox import Guest
 
 REPO = Path(__file__).resolve().parents[1]
 INJECTIONS = ("corrupt", "silent", "kill")
@@ -73,10 +73,10 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
 def _build_and_run(
     args: argparse.Namespace, guest: Guest | None, export_dir: Path, onnx: Path, work: Path
 ) -> dict[str, Any]:
-    from export import build
-    from export.errors import BuildError
-    from hil import sandbox
-    from hil.session import SessionConfig
+    from embedrl.export import build
+    from embedrl.export.errors import BuildError
+    from embedrl.hil import sandbox
+    from embedrl.hil.session import SessionConfig
 
     print(f"building the node: make -C runtime_c node POLICY_DIR={export_dir / 'c'}")
     try:
@@ -106,7 +106,7 @@ def _build_and_run(
         config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
         job = where.run(
-            [where.python, "-m", "hil.session", str(config_file)], REPO, timeout_s=SESSION_TIMEOUT_S
+            [where.python, "-m", "embedrl.hil.session", str(config_file)], REPO, timeout_s=SESSION_TIMEOUT_S
         )
         if job.status != 0 or not Path(cfg.results).is_file():
             why = where.diagnose(f"the HIL session failed (status {job.status}): {job.last_lines()}")
@@ -126,7 +126,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     import numpy as np
     import onnxruntime as ort
 
-    from train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
+    from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
 
     episodes = [
         EpisodeResult(
@@ -175,8 +175,8 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     for row, e in zip(data["per_episode"], results["episodes"], strict=True):
         row["fault"] = e["fault"]
     if args.plot:
-        from hil.plots import plot_latency
-        from train.plots import plot_trajectories
+        from embedrl.hil.plots import plot_latency
+        from embedrl.train.plots import plot_trajectories
 
         plot_trajectories(report, args.plot / "hil_trajectories.png")
         plot_latency(
@@ -186,7 +186,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
 
 
 def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
-    from train.evaluate import write_json
+    from embedrl.common import table, write_json
 
     if args.episodes < 1:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")
@@ -225,17 +225,15 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         )
     if data["injection"]:
         rows.append(("injection", json.dumps(data["injection"])))
-    width = max(len(k) for k, _ in rows)
-    for key, value in rows:
-        print(f"{key:<{width}}  {value}")
+    print(table(rows))
     write_json(data, args.json)
     print(f"wrote {args.json}" + (f", {args.log}" if args.log else ""))
     return 0
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    from hil.doctor import doctor, print_table
-    from train.evaluate import write_json
+    from embedrl.common import write_json
+    from embedrl.hil.doctor import doctor, print_table
 
     report = doctor(say=print)
     print_table(report)

@@ -13,8 +13,8 @@ import can
 import cantools
 import numpy as np
 
-from hil import candb, e2e
-from train.interface import Interface
+from embedrl.hil import candb, e2e
+from embedrl.train.interface import Interface
 
 STEP_MODULO = candb.STEP_MODULO
 

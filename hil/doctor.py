@@ -14,7 +14,7 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from hil import sandbox
+from embedrl.hil import sandbox
 
 CPUINFO = Path("/proc/cpuinfo")
 

@@ -9,7 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-from train.files import atomic_write
+from embedrl.common import atomic_write
 
 
 def plot_latency(latencies_us: list[float], path: Path, sandbox: str, realtime: bool) -> None:

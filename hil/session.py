@@ -5,7 +5,7 @@ for the node's action for that step, applies it and steps the physics; the expor
 runs on the observation the node decoded and the difference is recorded. ``realtime`` paces the
 loop at the env's sample time and counts deadline misses (a report, not a verdict).
 
-Run as ``python -m hil.session CONFIG.json``; it writes the results JSON named in the config.
+Run as ``python -m embedrl.hil.session CONFIG.json``; it writes the results JSON named in the config.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ import gymnasium as gym
 import numpy as np
 import onnxruntime as ort
 
-from hil import candb
-from hil.codec import STEP_MODULO, Action, Codec, Status
-from train.interface import Interface
+from embedrl.hil import candb
+from embedrl.hil.codec import STEP_MODULO, Action, Codec, Status
+from embedrl.train.interface import Interface
 
 INJECT_STEP = 3
 """Fault injections happen at this step of the first episode."""

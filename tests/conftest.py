@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import train
+from embedrl import train
 
 
 @pytest.fixture

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from train.cli import main
-from train.evaluate import REPORT_KEYS
-from train.rendering import STRIP_FRAMES
+from embedrl.cli import main
+from embedrl.train.evaluate import REPORT_KEYS
+from embedrl.train.rendering import STRIP_FRAMES
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

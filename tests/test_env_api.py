@@ -11,9 +11,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env as gym_check_env
 from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
-import train
-from train import layout
-from train.warehouse_env import MAX_EPISODE_STEPS, WarehouseRobotEnv
+from embedrl import train
+from embedrl.train import layout
+from embedrl.train.warehouse_env import MAX_EPISODE_STEPS, WarehouseRobotEnv
 
 Env = gym.Env[np.ndarray, np.ndarray]
 

@@ -9,8 +9,14 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from train import layout
-from train.warehouse_env import COLLISION_PENALTY, MAX_EPISODE_STEPS, SUCCESS_BONUS, WarehouseRobotEnv, reward
+from embedrl.train import layout
+from embedrl.train.warehouse_env import (
+    COLLISION_PENALTY,
+    MAX_EPISODE_STEPS,
+    SUCCESS_BONUS,
+    WarehouseRobotEnv,
+    reward,
+)
 
 Env = gym.Env[np.ndarray, np.ndarray]
 FULL_AHEAD = np.array([1.0, 1.0], dtype=np.float32)

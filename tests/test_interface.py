@@ -10,10 +10,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-import train
-from train.interface import Field, Interface, InterfaceError, from_spaces
-from train.scenarios import BY_ENV_ID, SCENARIOS, STATIC
-from train.warehouse_env import WarehouseRobotEnv
+from embedrl import train
+from embedrl.train.interface import Field, Interface, InterfaceError, from_spaces
+from embedrl.train.scenarios import BY_ENV_ID, SCENARIOS, STATIC
+from embedrl.train.warehouse_env import WarehouseRobotEnv
 
 ROW = re.compile(r"^\s*\|\s*(\d+)\s*\|(.*)\|\s*$")
 

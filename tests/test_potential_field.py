@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from train.evaluate import evaluate
-from train.potential_field import PotentialFieldController
+from embedrl.train.evaluate import evaluate
+from embedrl.train.potential_field import PotentialFieldController
 
 
 def test_potential_field_meets_the_bar_on_200_seeded_episodes() -> None:

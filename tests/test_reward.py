@@ -8,8 +8,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from train import layout
-from train.warehouse_env import SUCCESS_BONUS, reward
+from embedrl.train import layout
+from embedrl.train.warehouse_env import SUCCESS_BONUS, reward
 
 A = np.array
 

@@ -15,9 +15,10 @@ import numpy as np
 import pytest
 from stable_baselines3 import PPO
 
-from train.cli import load_model_policy, main
-from train.config import ALGOS, Budget
-from train.trainer import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor, train
+from embedrl.cli import main
+from embedrl.train.cli import load_model_policy
+from embedrl.train.config import ALGOS, Budget
+from embedrl.train.trainer import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor, train
 
 SHORT = Budget(max_steps=600, checkpoint_every=300, eval_every=10_000)
 
@@ -88,7 +89,7 @@ def test_resume_after_a_killed_run_continues_steps_and_episodes(tmp_path: Path) 
     cmd = [
         sys.executable,
         "-m",
-        "train.cli",
+        "embedrl.cli",
         "train",
         "--algo",
         "sac",
@@ -212,7 +213,7 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
 
 @pytest.mark.slow
 def test_ship_refuses_a_policy_below_95_percent(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    from train import ship
+    from embedrl.train import ship
 
     monkeypatch.setattr(ship, "POLICIES", tmp_path / "policies")
     monkeypatch.setattr(ship, "SHIP_EPISODES", 5)
@@ -224,7 +225,7 @@ def test_ship_refuses_a_policy_below_95_percent(tmp_path: Path, monkeypatch: pyt
 
 def test_shipped_policies_meet_their_bar() -> None:
     """Every shipped policy's metadata records >= 95% success on seeds its training never used."""
-    from train.ship import MIN_SUCCESS, POLICIES
+    from embedrl.train.ship import MIN_SUCCESS, POLICIES
 
     shipped = sorted(POLICIES.glob("*.json"))
     assert shipped, "no shipped policies in policies/static"
@@ -240,9 +241,9 @@ def test_shipped_policies_meet_their_bar() -> None:
 
 @pytest.mark.slow
 def test_ppo_warm_start_clones_the_baseline(tmp_path: Path) -> None:
-    from train.config import preset
-    from train.potential_field import PotentialFieldController
-    from train.trainer import _demonstrations, build_model, make_env, warm_start
+    from embedrl.train.config import preset
+    from embedrl.train.potential_field import PotentialFieldController
+    from embedrl.train.trainer import _demonstrations, build_model, make_env, warm_start
 
     cfg = preset("ppo", "tuned")
     env = make_env(True, 0)

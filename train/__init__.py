@@ -5,14 +5,14 @@ Importing this package registers ``embedrl/WarehouseRobot-v0`` with gymnasium.
 
 from gymnasium.envs.registration import register, registry
 
-from train.scenarios import STATIC
+from embedrl.train.scenarios import STATIC
 
 ENV_ID = STATIC.env_id
 
 if ENV_ID not in registry:
     register(
         id=ENV_ID,
-        entry_point="train.warehouse_env:WarehouseRobotEnv",
+        entry_point="embedrl.train.warehouse_env:WarehouseRobotEnv",
         max_episode_steps=STATIC.max_steps,
     )
 

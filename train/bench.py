@@ -14,11 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from train.config import Budget
-from train.evaluate import REPORT_KEYS, evaluate, provenance, write_json
+from embedrl.common import BENCH_TEST_SEED, provenance, write_json
+from embedrl.train.config import Budget
+from embedrl.train.evaluate import REPORT_KEYS, evaluate
 
-EVAL_SEED = 2_000_000
-"""Final evaluations start here: never a training or in-training evaluation seed."""
 BOOTSTRAP_SAMPLES = 2000
 
 STUDY = {
@@ -56,12 +55,14 @@ STUDY = {
 
 def _one_run(job: tuple[str, str, int, str, int, int]) -> dict[str, Any]:
     algo, preset, seed, out, max_steps, eval_episodes = job
-    from train.cli import load_model_policy
-    from train.trainer import train
+    from embedrl.train.cli import load_model_policy
+    from embedrl.train.trainer import train
 
     run = Path(out)
     summary = train(algo, preset, seed, run, Budget(max_steps=max_steps))
-    report = evaluate(load_model_policy(run / "model.zip"), eval_episodes, EVAL_SEED, f"{algo} seed {seed}")
+    report = evaluate(
+        load_model_policy(run / "model.zip"), eval_episodes, BENCH_TEST_SEED, f"{algo} seed {seed}"
+    )
     return {
         **summary,
         "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
@@ -93,9 +94,9 @@ def run_bench(
     ]
     with ProcessPoolExecutor(max_workers=workers) as pool:
         runs = list(pool.map(_one_run, jobs))
-    from train.potential_field import PotentialFieldController
+    from embedrl.train.potential_field import PotentialFieldController
 
-    pf = evaluate(PotentialFieldController(), eval_episodes, EVAL_SEED, "potential-field")
+    pf = evaluate(PotentialFieldController(), eval_episodes, BENCH_TEST_SEED, "potential-field")
     rows: dict[str, dict[str, str]] = {}
     for algo in algos:
         mine = [r for r in runs if r["algo"] == algo]

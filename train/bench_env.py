@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
-from train import ENV_ID
+from embedrl.train import ENV_ID
 
 TARGET_STEPS_PER_SECOND = 10_000
 """The foundation issue's target for the warehouse env."""

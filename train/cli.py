@@ -1,29 +1,23 @@
-"""The ``embedrl`` command. Each package owns its subcommands; this module gathers them.
+"""The training package's subcommands: ``eval``, ``render``, ``train``, ``bench`` and ``bench-env``.
 
-``train`` contributes ``eval``, ``render`` and ``bench-env``; ``export`` and ``hil`` add theirs
-with a ``register(subparsers)`` function in their own ``cli`` module when they exist.
+:func:`register` adds them to the ``embedrl`` command (:mod:`embedrl.cli`).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
-import json
 import os
-import sys
-import traceback
 from pathlib import Path
 from typing import Any
 
-from train.errors import TrainError, UsageError
+from embedrl.train.errors import TrainError, UsageError
 
 CONTROLLERS = ("potential-field",)
 """Built-in scripted controllers, usable wherever a policy is expected."""
-OTHER_PACKAGES = ("export", "hil")
 
 
 def _controller(name: str):  # type: ignore[no-untyped-def]
-    from train.potential_field import PotentialFieldController
+    from embedrl.train.potential_field import PotentialFieldController
 
     if name == "potential-field":
         return PotentialFieldController()
@@ -40,14 +34,9 @@ def load_model_policy(path: Path):  # type: ignore[no-untyped-def]
     """A trained SB3 model as a deterministic policy (VecNormalize statistics beside it are applied)."""
     if path.suffix != ".zip":
         raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
-    from export.errors import ExportError
-    from export.pipeline import vecnormalize_beside
-    from export.sb3_onnx import load_sb3
+    from embedrl.train.models import load_sb3, vecnormalize_beside
 
-    try:
-        loaded = load_sb3(path, vecnormalize_beside(path))
-    except ExportError as exc:
-        raise UsageError(str(exc)) from None
+    loaded = load_sb3(path, vecnormalize_beside(path))
 
     def act(obs):  # type: ignore[no-untyped-def]
         return loaded.predict(obs.reshape(1, -1))[0]
@@ -69,7 +58,8 @@ def _positive(text: str) -> int:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from train.evaluate import evaluate, write_json
+    from embedrl.common import write_json
+    from embedrl.train.evaluate import evaluate
 
     policy = _policy(args)
     name = args.controller or str(args.model)
@@ -79,7 +69,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         write_json(report.to_json(), args.json)
         print(f"wrote {args.json}")
     if args.plot:
-        from train.plots import plot_trajectories
+        from embedrl.train.plots import plot_trajectories
 
         plot_trajectories(report, args.plot)
         print(f"wrote {args.plot}")
@@ -90,9 +80,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     import gymnasium as gym
     import numpy as np
 
-    from train import ENV_ID
-    from train.rendering import save_episode
-    from train.robot import SAMPLE_TIME
+    from embedrl.train import ENV_ID
+    from embedrl.train.rendering import save_episode
+    from embedrl.train.robot import SAMPLE_TIME
 
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
@@ -112,28 +102,17 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def print_measurement(result: dict[str, Any], json_path: Path | None) -> None:
-    """A benchmark's numbers as aligned lines; with ``json_path`` also as JSON with provenance."""
-    from train.evaluate import provenance, write_json
-
-    width = max(len(k) for k in result)
-    for key, value in result.items():
-        print(f"{key:<{width}}  {' '.join(value) if isinstance(value, list) else value}")
-    if json_path:
-        write_json({**result, "provenance": provenance()}, json_path)
-        print(f"wrote {json_path}")
-
-
 def cmd_bench_env(args: argparse.Namespace) -> int:
-    from train.bench_env import run
+    from embedrl.common import print_measurement
+    from embedrl.train.bench_env import run
 
     print_measurement(run(args.steps, args.seed), args.json)
     return 0
 
 
 def cmd_train(args: argparse.Namespace) -> int:
-    from train.config import Budget
-    from train.trainer import train
+    from embedrl.train.config import Budget
+    from embedrl.train.trainer import train
 
     budget = Budget(
         max_steps=args.max_steps,
@@ -155,7 +134,7 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from train.bench import run_bench
+    from embedrl.train.bench import run_bench
 
     table = run_bench(
         args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers
@@ -165,11 +144,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="embedrl", description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--debug", action="store_true", help="show tracebacks")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-
+def register(sub: Any) -> None:
     p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
     _add_policy_arguments(p)
     p.add_argument("--episodes", type=_positive, default=200)
@@ -184,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
 
-    from train.config import ALGOS, PRESETS
+    from embedrl.train.config import ALGOS, PRESETS
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
     p.add_argument("--algo", choices=ALGOS, default="td3")
@@ -221,37 +196,5 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_env)
 
-    for module in _package_clis():
-        module.register(sub)
-    return parser
 
-
-def _package_clis() -> list[Any]:
-    """The ``cli`` modules of the other packages that have one."""
-    modules = []
-    for name in OTHER_PACKAGES:
-        try:
-            modules.append(importlib.import_module(f"{name}.cli"))
-        except ModuleNotFoundError as exc:
-            if exc.name != f"{name}.cli":
-                raise
-    return modules
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    handled: tuple[type[Exception], ...] = (TrainError, OSError, ValueError, json.JSONDecodeError)
-    for module in _package_clis():
-        handled += getattr(module, "ERRORS", ())
-    try:
-        return int(args.func(args))
-    except handled as exc:
-        if args.debug:
-            traceback.print_exc()
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+ERRORS: tuple[type[Exception], ...] = (TrainError,)

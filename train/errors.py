@@ -2,6 +2,9 @@
 
 - :class:`TrainError`: base class.
   - :class:`UsageError`: a command was asked for something it cannot do (the message says what can).
+  - :class:`ModelFileError`: a trained model's file cannot be used.
+    - :class:`InvalidModelFileError`: missing, truncated, or not what it claims to be.
+    - :class:`UnsupportedModelFileError`: a valid model of a kind embedrl does not handle.
 """
 
 
@@ -11,3 +14,15 @@ class TrainError(Exception):
 
 class UsageError(TrainError):
     """Invalid or unsupported request: bad argument values, unsupported file types, missing features."""
+
+
+class ModelFileError(TrainError):
+    """A trained model's file cannot be used; the message names the file."""
+
+
+class InvalidModelFileError(ModelFileError):
+    """The file is missing, truncated, or not a Stable-Baselines3 model or statistics file."""
+
+
+class UnsupportedModelFileError(ModelFileError):
+    """A valid model of a kind embedrl does not handle; the message says what is supported."""

@@ -7,22 +7,17 @@ policies evaluated with the same seed meet the same start poses episode by episo
 
 from __future__ import annotations
 
-import json
-import math
-import sys
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from importlib import metadata
-from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
-from train import ENV_ID
-from train.files import atomic_write
-from train.robot import SAMPLE_TIME
+from embedrl.common import provenance, table
+from embedrl.train import ENV_ID
+from embedrl.train.robot import SAMPLE_TIME
 
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (float32[6]) in, action (float32[2]) out."""
@@ -125,8 +120,7 @@ class EvalReport:
             ("mean time of successes [s]", mean_time),
             ("mean steps", f"{self.mean_steps:.1f}"),
         ]
-        width = max(len(k) for k, _ in rows)
-        return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+        return table(rows)
 
 
 def run_episode(env: gym.Env[np.ndarray, np.ndarray], policy: Policy, seed: int) -> EpisodeResult:
@@ -162,31 +156,3 @@ def evaluate(policy: Policy, episodes: int, seed: int, name: str, progress: bool
     finally:
         env.close()
     return EvalReport.from_results(results, seed, name)
-
-
-def provenance() -> dict[str, Any]:
-    """What produced a result: the command line and the versions of the packages that matter."""
-    versions: dict[str, str | None] = {}
-    for pkg in ("embedrl", "gymnasium", "pymunk", "numpy", "stable-baselines3", "torch"):
-        try:
-            versions[pkg] = metadata.version(pkg)
-        except metadata.PackageNotFoundError:
-            versions[pkg] = None
-    return {"command": sys.argv, "python": sys.version.split()[0], "versions": versions}
-
-
-def write_json(data: dict[str, Any], path: Path) -> None:
-    """Write JSON atomically: the file is complete or absent, never half-written."""
-    text = json.dumps(_finite(data), indent=2, allow_nan=False) + "\n"
-    atomic_write(path, lambda tmp: tmp.write_text(text))
-
-
-def _finite(value: Any) -> Any:
-    """Replace non-finite floats by None: JSON has no NaN."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _finite(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_finite(v) for v in value]
-    return value

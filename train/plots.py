@@ -10,9 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 from matplotlib.patches import Rectangle
 
-from train import layout
-from train.evaluate import EvalReport
-from train.files import atomic_write
+from embedrl.common import atomic_write
+from embedrl.train import layout
+from embedrl.train.evaluate import EvalReport
 
 OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from train import layout
-from train.robot import ROBOT_LENGTH, ROBOT_WIDTH
+from embedrl.train import layout
+from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 
 _AISLE_END = layout.UPPER_SHELF_WIDTH / 2
 """|x| beyond which the robot is beside the shelves, not in the aisle between them [m]."""

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from train import layout
-from train.files import atomic_write
-from train.robot import ROBOT_LENGTH, ROBOT_WIDTH
+from embedrl.common import atomic_write
+from embedrl.train import layout
+from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 
 PIXELS_PER_METRE = 160
 """Frame resolution: the 3.8 m x 1.9 m view becomes 608 x 304 pixels."""

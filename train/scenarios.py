@@ -11,9 +11,9 @@ from typing import Any
 
 from gymnasium import spaces
 
-from train import layout
-from train.interface import Field, Interface, InterfaceError, from_spaces
-from train.robot import MAX_SPEED, MAX_TURN_RATE, SAMPLE_TIME
+from embedrl.train import layout
+from embedrl.train.interface import Field, Interface, InterfaceError, from_spaces
+from embedrl.train.robot import MAX_SPEED, MAX_TURN_RATE, SAMPLE_TIME
 
 STATIC_ENV_ID = "embedrl/WarehouseRobot-v0"
 GENERIC_MAX_STEPS = 1000

@@ -1,4 +1,4 @@
-"""Ship a trained policy: ``python -m train.ship RUN_DIR NAME`` -> policies/static/NAME.zip + NAME.json.
+"""Ship a trained policy: ``python -m embedrl.train.ship RUN_DIR NAME`` -> policies/static/NAME.zip, .json.
 
 The run's final model is evaluated deterministically on 200 episodes whose seeds training never used;
 below 95% success it is refused. The metadata file records the run's config, its training summary,
@@ -13,17 +13,17 @@ import shutil
 import sys
 from pathlib import Path
 
-from train.cli import load_model_policy
-from train.evaluate import evaluate, provenance
+from embedrl.common import SHIP_TEST_SEED, provenance
+from embedrl.train.cli import load_model_policy
+from embedrl.train.evaluate import evaluate
 
 POLICIES = Path(__file__).resolve().parents[1] / "policies" / "static"
-SHIP_EVAL_SEED = 5_000_000
 SHIP_EPISODES = 200
 MIN_SUCCESS = 0.95
 
 
 def ship(run: Path, name: str) -> dict[str, object]:
-    report = evaluate(load_model_policy(run / "model.zip"), SHIP_EPISODES, SHIP_EVAL_SEED, name)
+    report = evaluate(load_model_policy(run / "model.zip"), SHIP_EPISODES, SHIP_TEST_SEED, name)
     if report.success_rate < MIN_SUCCESS:
         raise SystemExit(
             f"error: {run} succeeds in {100 * report.success_rate:.1f}% < {100 * MIN_SUCCESS:.0f}%"

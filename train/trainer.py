@@ -34,8 +34,9 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm import tqdm
 
-from train import ENV_ID
-from train.config import (
+from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, provenance
+from embedrl.train import ENV_ID
+from embedrl.train.config import (
     ALGOS,
     Budget,
     DDPGConfig,
@@ -46,15 +47,13 @@ from train.config import (
     preset,
     to_dict,
 )
-from train.errors import UsageError
-from train.evaluate import evaluate, provenance
+from embedrl.train.errors import UsageError
+from embedrl.train.evaluate import evaluate
 
 STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
 STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
-EVAL_SEED = 1_000_000
-"""Deterministic evaluations during training use seeds from here, far from training resets."""
 CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
 CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0")
 
@@ -123,13 +122,9 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
     return SAC("MlpPolicy", env, ent_coef=cfg.ent_coef, **off, **common)
 
 
-DEMO_SEED = 3_000_000
-"""Demonstration episodes use seeds from here."""
-
-
 def seed_replay_buffer(model: OffPolicyAlgorithm, episodes: int, noise: float, seed: int) -> int:
     """Put potential-field episodes (noisy actions) into the replay buffer; return the transitions added."""
-    from train.potential_field import PotentialFieldController
+    from embedrl.train.potential_field import PotentialFieldController
 
     controller = PotentialFieldController()
     rng = np.random.default_rng(seed)
@@ -137,7 +132,7 @@ def seed_replay_buffer(model: OffPolicyAlgorithm, episodes: int, noise: float, s
     added = 0
     assert model.replay_buffer is not None
     for episode in range(episodes):
-        obs, _ = env.reset(seed=DEMO_SEED + 1000 * seed + episode)
+        obs, _ = env.reset(seed=DEMONSTRATION_SEED + 1000 * seed + episode)
         done = False
         while not done:
             action = np.clip(controller(obs) + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
@@ -159,14 +154,14 @@ def seed_replay_buffer(model: OffPolicyAlgorithm, episodes: int, noise: float, s
 
 def _demonstrations(episodes: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Observations visited with noisy potential-field actions, labelled with its clean actions."""
-    from train.potential_field import PotentialFieldController
+    from embedrl.train.potential_field import PotentialFieldController
 
     controller = PotentialFieldController()
     rng = np.random.default_rng(seed)
     env = gym.make(ENV_ID)
     observations, labels = [], []
     for episode in range(episodes):
-        obs, _ = env.reset(seed=DEMO_SEED + 1000 * seed + episode)
+        obs, _ = env.reset(seed=DEMONSTRATION_SEED + 1000 * seed + episode)
         done = False
         while not done:
             clean = controller(obs)
@@ -357,7 +352,9 @@ def train(
         os.replace(tmp, checkpoint)
 
     def deterministic_return() -> float:
-        return evaluate(_policy_of(model, env), budget.eval_episodes, EVAL_SEED, "deterministic").mean_return
+        return evaluate(
+            _policy_of(model, env), budget.eval_episodes, VALIDATION_SEED, "deterministic"
+        ).mean_return
 
     monitor = RunMonitor(out, budget, state, save, deterministic_return, progress)
     remaining = budget.max_steps - int(state.get("steps", 0))
@@ -381,7 +378,7 @@ def train(
         "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    from train.plots import plot_progress
+    from embedrl.train.plots import plot_progress
 
     plot_progress(out / "curve.csv", out / "progress.png", f"{algo.upper()} ({preset_name}, seed {seed})")
     env.close()

@@ -10,8 +10,8 @@ import numpy as np
 import pymunk
 from gymnasium import spaces
 
-from train import layout
-from train.robot import (
+from embedrl.train import layout
+from embedrl.train.robot import (
     ANGULAR_FRICTION,
     LINEAR_FRICTION,
     PHYSICS_SUBSTEPS,
@@ -22,7 +22,7 @@ from train.robot import (
     WHEEL_FORCE_SCALE,
     WHEEL_HALF_TRACK,
 )
-from train.scenarios import STATIC
+from embedrl.train.scenarios import STATIC
 
 MAX_EPISODE_STEPS = STATIC.max_steps
 
@@ -255,7 +255,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode is None:
             gym.logger.warn("render() called without render_mode; use render_mode='rgb_array'")
             return None
-        from train.rendering import draw_frame
+        from embedrl.train.rendering import draw_frame
 
         return draw_frame(self.trajectory)
 

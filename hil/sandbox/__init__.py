@@ -27,11 +27,11 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from hil.errors import HilError
-from hil.sandbox.base import REPO, Guest, Provider, SandboxError
-from hil.sandbox.host import HostProvider
-from hil.sandbox.qemu import QemuProvider
-from hil.sandbox.uml import uml_providers
+from embedrl.hil.errors import HilError
+from embedrl.hil.sandbox.base import REPO, Guest, Provider, SandboxError
+from embedrl.hil.sandbox.host import HostProvider
+from embedrl.hil.sandbox.qemu import QemuProvider
+from embedrl.hil.sandbox.uml import uml_providers
 
 MODES = ("auto", "host", "uml", "qemu")
 PROBE_TIMEOUT_S = 60.0
@@ -77,7 +77,7 @@ def open_guest(provider: Provider, workdir: Path) -> Guest:
     guest = provider.boot(workdir)
     try:
         result = guest.run(
-            [guest.python, "-m", "hil.sandbox.probe", guest.iface], REPO, timeout_s=PROBE_TIMEOUT_S
+            [guest.python, "-m", "embedrl.hil.sandbox.probe", guest.iface], REPO, timeout_s=PROBE_TIMEOUT_S
         )
         if result.status != 0:
             raise SandboxError(

@@ -20,8 +20,8 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
-from hil.errors import HilError
-from hil.sandbox.console import Diagnosis, diagnose
+from embedrl.hil.errors import HilError
+from embedrl.hil.sandbox.console import Diagnosis, diagnose
 
 REPO = Path(__file__).resolve().parents[2]
 IFACE = "vcan0"

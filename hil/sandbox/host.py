@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from hil.sandbox.base import IFACE, Guest, JobResult, Provider, SandboxError
+from embedrl.hil.sandbox.base import IFACE, Guest, JobResult, Provider, SandboxError
 
 
 class HostGuest(Guest):

@@ -1,6 +1,6 @@
 """The sandbox self-test: an ``AF_CAN`` raw socket on the interface, one frame sent and received back.
 
-Run as ``python -m hil.sandbox.probe IFACE`` inside the guest; exit status 0 means SocketCAN works
+Run as ``python -m embedrl.hil.sandbox.probe IFACE`` inside the guest; exit status 0 means SocketCAN works
 there. Standard library only, so it also runs before the project's dependencies are installed.
 """
 

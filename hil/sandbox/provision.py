@@ -13,7 +13,7 @@ anything system-wide:
    only then is ``manifest.json`` written (the files, versions, URLs and SHA-256), which marks the
    cache as complete.
 
-Run as ``python -m hil.sandbox.provision [--suite sid] [--refresh] [--force]``: with a kernel cached
+Run as ``python -m embedrl.hil.sandbox.provision [--suite sid] [--refresh] [--force]``: with a kernel cached
 already it does nothing (no network) unless asked to. Standard library only, so the
 system Python runs it before the project is installed. Fails (exit 1) only if no UML kernel would
 work on this machine afterwards: where Debian's packaged UML passes its self-test, a failed download
@@ -34,8 +34,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from hil.sandbox import check
-from hil.sandbox.uml import MANIFEST, UmlKernel, UmlProvider, cache_root, cached_kernels, packaged_kernel
+from embedrl.hil.sandbox import check
+from embedrl.hil.sandbox.uml import (
+    MANIFEST,
+    UmlKernel,
+    UmlProvider,
+    cache_root,
+    cached_kernels,
+    packaged_kernel,
+)
 
 MIRROR = "http://deb.debian.org/debian"
 KEYRING = "/usr/share/keyrings/debian-archive-keyring.gpg"
@@ -172,7 +179,7 @@ def packaged_works() -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m hil.sandbox.provision", description=__doc__.split("\n")[0]
+        prog="python -m embedrl.hil.sandbox.provision", description=__doc__.split("\n")[0]
     )
     parser.add_argument("--suite", default=DEFAULT_SUITE, help="the Debian suite to take UML from")
     parser.add_argument(

@@ -15,7 +15,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from hil.sandbox.base import VCAN_UP, Guest, Provider, SandboxError, VmGuest
+from embedrl.hil.sandbox.base import VCAN_UP, Guest, Provider, SandboxError, VmGuest
 
 KERNELS = Path("/boot")
 MODULES = Path("/lib/modules")

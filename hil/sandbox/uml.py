@@ -18,7 +18,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
-from hil.sandbox.base import VCAN_UP, Guest, Provider, VmGuest
+from embedrl.hil.sandbox.base import VCAN_UP, Guest, Provider, VmGuest
 
 PACKAGED_BINARY = "linux.uml"
 PACKAGED_MODULES = Path("/usr/lib/uml/modules")

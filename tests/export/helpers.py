@@ -10,9 +10,9 @@ import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
 
-from export import build
-from export.codegen import generate
-from export.onnx_import import to_ir
+from embedrl.export import build
+from embedrl.export.codegen import generate
+from embedrl.export.onnx_import import to_ir
 
 _counter = itertools.count()
 

@@ -10,8 +10,8 @@ import onnx
 import pytest
 from onnx import helper
 
+from embedrl.cli import main
 from tests.export.helpers import make_model
-from train.cli import main
 
 
 def test_bench_export_reports_ratios_from_one_run(tmp_path: Path) -> None:

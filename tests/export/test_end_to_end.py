@@ -14,11 +14,11 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.running_mean_std import RunningMeanStd
 from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
-import train
-from export.verify import MAX_DIFFERING_OUTCOMES, MIN_SAMPLES, TOLERANCE
-from train.cli import main
-from train.interface import Interface
-from train.scenarios import STATIC
+from embedrl import train
+from embedrl.cli import main
+from embedrl.export.verify import MAX_DIFFERING_OUTCOMES, MIN_SAMPLES, TOLERANCE
+from embedrl.train.interface import Interface
+from embedrl.train.scenarios import STATIC
 
 pytestmark = pytest.mark.slow
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}

@@ -10,11 +10,11 @@ import onnx
 import pytest
 from onnx import helper
 
-from export.codegen import generate
-from export.errors import ExportError, InvalidModelError, UnsupportedOpError
-from export.onnx_import import load_onnx, to_ir
+from embedrl.cli import main
+from embedrl.export.codegen import generate
+from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedOpError
+from embedrl.export.onnx_import import load_onnx, to_ir
 from tests.export.helpers import make_model
-from train.cli import main
 
 F = np.float32
 mk = helper.make_node
@@ -208,8 +208,8 @@ def test_cli_rejects_a_non_numeric_safe_action(capsys: pytest.CaptureFixture[str
 
 
 def test_closed_loop_counts_differing_outcomes_and_diagnoses_them() -> None:
-    from export import verify
-    from train.potential_field import PotentialFieldController
+    from embedrl.export import verify
+    from embedrl.train.potential_field import PotentialFieldController
 
     pf = PotentialFieldController()
 
@@ -234,7 +234,7 @@ def test_closed_loop_counts_differing_outcomes_and_diagnoses_them() -> None:
 def test_failed_closed_loop_fails_the_export_and_writes_nothing(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from export import verify
+    from embedrl.export import verify
 
     def always_differs(
         reference: Any, compiled: Any, episodes: int, seed: int, progress: bool

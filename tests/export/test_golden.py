@@ -13,8 +13,8 @@ import onnx
 import pytest
 from onnx import helper
 
-from export.codegen import c_float, generate
-from export.onnx_import import to_ir
+from embedrl.export.codegen import c_float, generate
+from embedrl.export.onnx_import import to_ir
 from tests.export.helpers import make_model
 
 GOLDEN = Path(__file__).parent / "golden" / "tiny"

@@ -12,10 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from onnx import helper
 
-from export import build, fixed_point, quantize, verify
-from export.codegen import generate
-from export.errors import UnsupportedOpError
-from export.onnx_import import to_ir
+from embedrl.export import build, fixed_point, quantize, verify
+from embedrl.export.codegen import generate
+from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.onnx_import import to_ir
 from tests.export.helpers import make_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")

@@ -14,9 +14,9 @@ from typing import Any
 import onnx
 import pytest
 
-from export.build import RUNTIME_C
+from embedrl.cli import main
+from embedrl.export.build import RUNTIME_C
 from tests.export.helpers import mlp_model
-from train.cli import main
 
 pytestmark = pytest.mark.slow
 

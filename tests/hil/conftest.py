@@ -15,9 +15,9 @@ from pathlib import Path
 
 import pytest
 
-import hil.sandbox as sandbox
-from hil.sandbox import Guest
-from train.cli import main
+import embedrl.hil.sandbox as sandbox
+from embedrl.cli import main
+from embedrl.hil.sandbox import Guest
 
 
 @pytest.fixture(scope="session")
@@ -25,7 +25,9 @@ def export_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """The example TD3 actor (imitating the potential-field controller, so its episodes succeed), exported."""
     root = tmp_path_factory.mktemp("hil")
     subprocess.run(
-        [sys.executable, "-m", "export.example", str(root / "td3.zip")], check=True, capture_output=True
+        [sys.executable, "-m", "embedrl.export.example", str(root / "td3.zip")],
+        check=True,
+        capture_output=True,
     )
     assert main(["export", str(root / "td3.zip"), "--out", str(root / "export"), "--episodes", "0"]) == 0
     return root / "export"

@@ -13,10 +13,10 @@ from typing import Any
 
 import pytest
 
-import hil.sandbox as sandbox
-from hil.cli import cmd_run
-from hil.sandbox import Guest, Provider, SandboxError
-from train.cli import build_parser
+import embedrl.hil.sandbox as sandbox
+from embedrl.cli import build_parser
+from embedrl.hil.cli import cmd_run
+from embedrl.hil.sandbox import Guest, Provider, SandboxError
 
 REQUIRED = {p for p in os.environ.get("EMBEDRL_REQUIRE_SANDBOXES", "").split(",") if p}
 

@@ -10,11 +10,11 @@ import can
 import numpy as np
 import pytest
 
-from hil import candb
-from hil.codec import Action, Codec
-from hil.errors import HilError
-from train.interface import Field, Interface
-from train.scenarios import STATIC
+from embedrl.hil import candb
+from embedrl.hil.codec import Action, Codec
+from embedrl.hil.errors import HilError
+from embedrl.train.interface import Field, Interface
+from embedrl.train.scenarios import STATIC
 
 GOLDEN = Path(__file__).parent / "golden"
 SHIPPED_DBC = Path(candb.__file__).with_name("policy.dbc")
@@ -91,7 +91,7 @@ def test_any_number_of_fields_is_split_over_frames_and_decoded_back() -> None:
 
 
 def candb_frame(message: object, fields: dict[str, float]) -> bytes:
-    from hil import e2e
+    from embedrl.hil import e2e
 
     encoded = message.encode({"Crc": 0, **fields})  # type: ignore[attr-defined]
     return e2e.protect(message.frame_id, encoded)  # type: ignore[attr-defined]

@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import subprocess
+import sys
+from pathlib import Path
 
 import can
 import numpy as np
 import pytest
 
-from export.build import RUNTIME_C
-from hil import e2e
-from hil.codec import Action, Codec, Status, decode_fields
-from train.scenarios import STATIC
+from embedrl.export.build import RUNTIME_C
+from embedrl.hil import e2e
+from embedrl.hil.codec import Action, Codec, Status, decode_fields
+from embedrl.train.scenarios import STATIC
 
 
 def test_crc8_reference_vector_matches_the_c_node() -> None:
@@ -83,8 +85,12 @@ def test_actions_and_status_are_decoded_only_when_e2e_valid() -> None:
 
 
 @pytest.mark.parametrize("target", ["test", "asan"])
-def test_c_unit_tests_pass(target: str) -> None:
+def test_c_unit_tests_pass(target: str, tmp_path: Path) -> None:
     """The node's C unit tests (fake transport), plain and under AddressSanitizer + UBSan."""
-    result = subprocess.run(["make", "-s", "-C", str(RUNTIME_C), target], capture_output=True, text=True)
+    result = subprocess.run(
+        ["make", "-s", "-C", str(RUNTIME_C), target, f"BUILD_DIR={tmp_path}", f"PYTHON={sys.executable}"],
+        capture_output=True,
+        text=True,
+    )
     assert result.returncode == 0, result.stdout + result.stderr
     assert "0 failures" in result.stdout

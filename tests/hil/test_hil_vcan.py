@@ -16,11 +16,11 @@ from typing import Any
 
 import pytest
 
-from hil.errors import HilError
-from hil.sandbox import Guest
-from hil.sandbox.base import JobResult
+from embedrl.cli import main
+from embedrl.hil.errors import HilError
+from embedrl.hil.sandbox import Guest
+from embedrl.hil.sandbox.base import JobResult
 from tests.hil.helpers import hil
-from train.cli import main
 
 pytestmark = pytest.mark.slow
 NODE_TIMEOUT_MS = 200

@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-import hil.sandbox as sandbox
-from hil.errors import HilError
-from hil.sandbox.base import Guest, JobResult, Provider, SandboxError, VmGuest
-from hil.sandbox.console import diagnose
+import embedrl.hil.sandbox as sandbox
+from embedrl.hil.errors import HilError
+from embedrl.hil.sandbox.base import Guest, JobResult, Provider, SandboxError, VmGuest
+from embedrl.hil.sandbox.console import diagnose
 
 CONSOLES = Path(__file__).parent / "consoles"
 
@@ -120,8 +120,10 @@ def test_a_guest_dying_during_a_job_is_diagnosed(tmp_path: Path) -> None:
     script = f"touch {tmp_path}/queue/ready; while [ ! -e {tmp_path}/queue/job-1.sh ]; do sleep 0.05; done; "
     command = ["sh", "-c", script + f"cat {CONSOLES / 'uml_no_init_panic.log'}; exit 134"]
     guest = VmGuest("uml", "uml: test", command, tmp_path, "", "true", 30)
-    with pytest.raises(SandboxError, match=r"died while running `python -m hil.session x` .*panicked"):
-        guest.run(["python", "-m", "hil.session", "x"], tmp_path, timeout_s=30)
+    with pytest.raises(
+        SandboxError, match=r"died while running `python -m embedrl.hil.session x` .*panicked"
+    ):
+        guest.run(["python", "-m", "embedrl.hil.session", "x"], tmp_path, timeout_s=30)
 
 
 class FakeGuest(Guest):

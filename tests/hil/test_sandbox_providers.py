@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-import hil.sandbox as sandbox
-from hil.sandbox import Guest, Provider
+import embedrl.hil.sandbox as sandbox
+from embedrl.cli import main
+from embedrl.hil.sandbox import Guest, Provider
 from tests.hil.helpers import boot_or_skip, hil
-from train.cli import main
 
 pytestmark = pytest.mark.slow
 CANDIDATES = sandbox.providers("auto")

@@ -1,0 +1,90 @@
+"""Shared by every package (the bottom layer): atomic files, JSON reports with provenance, key-value
+tables, and the seed bases that keep the seeds of different purposes apart.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+from collections.abc import Callable, Iterable
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+# Seed bases: an evaluation with seed S resets episode i with S + i, so bases a million apart never
+# share a start pose between purposes (training uses seeds 0..999,999).
+VALIDATION_SEED = 1_000_000
+"""Deterministic evaluations during training (validation: the model kept is chosen on these)."""
+BENCH_TEST_SEED = 2_000_000
+"""The benchmark's held-out evaluation of every trained model."""
+DEMONSTRATION_SEED = 3_000_000
+"""Episodes of the potential-field controller put into the replay buffer as demonstrations."""
+SHIP_TEST_SEED = 5_000_000
+"""The quality gate of shipped policies."""
+EXAMPLE_SEED = 900_000
+"""Rollouts of the example actor's imitation data."""
+ROLLOUT_SEED_OFFSET = 1_000_000
+"""The export's verification rollouts start this far above the export's ``--seed``."""
+
+PROVENANCE_PACKAGES = ("embedrl", "gymnasium", "pymunk", "numpy", "stable-baselines3", "torch")
+
+
+def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
+    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``.
+
+    Creates missing parent folders. If anything fails, the temporary file is removed and
+    ``path`` keeps its previous content (or stays absent).
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def provenance() -> dict[str, Any]:
+    """What produced a result: the command line and the versions of the packages that matter."""
+    versions: dict[str, str | None] = {}
+    for pkg in PROVENANCE_PACKAGES:
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    return {"command": sys.argv, "python": sys.version.split()[0], "versions": versions}
+
+
+def write_json(data: dict[str, Any], path: Path) -> None:
+    """Write JSON atomically: the file is complete or absent, never half-written. NaN becomes null."""
+    text = json.dumps(_finite(data), indent=2, allow_nan=False) + "\n"
+    atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
+def _finite(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
+
+
+def table(rows: Iterable[tuple[str, object]]) -> str:
+    """Key-value rows, keys padded to one column: the format of every report the CLI prints."""
+    pairs = [(k, " ".join(map(str, v)) if isinstance(v, list) else str(v)) for k, v in rows]
+    if not pairs:
+        return ""
+    width = max(len(k) for k, _ in pairs)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in pairs)
+
+
+def print_measurement(result: dict[str, Any], json_path: Path | None) -> None:
+    """A benchmark's numbers as a table; with ``json_path`` also as JSON with provenance."""
+    print(table(result.items()))
+    if json_path:
+        write_json({**result, "provenance": provenance()}, json_path)
+        print(f"wrote {json_path}")
