@@ -27,7 +27,7 @@ apt-packages:
 	else echo "missing Debian packages:$$missing; run: sudo apt-get install$$missing" >&2; exit 1; fi; \
 	$$SUDO apt-get update -q && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -q $$missing
 
-# torch first and pinned: an unpinned torch pulls several GB of CUDA wheels (platform notes).
+# torch first and pinned: an unpinned torch pulls several GB of CUDA wheels.
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
@@ -81,8 +81,8 @@ bench: $(STAMP)
 	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --json $(OUT)/bench/export.json
 
-# Until the training issue ships policies: a briefly trained TD3 with the study's 6-100-100-2 actor,
-# exported with the full verification (10,000 samples, 200 closed-loop episodes).
+# A TD3 with the study's 6-100-100-2 actor trained in a minute by imitating the potential-field controller
+# (independent of the shipped policies), exported with the full verification (10,000 samples, 200 episodes).
 export-example: $(STAMP)
 	$(PY) -m embedrl.export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force

@@ -1,1 +1,1 @@
-"""embedrl export: trained policy -> ONNX -> frozen IR -> generated C (issue 4; not built yet)."""
+"""embedrl export: trained policy -> ONNX -> frozen IR -> generated C, each step verified."""

@@ -1,4 +1,4 @@
-"""An example policy to export while no shipped policies exist: ``python -m embedrl.export.example OUT.zip``.
+"""An example policy trained in a minute: ``python -m embedrl.export.example OUT.zip``.
 
 A TD3 model with the reference study's actor (6 -> 100 -> 100 -> 2, ReLU, tanh) whose actor is
 trained by imitation of the potential-field controller (DAgger: roll out the learner, label every

@@ -1,1 +1,1 @@
-"""embedrl HIL: CAN database, vcan provisioning, hardware-in-the-loop harness (issue 6; not built yet)."""
+"""embedrl HIL: the CAN database generator, CAN sandboxes, the hardware-in-the-loop harness."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import tempfile
 from contextlib import nullcontext
@@ -13,14 +14,15 @@ from typing import TYPE_CHECKING, Any
 
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
+from embedrl.hil.faults import INJECTORS
 from embedrl.hil.sandbox import MODES
 from embedrl.train.interface import INTERFACE_FILE
 
 if TYPE_CHECKING:
     from embedrl.hil.sandbox import Guest
+    from embedrl.hil.session import SessionConfig
 
 REPO = Path(__file__).resolve().parents[1]
-INJECTIONS = ("corrupt", "silent", "kill")
 SESSION_TIMEOUT_S = 3600.0
 """A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
 DEFAULT_TIMEOUT_MS = candb.WATCHDOG_MS
@@ -70,13 +72,50 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
     return results
 
 
+def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **where: Any) -> SessionConfig:
+    from embedrl.hil.session import SessionConfig
+
+    print(
+        f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
+        + (f", injecting '{args.inject}'" if args.inject else "")
+    )
+    return SessionConfig(
+        onnx=str(onnx),
+        interface=str(export_dir / INTERFACE_FILE),
+        node=args.node,
+        episodes=args.episodes,
+        seed=args.seed,
+        node_timeout_ms=args.timeout_ms,
+        realtime=args.realtime,
+        inject=args.inject,
+        **where,
+    )
+
+
 def _build_and_run(
     args: argparse.Namespace, guest: Guest | None, export_dir: Path, onnx: Path, work: Path
 ) -> dict[str, Any]:
     from embedrl.export import build
     from embedrl.export.errors import BuildError
     from embedrl.hil import sandbox
-    from embedrl.hil.session import SessionConfig
+    from embedrl.hil.session import run
+
+    if args.node == "python":
+        # The reference node on python-can's virtual bus, in this process: no kernel, no build.
+        log = work / f"frames{args.log.suffix}" if args.log else None
+        cfg = _session_config(
+            args, onnx, export_dir, bus="virtual", iface=f"embedrl-{os.getpid()}-{work.name}",
+            log=str(log) if log else None, results=str(work / "results.json"),
+        )  # fmt: skip
+        local = run(cfg)
+        if log:
+            args.log.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(log, args.log)
+        return {
+            **local,
+            "sandbox": "none",
+            "sandbox_detail": "python-can virtual bus (Python reference node)",
+        }
 
     print(f"building the node: make -C runtime_c node POLICY_DIR={export_dir / 'c'}")
     try:
@@ -86,23 +125,10 @@ def _build_and_run(
     with nullcontext(guest) if guest else sandbox.opened(args.sandbox, work / "sandbox") as where:
         scratch = where.scratch()  # the session's results and log: writable from inside the guest
         log = scratch / f"frames{args.log.suffix}" if args.log else None
-        cfg = SessionConfig(
-            node=str(work / "build" / "policy_node"),
-            onnx=str(onnx),
-            interface=str(export_dir / INTERFACE_FILE),
-            iface=where.iface,
-            episodes=args.episodes,
-            seed=args.seed,
-            node_timeout_ms=args.timeout_ms,
-            realtime=args.realtime,
-            log=str(log) if log else None,
-            results=str(scratch / "results.json"),
-            inject=args.inject,
-        )
-        print(
-            f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
-            + (f", injecting '{args.inject}'" if args.inject else "")
-        )
+        cfg = _session_config(
+            args, onnx, export_dir, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
+            log=str(log) if log else None, results=str(scratch / "results.json"),
+        )  # fmt: skip
         config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
         job = where.run(
@@ -135,7 +161,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
             e["steps"],
             e["episode_return"],
             e["time_s"],
-            None,
+            e.get("collided_with"),
             [tuple(p) for p in e["trajectory"]],
         )
         for e in results["episodes"]
@@ -268,7 +294,16 @@ def register(sub: Any) -> None:
         default=DEFAULT_TIMEOUT_MS,
         help=f"the node's watchdog (default {candb.WATCHDOG_MS}); must exceed the policy's sample time",
     )
-    r.add_argument("--inject", choices=INJECTIONS, help="fault injection at step 3 of the first episode")
+    r.add_argument(
+        "--inject", choices=sorted(INJECTORS), help="fault injection at step 3 of the first episode"
+    )
+    r.add_argument(
+        "--node",
+        choices=("c", "python"),
+        default="c",
+        help="c: the compiled node over SocketCAN vcan0 (the verdict); python: the Python reference node on "
+        "python-can's virtual bus (no kernel, no build: the harness logic only)",
+    )
     r.set_defaults(func=cmd_run)
     d = hil_sub.add_parser(
         "doctor", help="check every CAN sandbox provider on this machine (run this first when HIL fails)"

@@ -124,8 +124,17 @@ def cmd_train(args: argparse.Namespace) -> int:
     out = args.resume or args.out
     if out is None:
         raise UsageError("give --out DIR for a new run or --resume DIR to continue one")
+    if args.resume is not None and args.set:
+        raise UsageError("--set changes a new run's hyperparameters; a resumed run keeps its own")
     summary = train(
-        args.algo, args.preset, args.seed, out, budget, resume=args.resume is not None, progress=True
+        args.algo,
+        args.preset,
+        args.seed,
+        out,
+        budget,
+        resume=args.resume is not None,
+        progress=True,
+        overrides=args.set,
     )
     for key, value in summary.items():
         print(f"{key:<36}  {value}")
@@ -165,6 +174,13 @@ def register(sub: Any) -> None:
     p.add_argument("--algo", choices=ALGOS, default="td3")
     p.add_argument("--scenario", choices=["static"], default="static")
     p.add_argument("--preset", choices=PRESETS, default="tuned")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="change one of the preset's hyperparameters, e.g. --set learning_rate=3e-4 (repeatable)",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, help="new run directory")
     p.add_argument("--resume", type=Path, help="continue the run in this directory from its last checkpoint")

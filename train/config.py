@@ -9,7 +9,8 @@ the network sizes (so the deployed C stays comparable) and changes what helps le
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
 ALGOS = ("ddpg", "td3", "sac", "ppo")
@@ -141,6 +142,8 @@ class RunConfig:
     scenario: str = "static"
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     budget: dict[str, Any] = field(default_factory=dict)
+    overrides: list[str] = field(default_factory=list)
+    """``--set NAME=VALUE`` assignments applied to the preset (already in ``hyperparameters``)."""
 
 
 def preset(algo: str, name: str) -> AlgoConfig:
@@ -196,6 +199,44 @@ def preset(algo: str, name: str) -> AlgoConfig:
         ),
     }
     return tuned[algo]
+
+
+def with_overrides(config: AlgoConfig, assignments: Sequence[str]) -> AlgoConfig:
+    """``config`` with ``NAME=VALUE`` assignments applied (``--set``), each parsed as its field's type.
+
+    Numbers must be finite; tuples are comma-separated (``net_arch=64,64``); booleans are true/false.
+    """
+    names = {f.name for f in fields(config)}
+    changes: dict[str, Any] = {}
+    for text in assignments:
+        key, sep, raw = text.partition("=")
+        key = key.strip()
+        if not sep or key not in names:
+            raise ValueError(
+                f"--set {text!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(names))}"
+            )
+        changes[key] = _parse(key, raw.strip(), getattr(config, key))
+    return replace(config, **changes)
+
+
+def _parse(key: str, raw: str, current: Any) -> Any:
+    try:
+        if isinstance(current, bool):
+            if raw.lower() not in ("true", "false"):
+                raise ValueError("use true or false")
+            return raw.lower() == "true"
+        if isinstance(current, tuple):
+            return tuple(int(v) for v in raw.split(",") if v.strip())
+        if isinstance(current, int):
+            return int(raw)
+        if isinstance(current, float):
+            value = float(raw)
+            if not math.isfinite(value):
+                raise ValueError("not a finite number")
+            return value
+        return raw
+    except ValueError as exc:
+        raise ValueError(f"--set {key}={raw}: {exc}") from None
 
 
 def to_dict(config: AlgoConfig) -> dict[str, Any]:

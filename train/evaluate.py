@@ -123,8 +123,14 @@ class EvalReport:
         return table(rows)
 
 
-def run_episode(env: gym.Env[np.ndarray, np.ndarray], policy: Policy, seed: int) -> EpisodeResult:
-    """Run one episode from ``reset(seed=seed)`` until it terminates or is truncated."""
+def run_episode(
+    env: gym.Env[np.ndarray, np.ndarray], policy: Policy, seed: int, sample_time: float = SAMPLE_TIME
+) -> EpisodeResult:
+    """Run one episode from ``reset(seed=seed)`` until it terminates or is truncated.
+
+    The outcome comes from ``info``'s ``is_success`` and ``collided`` (an env without them only times
+    out); ``sample_time`` converts steps to simulated time.
+    """
     obs, info = env.reset(seed=seed)
     total, steps = 0.0, 0
     while True:
@@ -133,14 +139,16 @@ def run_episode(env: gym.Env[np.ndarray, np.ndarray], policy: Policy, seed: int)
         steps += 1
         if terminated or truncated:
             break
-    if info["is_success"]:
+    if info.get("is_success"):
         outcome = "success"
-    elif info["collided"]:
+    elif info.get("collided"):
         outcome = "collision"
     else:
         outcome = "timeout"
     trajectory = list(getattr(env.unwrapped, "trajectory", []))
-    return EpisodeResult(seed, outcome, steps, total, steps * SAMPLE_TIME, info["collided_with"], trajectory)
+    return EpisodeResult(
+        seed, outcome, steps, total, steps * sample_time, info.get("collided_with"), trajectory
+    )
 
 
 def evaluate(policy: Policy, episodes: int, seed: int, name: str, progress: bool = False) -> EvalReport:

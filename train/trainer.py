@@ -18,7 +18,7 @@ import json
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +46,7 @@ from embedrl.train.config import (
     TD3Config,
     preset,
     to_dict,
+    with_overrides,
 )
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
@@ -292,8 +293,12 @@ def train(
     budget: Budget | None = None,
     resume: bool = False,
     progress: bool = False,
+    overrides: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Train one agent into ``out`` (or continue the run there); return its summary."""
+    """Train one agent into ``out`` (or continue the run there); return its summary.
+
+    ``overrides``: ``NAME=VALUE`` changes to the preset's hyperparameters (recorded in config.json and
+    applied again on resume)."""
     budget = budget or Budget()
     if algo not in ALGOS:
         raise UsageError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
@@ -303,9 +308,13 @@ def train(
             raise UsageError(f"cannot resume {out}: no config.json (not a run directory)")
         saved = json.loads((out / "config.json").read_text())
         algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
+        overrides = saved.get("overrides", [])
     elif out.exists() and any(out.iterdir()):
         raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
-    cfg = preset(algo, preset_name)
+    try:
+        cfg = with_overrides(preset(algo, preset_name), overrides)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations
     out.mkdir(parents=True, exist_ok=True)
     checkpoint = out / "checkpoint"
@@ -322,7 +331,14 @@ def train(
             model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
         _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
     else:
-        run_config = RunConfig(algo, preset_name, seed, hyperparameters=to_dict(cfg), budget=vars(budget))
+        run_config = RunConfig(
+            algo,
+            preset_name,
+            seed,
+            hyperparameters=to_dict(cfg),
+            budget=vars(budget),
+            overrides=list(overrides),
+        )
         (out / "config.json").write_text(
             json.dumps({**vars(run_config), "provenance": provenance()}, indent=2)
         )

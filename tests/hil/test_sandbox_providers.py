@@ -7,14 +7,12 @@ skip says why; CI sets ``EMBEDRL_REQUIRE_SANDBOXES=uml,qemu`` so those two canno
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 import embedrl.hil.sandbox as sandbox
-from embedrl.cli import main
 from embedrl.hil.sandbox import Guest, Provider
 from tests.hil.helpers import boot_or_skip, hil
 
@@ -47,26 +45,3 @@ def test_a_lock_step_episode_over_vcan_equals_the_simulation(
     assert report["crc_errors"] == 0 and report["sequence_errors"] == 0
     lines = log.read_text().splitlines()  # written inside the guest, moved to where it was asked for
     assert len(lines) == report["frames_tx"] + report["frames_rx"]
-
-
-def test_the_doctor_checks_every_provider_and_names_the_one_auto_uses(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    out = tmp_path / "doctor.json"
-    code = main(["hil", "doctor", "--json", str(out)])
-    printed = capsys.readouterr().out
-    report = json.loads(out.read_text())
-    assert report["machine"]["cpu"] and isinstance(report["machine"]["amx"], bool)
-    labels = [c["label"] for c in report["providers"]]
-    assert labels == [p.label for p in CANDIDATES]
-    working = [c for c in report["providers"] if c["works"]]
-    assert code == (0 if working else 1)
-    assert report["first_working"] == (working[0]["label"] if working else None)
-    for c in report["providers"]:
-        assert c["reason"]
-        assert (c["boot_s"] is not None and c["boot_s"] > 0) == c["works"]
-        if c["works"]:
-            assert "vcan0 up, AF_CAN frame round trip ok" in c["reason"]
-        assert f"{c['label']}  " in printed  # one table row per provider
-    assert printed.splitlines()[0].startswith("machine: ")
-    assert f"--sandbox auto uses: {report['first_working']}" in printed

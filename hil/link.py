@@ -1,0 +1,92 @@
+"""The simulator's end of the bus: send observation frames, collect actions and status, log every frame.
+
+Works on any python-can bus (:class:`can.BusABC`): SocketCAN ``vcan0`` for the verdict, python-can's
+virtual bus for fast tests of the session logic.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import can
+
+from embedrl.hil.codec import STEP_MODULO, Action, Codec, Status
+
+
+@dataclass
+class Stats:
+    frames_tx: int = 0
+    frames_rx: int = 0
+    rx_timeouts: int = 0
+    latencies_us: list[float] = field(default_factory=list)
+    diffs: list[float] = field(default_factory=list)
+    first_divergent_step: int | None = None
+    deadline_misses: int = 0
+    step_starts: list[list[float]] = field(default_factory=list)
+    """Real time: when each step's observation went out (monotonic seconds), per episode."""
+    last_status: Status | None = None
+    last_status_time: float = 0.0
+
+
+class Link:
+    """Frames out and in through ``bus``, decoded with ``codec``, counted in ``stats``, logged to ``log``."""
+
+    def __init__(self, bus: can.BusABC, codec: Codec, stats: Stats, channel: str, log: str | None) -> None:
+        self.bus = bus
+        self.codec = codec
+        self.stats = stats
+        self.channel = channel
+        self.log = can.Logger(log) if log else None
+
+    def send(self, frames: list[can.Message]) -> None:
+        for frame in frames:
+            frame.timestamp = time.time()
+            frame.channel = self.channel
+            frame.is_rx = False
+            self.bus.send(frame)
+            self.stats.frames_tx += 1
+            if self.log:
+                self.log(frame)
+
+    def receive(self, timeout_s: float) -> Action | Status | bool | None:
+        """One frame within ``timeout_s``, decoded (None: not ours or not valid); False if none came."""
+        msg = self.bus.recv(timeout=max(timeout_s, 0.0))
+        if msg is None:
+            return False
+        # python-can flags frames from another local socket (the node) as Tx; they are received here.
+        msg.is_rx = True
+        msg.channel = self.channel
+        self.stats.frames_rx += 1
+        if self.log:
+            self.log(msg)
+        decoded = self.codec.decode(msg)
+        if isinstance(decoded, Status):
+            self.stats.last_status, self.stats.last_status_time = decoded, time.monotonic()
+        return decoded
+
+    def wait_action(self, step: int, timeout_s: float) -> Action | None:
+        """Drain the bus until the action for ``step`` arrives or the timeout passes."""
+        deadline = time.monotonic() + timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            decoded = self.receive(remaining)
+            if decoded is False:
+                return None
+            if isinstance(decoded, Action) and decoded.step == step % STEP_MODULO:
+                return decoded
+        return None
+
+    def wait_status(self, timeout_s: float) -> Status | None:
+        deadline = time.monotonic() + timeout_s
+        while (remaining := deadline - time.monotonic()) > 0:
+            decoded = self.receive(remaining)
+            if decoded is False:
+                return None
+            if isinstance(decoded, Status):
+                return decoded
+        return None
+
+    def close(self) -> None:
+        if self.log:
+            self.log.stop()
+        self.bus.shutdown()

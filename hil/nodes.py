@@ -1,0 +1,234 @@
+"""The policy node behind one interface: the compiled C node as a process, or a Python reference node.
+
+:class:`PythonNode` follows the C node's rules (``runtime_c/node/node.c``) frame for frame: E2E checks
+(CRC, alive counter), each signal's range, an observation only from frames of one step, the watchdog
+with the interface's safe action, recovery after K valid observations, a status frame every
+:data:`~embedrl.hil.candb.STATUS_PERIOD_MS`. Its policy is the exported ONNX under onnxruntime. It runs in
+a thread on any python-can bus, so the session logic is tested on python-can's virtual bus in
+milliseconds; the C node over SocketCAN gives the verdict.
+"""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import threading
+import time
+from abc import ABC, abstractmethod
+
+import can
+import numpy as np
+import onnxruntime as ort
+
+from embedrl.hil import candb, e2e
+from embedrl.hil.codec import decode_fields
+from embedrl.train.interface import Interface
+
+STOP_TIMEOUT_S = 5.0
+U8_MAX, U16_MAX, INFERENCE_US_MAX = 255, 65535, 1023
+
+
+class Node(ABC):
+    """A running policy node."""
+
+    @abstractmethod
+    def alive(self) -> bool: ...
+
+    @abstractmethod
+    def exit_reason(self) -> str:
+        """Why it is gone (for a fault message)."""
+
+    @abstractmethod
+    def kill(self) -> None:
+        """End it at once, as a crash would."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """End it in order."""
+
+
+class CNode(Node):
+    """``policy_node --iface IFACE --timeout-ms T --recover K`` as a child process."""
+
+    def __init__(self, binary: str, iface: str, timeout_ms: int, recover: int) -> None:
+        self.process = subprocess.Popen(
+            [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover)],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+
+    def alive(self) -> bool:
+        return self.process.poll() is None
+
+    def exit_reason(self) -> str:
+        return f"the node exited with status {self.process.returncode}"
+
+    def kill(self) -> None:
+        self.process.kill()
+        self.process.wait()
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+
+
+class PythonNode(Node):
+    """The reference node: the C node's rules in Python, the exported ONNX as the policy."""
+
+    def __init__(
+        self, bus: can.BusABC, interface: Interface, onnx: str, timeout_ms: int, recover: int
+    ) -> None:
+        self.bus = bus
+        self.interface = interface
+        self.db = candb.database(interface)
+        self.plan = candb.layout(interface)
+        self.session = ort.InferenceSession(onnx, providers=["CPUExecutionProvider"])
+        self.input = self.session.get_inputs()[0].name
+        self.timeout_s = timeout_ms / 1000
+        self.recover = recover
+        self.safe = np.asarray(interface.safe_action, dtype=np.float32)
+        self.obs_ids = [frame_id for _, frame_id, _ in self.plan.observation]
+        self.rx = {frame_id: e2e.Receiver() for frame_id in self.obs_ids}
+        self.tx_counters: dict[int, int] = {}
+        self.state = "RUN"
+        self.counts = dict.fromkeys(
+            ("frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors"), 0
+        )
+        self.inference_us = 0
+        self.pending_step: int | None = None
+        self.pending_parts: set[int] = set()
+        self.pending_obs = np.zeros(len(interface.observation), dtype=np.float32)
+        self.armed = False
+        self.consecutive_valid = 0
+        self.last_step = 0
+        now = time.monotonic()
+        self.last_valid = self.last_safe = self.next_status = now
+        self._stop = threading.Event()
+        self._killed = False
+        self.thread = threading.Thread(target=self._run, name="python-node", daemon=True)
+        self.thread.start()
+
+    def alive(self) -> bool:
+        return self.thread.is_alive()
+
+    def exit_reason(self) -> str:
+        return "the node exited (the Python node was killed)" if self._killed else "the node exited"
+
+    def kill(self) -> None:
+        self._killed = True
+        self._stop.set()
+        self.thread.join()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self.thread.join()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                wait = self._poll(time.monotonic())
+                msg = self.bus.recv(timeout=min(wait, 0.05))
+                if msg is not None and not self._stop.is_set():
+                    self._on_frame(msg, time.monotonic())
+        finally:
+            self.bus.shutdown()
+
+    def _send(self, name: str, fields: dict[str, float]) -> None:
+        message = self.db.get_message_by_name(name)
+        counter = self.tx_counters.get(message.frame_id, 0)
+        self.tx_counters[message.frame_id] = (counter + 1) % e2e.COUNTER_MODULO
+        data = message.encode({"Crc": 0, "Counter": counter, **fields}, scaling=True, strict=False)
+        self.bus.send(
+            can.Message(
+                arbitration_id=message.frame_id,
+                data=e2e.protect(message.frame_id, data),
+                is_extended_id=False,
+            )
+        )
+
+    def _send_action(self, action: np.ndarray, step: int) -> None:
+        for name, _, slots in self.plan.action:
+            self._send(name, {"Step": step, **{s.signal: float(action[s.index]) for s in slots}})
+
+    def _send_status(self) -> None:
+        self._send(
+            "NodeStatus",
+            {
+                "State": 1 if self.state == "SAFE" else 0,
+                "FramesOk": min(self.counts["frames_ok"], U16_MAX),
+                "CrcErrors": min(self.counts["crc_errors"], U8_MAX),
+                "SequenceErrors": min(self.counts["sequence_errors"], U8_MAX),
+                "Timeouts": min(self.counts["timeouts"], U8_MAX),
+                "InferenceUs": min(self.inference_us, INFERENCE_US_MAX),
+            },
+        )
+
+    def _poll(self, now: float) -> float:
+        """Watchdog and status; the seconds until the next deadline (as ``node_poll``)."""
+        if self.armed and self.state == "RUN" and now - self.last_valid >= self.timeout_s:
+            self.counts["timeouts"] += 1
+            self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
+            self._send_action(self.safe, self.last_step)
+            self._send_status()
+        elif self.state == "SAFE" and min(now - self.last_safe, now - self.last_valid) >= self.timeout_s:
+            self.last_safe = now
+            self._send_action(self.safe, self.last_step)
+        if now >= self.next_status:
+            self._send_status()
+            self.next_status = now + candb.STATUS_PERIOD_MS / 1000
+        return max(0.0, min(self.next_status - now, self.timeout_s))
+
+    def _on_frame(self, msg: can.Message, now: float) -> None:
+        if msg.is_extended_id or msg.arbitration_id not in self.rx or msg.dlc != candb.FRAME_BYTES:
+            return  # not an observation frame: the C node counts it as rejected
+        data = bytes(msg.data)
+        if not e2e.crc_ok(msg.arbitration_id, data):
+            self.counts["crc_errors"] += 1
+            self.consecutive_valid = 0
+            return
+        message = self.db.get_message_by_frame_id(msg.arbitration_id)
+        fields = decode_fields(message, data)
+        verdict = self.rx[msg.arbitration_id].check(int(fields["Counter"]))
+        if verdict != "ok":
+            self.counts["sequence_errors"] += 1
+            self.consecutive_valid = 0
+        if verdict in ("repeated", "wrong_sequence"):
+            return
+        slots = self.plan.observation[self.obs_ids.index(msg.arbitration_id)][2]
+        if any(
+            not (s.field.low - s.scale / 2 <= fields[s.signal] <= s.field.high + s.scale / 2) for s in slots
+        ):
+            self.counts["range_errors"] += 1
+            self.consecutive_valid = 0
+            return
+        self.counts["frames_ok"] += 1
+        step = int(fields["Step"])
+        if self.pending_step != step:
+            self.pending_step, self.pending_parts = step, set()  # never mix frames of two steps
+        for s in slots:
+            self.pending_obs[s.index] = fields[s.signal]
+        self.pending_parts.add(msg.arbitration_id)
+        if len(self.pending_parts) == len(self.obs_ids):
+            self._complete(step, now)
+
+    def _complete(self, step: int, now: float) -> None:
+        self.last_valid, self.armed = now, True
+        self.consecutive_valid += 1
+        if self.state == "SAFE" and self.consecutive_valid >= self.recover:
+            self.state = "RUN"
+        if self.state == "SAFE":
+            action = self.safe
+        else:
+            start = time.perf_counter_ns()
+            out = np.asarray(
+                self.session.run(None, {self.input: self.pending_obs.reshape(1, -1)})[0]
+            ).reshape(-1)
+            self.inference_us = (time.perf_counter_ns() - start) // 1000
+            action = out.astype(np.float32) if np.all(np.isfinite(out)) else self.safe
+        self._send_action(action, step)
+        self.last_step = step
+        self.pending_step, self.pending_parts = None, set()
