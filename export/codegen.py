@@ -20,23 +20,14 @@ from embedrl.export.errors import ExportError
 from embedrl.export.fixed_point import FixedSection
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.base import c_float
+from embedrl.export.ops.deterministic import helper_source
 from embedrl.train.interface import Interface
 
 NAME_PATTERN = re.compile(r"[a-z_][a-z0-9_]{0,30}")
 """Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol."""
 VALUES_PER_LINE = 6
 _INTEGER_CTYPES = {"int8": "int8_t", "uint8": "uint8_t", "int16": "int16_t", "int64": "int64_t"}
-
-
-def c_float(value: float) -> str:
-    """A C float literal that round-trips the float32 value exactly (9 significant digits)."""
-    v = np.float32(value)
-    if not np.isfinite(v):
-        raise ExportError(f"cannot write non-finite constant {value!r} as C")
-    text = f"{float(v):.9g}"
-    if not any(c in text for c in ".en"):
-        text += ".0"
-    return text + "f"
 
 
 def _sanitize(name: str) -> str:
@@ -163,7 +154,7 @@ class _Context:
         for dependency in needs:
             self.helper(dependency)
         if name not in self.helpers:
-            self.helpers[name] = _helper_source(self.prefix, name)
+            self.helpers[name] = helper_source(self.prefix, name)
         return f"{self.prefix}_{name}"
 
     def constant(self, value: str) -> np.ndarray | None:
@@ -241,47 +232,6 @@ def _section_lines(section: FixedSection, ctx: _Context) -> tuple[list[str], lis
                 "}",
             ]
     return lines, decls
-
-
-def _helper_source(prefix: str, name: str) -> str:
-    """C of a deterministic math helper; mirrored operation by operation in export.quantize."""
-    from embedrl.export import quantize as q
-
-    if name == "exp_det":
-        lo, hi = c_float(q.EXP_CLAMP[0]), c_float(q.EXP_CLAMP[1])
-        steps = "\n".join(f"    p = p * f + {c_float(float(c))};" for c in reversed(q.EXP2_POLY[:-1]))
-        return f"""/* exp(x) from IEEE float operations only: the same bits anywhere (see export.quantize). */
-static float {prefix}_exp_det(float x)
-{{
-    x = x < {lo} ? {lo} : (x > {hi} ? {hi} : x);
-    const float t = x * {c_float(float(q.LOG2E))};
-    const float t_half = t + 0.5f;
-    int32_t n = (int32_t)t_half;
-    if ((float)n > t_half) {{
-        n -= 1; /* floor(t + 1/2): f stays within [-1/2, 1/2] */
-    }}
-    const float f = t - (float)n;
-    float p = {c_float(float(q.EXP2_POLY[-1]))};
-{steps}
-    union {{
-        uint32_t u;
-        float f;
-    }} two_n;
-    two_n.u = (uint32_t)(n + 127) << 23; /* 2^n exactly: n is within [-125, 127] */
-    return p * two_n.f;
-}}"""
-    if name == "tanh_det":
-        return f"""static float {prefix}_tanh_det(float x)
-{{
-    const float a = x < 0.0f ? -x : x;
-    float t = 1.0f - 2.0f / ({prefix}_exp_det(a + a) + 1.0f);
-    t = a > {c_float(q.TANH_SATURATION)} ? 1.0f : t;
-    return x < 0.0f ? -t : t;
-}}"""
-    return f"""static float {prefix}_sigmoid_det(float x)
-{{
-    return 1.0f / (1.0f + {prefix}_exp_det(-x));
-}}"""
 
 
 def _interface_block(up: str, interface: Interface | None) -> str:

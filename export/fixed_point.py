@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from embedrl.export import interpret
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import Graph, Node
 
@@ -99,50 +100,6 @@ def _consumers(graph: Graph, value: str) -> list[Node]:
     return [n for n in graph.nodes if value in n.inputs]
 
 
-def _float_forward(graph: Graph, obs: np.ndarray) -> dict[str, np.ndarray]:
-    """Every value of the graph in float64 (numpy), for calibration."""
-    values: dict[str, np.ndarray] = {graph.input: np.asarray(obs, np.float64).reshape(len(obs), -1)}
-
-    def get(name: str) -> np.ndarray:
-        return values[name] if name in values else np.asarray(graph.constants[name], np.float64).reshape(-1)
-
-    for node in graph.nodes:
-        x, op = get(node.inputs[0]), node.op
-        if op == "Gemm":
-            w = graph.constants[node.inputs[1]].astype(np.float64)
-            y = x @ (w.T if node.attr("transB", 0) else w)
-            if len(node.inputs) > 2 and node.inputs[2]:
-                y = y + graph.constants[node.inputs[2]].astype(np.float64).reshape(-1)
-        elif op == "MatMul":
-            y = x @ graph.constants[node.inputs[1]].astype(np.float64)
-        elif op in ("Add", "Sub", "Mul", "Div", "Max", "Min"):
-            b = get(node.inputs[1])
-            y = {
-                "Add": np.add,
-                "Sub": np.subtract,
-                "Mul": np.multiply,
-                "Div": np.divide,
-                "Max": np.fmax,
-                "Min": np.fmin,
-            }[op](x, b)
-        elif op == "Relu":
-            y = np.maximum(x, 0)
-        elif op == "Tanh":
-            y = np.tanh(x)
-        elif op == "Sigmoid":
-            y = 1 / (1 + np.exp(-x))
-        elif op == "Clip":
-            lo = (
-                graph.constants[node.inputs[1]].item() if len(node.inputs) > 1 and node.inputs[1] else -np.inf
-            )
-            hi = graph.constants[node.inputs[2]].item() if len(node.inputs) > 2 and node.inputs[2] else np.inf
-            y = np.clip(x, lo, hi)
-        else:
-            y = x
-        values[node.outputs[0]] = y
-    return values
-
-
 def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
     """Find the Gemm chain, calibrate its scales on ``calibration`` observations, quantise it."""
     gemms = [i for i, n in enumerate(graph.nodes) if n.op in ("Gemm", "MatMul")]
@@ -170,7 +127,7 @@ def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
             )
         if node is not inner[-1] and len(_consumers(graph, node.outputs[0])) != 1:
             raise UnsupportedOpError(f"node '{node.name}': q15 layers must form a chain")
-    values = _float_forward(graph, calibration)
+    values = interpret.run(graph, calibration, "float64")
     section_input = inner[0].inputs[0]
     in_frac = _frac_for(float(np.max(np.abs(values[section_input]))))
     layers = []

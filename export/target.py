@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from embedrl.export import build
-from embedrl.export.codegen import c_float
 from embedrl.export.errors import BuildError, ExportError
+from embedrl.export.ops.base import c_float
 
 TEST_VECTOR_COUNT = 256
 """Observations embedded in the test image (half uniform, half recorded from rollouts)."""

@@ -10,7 +10,7 @@ import onnxruntime as ort
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from embedrl.export.codegen import c_float
+from embedrl.export.ops.base import c_float
 from tests.export.helpers import compile_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "Softplus", "LeakyRelu", "Identity")

@@ -16,6 +16,8 @@ from embedrl.export import build, fixed_point, quantize, verify
 from embedrl.export.codegen import generate
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.onnx_import import to_ir
+from embedrl.export.ops.deterministic import exp_det, tanh_det
+from embedrl.export.ops.linear import quantize_columns
 from tests.export.helpers import make_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")
@@ -63,7 +65,7 @@ def test_int8_stays_close_to_float() -> None:
 
 def test_weights_are_symmetric_int8_per_output_channel() -> None:
     w = np.array([[1.0, -0.01], [-2.0, 0.005], [0.5, 0.0]], dtype=np.float32)  # [K=3][N=2]
-    q, scale = quantize.quantize_columns(w)
+    q, scale = quantize_columns(w)
     assert q.dtype == np.int8 and q.shape == w.shape
     np.testing.assert_allclose(scale, [2.0 / 127, 0.01 / 127], rtol=1e-6)
     assert q[1, 0] == -127 and q[0, 1] == -127  # each column's largest weight maps to +-127
@@ -72,10 +74,10 @@ def test_weights_are_symmetric_int8_per_output_channel() -> None:
 
 def test_deterministic_exp_and_tanh_are_accurate() -> None:
     x = np.linspace(-20, 20, 20001, dtype=np.float32)
-    np.testing.assert_allclose(quantize.tanh_det(x), np.tanh(x.astype(np.float64)), rtol=0, atol=2e-6)
+    np.testing.assert_allclose(tanh_det(x), np.tanh(x.astype(np.float64)), rtol=0, atol=2e-6)
     small = np.linspace(-10, 10, 2001, dtype=np.float32)
-    np.testing.assert_allclose(quantize.exp_det(small), np.exp(small.astype(np.float64)), rtol=2e-6)
-    assert quantize.tanh_det(np.array([9.5, -30.0], np.float32)).tolist() == [1.0, -1.0]
+    np.testing.assert_allclose(exp_det(small), np.exp(small.astype(np.float64)), rtol=2e-6)
+    assert tanh_det(np.array([9.5, -30.0], np.float32)).tolist() == [1.0, -1.0]
 
 
 def test_int8_rejects_ops_without_an_exact_model() -> None:

@@ -1,0 +1,120 @@
+"""What every op shares: the emitter interface, attribute and arity checks, and the reference hook.
+
+Each op class owns its meaning in one place: ``check`` (validate everything, return the output shape),
+``emit`` (the C; float32, or int8 weights when the context says so) and ``reference`` (NumPy, batched,
+in a given precision). :mod:`embedrl.export.interpret` walks a graph once with the references, for
+calibration (``float64``) and for the exact model of quantised C (``int8``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import ClassVar, Protocol
+
+import numpy as np
+
+from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.ir import AttrValue, Node
+
+Shape = tuple[int, ...]
+PRECISIONS = ("float64", "int8")
+"""``float64``: the op's mathematical meaning (calibration); ``int8``: bit for bit what the generated
+``--quantize int8`` C computes (float32 operations in the C's order, deterministic helpers)."""
+F = np.float32
+
+
+class EmitContext(Protocol):
+    """What an emitter may ask of the code generator."""
+
+    quantize: str | None
+    """None for float32 code, "int8" for int8 weights (see export.quantize)."""
+
+    def helper(self, name: str) -> str:
+        """Emit the named deterministic math helper (``exp_det``, ``tanh_det``, ``sigmoid_det``) once."""
+        ...
+
+    def ref(self, value: str) -> str:
+        """C expression for the array holding ``value`` (a buffer, the input, or a constant)."""
+        ...
+
+    def const(self, key: str, array: np.ndarray, comment: str) -> str:
+        """Declare a ``static const`` float (or int8) array, 1-D or 2-D, once and return its symbol."""
+        ...
+
+    def literal(self, value: float) -> str:
+        """A C float literal that round-trips ``value`` exactly."""
+        ...
+
+    def constant(self, value: str) -> np.ndarray | None:
+        """The array of a constant value, or None for a runtime value."""
+        ...
+
+    def size(self, value: str) -> int:
+        """Number of elements of a value."""
+        ...
+
+
+def c_float(value: float) -> str:
+    """A C float literal that round-trips the float32 value exactly (9 significant digits)."""
+    v = np.float32(value)
+    if not np.isfinite(v):
+        raise UnsupportedOpError(f"cannot write non-finite constant {value!r} as C")
+    text = f"{float(v):.9g}"
+    if not any(c in text for c in ".en"):
+        text += ".0"
+    return text + "f"
+
+
+def _size(shape: Shape) -> int:
+    return int(np.prod(shape, dtype=np.int64))
+
+
+def _fail(node: Node, what: str) -> UnsupportedOpError:
+    return UnsupportedOpError(f"{node.op} node '{node.name}': {what}")
+
+
+class Emitter:
+    """Base class: attribute and arity validation shared by every op."""
+
+    attrs: ClassVar[Mapping[str, AttrValue]] = {}
+    """Supported attributes and their defaults; anything else is rejected."""
+    min_inputs = 1
+    max_inputs = 1
+    alias = False
+    """True if the output is the input's data unchanged (no code, same storage)."""
+    in_place = False
+    """True if the output may overwrite its first runtime input's storage (element-wise)."""
+
+    def check(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        unknown = sorted(set(node.attrs) - set(self.attrs))
+        if unknown:
+            raise _fail(
+                node, f"unsupported attribute(s) {unknown}; supported: {sorted(self.attrs) or 'none'}"
+            )
+        present = [i for i in node.inputs if i != ""]
+        if not self.min_inputs <= len(present) <= self.max_inputs or len(node.outputs) != 1:
+            raise _fail(
+                node,
+                f"takes {self.min_inputs}..{self.max_inputs} inputs and 1 output, "
+                f"got {len(present)} and {len(node.outputs)}",
+            )
+        if node.inputs[0] in constants:
+            raise _fail(node, "the first input must be a runtime value, not a constant")
+        return self.shape(node, shapes, constants)
+
+    def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        return shapes[node.inputs[0]]
+
+    quantizable: ClassVar[bool] = True
+    """Whether ``--quantize int8`` code and its ``int8`` reference exist for this op."""
+
+    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
+        """C statements computing ``node.outputs[0]`` (``n`` elements)."""
+        raise NotImplementedError
+
+    def reference(
+        self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
+    ) -> np.ndarray:
+        """The output for a batch: ``inputs[0]`` is [B, n] (runtime), later inputs are runtime [B, m] or
+        flattened constants; ``precision`` is one of :data:`PRECISIONS`."""
+        raise UnsupportedOpError(f"{node.op} node '{node.name}' has no {precision} reference")

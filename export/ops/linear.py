@@ -1,0 +1,210 @@
+"""Matrix products with constant weights: Gemm and MatMul, float32 or with int8 weights.
+
+The weights are stored input-major (``W[k][n]``) so the inner loop runs over outputs and vectorises
+without reassociating any sum: each output is summed in a fixed order, the same at every optimisation
+level. ``--quantize int8``: each weight column (one output) is scaled symmetrically to int8,
+``q = round(w / s)`` with ``s = max|w| / 127``; ``acc = sum_k x[k] * q[k][n]`` in float32 and
+``y[n] = b[n] + s[n] * acc[n]``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import ClassVar
+
+import numpy as np
+
+from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.ir import AttrValue, Node
+from embedrl.export.ops.base import EmitContext, Emitter, F, Shape, _fail
+
+INT8_MAX = 127
+
+
+def quantize_columns(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Input-major float weights [K][N] -> (int8 [K][N], float32 scale [N]), symmetric per output."""
+    peak = np.max(np.abs(w), axis=0).astype(F)
+    scale = np.where(peak > 0, peak / F(INT8_MAX), F(1.0)).astype(F)
+    q = np.clip(np.rint(w / scale), -INT8_MAX, INT8_MAX).astype(np.int8)
+    return q, scale
+
+
+def int8_layer(x: np.ndarray, w: np.ndarray, bias: np.ndarray | None) -> np.ndarray:
+    """One quantised layer over a batch: rows are independent, each in the C's operation order."""
+    q, scale = quantize_columns(w)
+    qf = q.astype(F)
+    acc = np.zeros((x.shape[0], w.shape[1]), F)
+    for k in range(w.shape[0]):
+        acc = (acc + (x[:, k : k + 1] * qf[k]).astype(F)).astype(F)
+    scaled = (scale * acc).astype(F)
+    return scaled if bias is None else (bias + scaled).astype(F)
+
+
+def _input_major(node: Node, b: np.ndarray, transposed: bool) -> np.ndarray:
+    """Weights as ``W[k][n]`` (input-major): the inner loop runs over outputs and vectorises."""
+    return np.ascontiguousarray(b.T if transposed else b, dtype=np.float32)
+
+
+K_BLOCK = 4
+"""Inputs folded into one pass over the outputs: fewer loads and stores of the accumulator row."""
+
+
+def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str = "") -> list[str]:
+    # Per output the sum runs in a fixed order (init, then k = 0, 1, ...): the blocked pass
+    # y[n] = y[n] + x0*w0[n] + x1*w1[n] + ... evaluates left to right, and vectorising over n
+    # never reassociates it, so the result does not depend on the optimisation level.
+    lines = [f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"]
+    full = k - k % K_BLOCK
+    if full:
+        terms = " + ".join(f"x{j} * {cast}{w}[k + {j}][n]" for j in range(K_BLOCK))
+        lines += [
+            f"for (int k = 0; k < {full}; k += {K_BLOCK}) {{",
+            *[f"    const float x{j} = {x}[k + {j}];" for j in range(K_BLOCK)],
+            f"    for (int n = 0; n < {n}; ++n) {{",
+            f"        {y}[n] = {y}[n] + {terms};",
+            "    }",
+            "}",
+        ]
+    for k0 in range(full, k):
+        lines += [
+            f"for (int n = 0; n < {n}; ++n) {{",
+            f"    {y}[n] = {y}[n] + {x}[{k0}] * {cast}{w}[{k0}][n];",
+            "}",
+        ]
+    return lines
+
+
+def _quantized_lines(
+    node: Node, ctx: EmitContext, w: np.ndarray, bias: str | None, x: str, y: str, n: int
+) -> list[str]:
+    """int8 weights per output channel: acc = sum x[k] * q[k][n]; y[n] = b[n] + s[n] * acc[n]."""
+    q, scale = quantize_columns(w)
+    k = w.shape[0]
+    qsym = ctx.const(node.inputs[1] + "#int8", q, f"{node.name} weights, int8, input-major [{k}][{n}]")
+    ssym = ctx.const(node.inputs[1] + "#scale", scale, f"{node.name} per-output scales [{n}]")
+    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)")
+    scaled = f"{ssym}[n] * {y}[n]"
+    return [
+        *lines,
+        f"for (int n = 0; n < {n}; ++n) {{",
+        f"    {y}[n] = {bias + ' + ' if bias else ''}{scaled};",
+        "}",
+    ]
+
+
+class Gemm(Emitter):
+    """``Y = alpha * A @ op(B) + beta * C`` with A a runtime [1, K] row and B, C constants."""
+
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"alpha": 1.0, "beta": 1.0, "transA": 0, "transB": 0}
+    min_inputs, max_inputs = 2, 3
+
+    def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        if int(node.attr("transA", 0)) != 0:
+            raise _fail(node, "transA=1 is not supported (A is the observation row)")
+        if int(node.attr("transB", 0)) not in (0, 1):
+            raise _fail(node, f"transB must be 0 or 1, got {node.attr('transB', 0)}")
+        a = shapes[node.inputs[0]]
+        if len(a) != 2 or a[0] != 1:
+            raise _fail(node, f"A must have shape [1, K], got {list(a)}")
+        b_name = node.inputs[1]
+        if b_name not in constants:
+            raise _fail(node, f"B '{b_name}' must be a constant (weights as initializers)")
+        b = constants[b_name]
+        if b.ndim != 2:
+            raise _fail(node, f"B must be 2-D, got shape {list(b.shape)}")
+        k, n = (b.shape[1], b.shape[0]) if int(node.attr("transB", 0)) else b.shape
+        if k != a[1]:
+            raise _fail(node, f"A has {a[1]} columns but op(B) has {k} rows")
+        if len(node.inputs) > 2 and node.inputs[2] != "":
+            c_name = node.inputs[2]
+            if c_name not in constants:
+                raise _fail(node, f"C '{c_name}' must be a constant (bias as initializer)")
+            if constants[c_name].size not in (1, n):
+                raise _fail(node, f"C must have 1 or {n} elements, got shape {list(constants[c_name].shape)}")
+        return (1, int(n))
+
+    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
+        b = ctx.constant(node.inputs[1])
+        assert b is not None
+        w = _input_major(node, b, bool(node.attr("transB", 0)))
+        k = w.shape[0]
+        wsym = (
+            ""
+            if ctx.quantize
+            else ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights, input-major [{k}][{n}]")
+        )
+        alpha, beta = float(node.attr("alpha", 1.0)), float(node.attr("beta", 1.0))
+        c = ctx.constant(node.inputs[2]) if len(node.inputs) > 2 and node.inputs[2] else None
+        x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
+        if c is None:
+            bias = None
+        elif c.size == 1:
+            bias = ctx.literal(float(c.reshape(-1)[0]))
+        else:
+            bias = f"{ctx.const(node.inputs[2], c.reshape(-1), f'{node.name} bias [{n}]')}[n]"
+        if ctx.quantize:
+            return _quantized_lines(node, ctx, w, bias, x, y, n)
+        if alpha == 1.0 and beta == 1.0:
+            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f")
+        lines = _matmul_lines(x, y, wsym, k, n, "0.0f")
+        scaled = f"{ctx.literal(alpha)} * {y}[n]"
+        if bias is not None:
+            scaled += f" + {ctx.literal(beta)} * {bias}"
+        return [*lines, f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {scaled};", "}"]
+
+    def reference(
+        self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
+    ) -> np.ndarray:
+        trans = bool(node.attr("transB", 0))
+        has_c = len(node.inputs) > 2 and bool(node.inputs[2])
+        alpha, beta = float(node.attr("alpha", 1.0)), float(node.attr("beta", 1.0))
+        if precision == "float64":
+            w = constants[node.inputs[1]].astype(np.float64)
+            y = alpha * (inputs[0] @ (w.T if trans else w))
+            if has_c:
+                y = y + beta * constants[node.inputs[2]].astype(np.float64).reshape(-1)
+            return np.asarray(y)
+        if alpha != 1.0 or beta != 1.0:
+            raise UnsupportedOpError(
+                f"Gemm node '{node.name}': alpha/beta != 1 are not supported with --quantize"
+            )
+        b = constants[node.inputs[1]].astype(F)
+        w = np.ascontiguousarray(b.T if trans else b)
+        c = constants[node.inputs[2]].astype(F).reshape(-1) if has_c else None
+        if c is not None and c.size == 1:
+            c = np.full(w.shape[1], c[0], F)
+        return int8_layer(inputs[0], w, c)
+
+
+class MatMul(Emitter):
+    """``Y = A @ B`` with A a runtime [1, K] row (or [K] vector) and B a constant [K, N]."""
+
+    min_inputs = max_inputs = 2
+
+    def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        a = shapes[node.inputs[0]]
+        if not (len(a) == 1 or (len(a) == 2 and a[0] == 1)):
+            raise _fail(node, f"A must have shape [K] or [1, K], got {list(a)}")
+        if node.inputs[1] not in constants:
+            raise _fail(node, f"B '{node.inputs[1]}' must be a constant (weights as initializers)")
+        b = constants[node.inputs[1]]
+        if b.ndim != 2 or b.shape[0] != a[-1]:
+            raise _fail(node, f"B must have shape [{a[-1]}, N], got {list(b.shape)}")
+        return (*a[:-1], int(b.shape[1]))
+
+    def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
+        b = ctx.constant(node.inputs[1])
+        assert b is not None
+        w = _input_major(node, b, False)
+        x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
+        if ctx.quantize:
+            return _quantized_lines(node, ctx, w, None, x, y, n)
+        wsym = ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights [{w.shape[0]}][{n}]")
+        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f")
+
+    def reference(
+        self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
+    ) -> np.ndarray:
+        if precision == "float64":
+            return np.asarray(inputs[0] @ constants[node.inputs[1]].astype(np.float64))
+        return int8_layer(inputs[0], np.ascontiguousarray(constants[node.inputs[1]].astype(F)), None)
