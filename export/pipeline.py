@@ -27,6 +27,8 @@ from embedrl.common import provenance
 from embedrl.export import build, fixed_point, quantize, target, verify
 from embedrl.export.codegen import NAME_PATTERN, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
+from embedrl.export.fixed_point import FixedSection
+from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import load_onnx, to_ir
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
@@ -177,7 +179,72 @@ def _replace_folder(staging: Path, out: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+@dataclass
+class Loaded:
+    """Stage 1: the source as an ONNX model (built from SB3's layers, or read), and what it came from."""
+
+    model: onnx.ModelProto
+    onnx_path: Path
+    """``staging/policy.onnx`` for an SB3 source (written by :func:`_lower`), else the source itself."""
+    loaded: LoadedPolicy | None
+    vecnormalize: Path | None
+    files: dict[str, Path]
+    """Files written into the export so far, by their name in it."""
+
+
+@dataclass(frozen=True)
+class Lowered:
+    """Stage 2: the frozen IR checked against the env, and the interface the export carries."""
+
+    graph: Graph
+    obs_space: gym.spaces.Box
+    interface: Interface | None
+    interface_problem: str | None
+    reference: Callable[[np.ndarray], np.ndarray]
+    """The policy the export is verified against (SB3's ``predict`` or onnxruntime)."""
+    onnx_policy: Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class Generated:
+    """Stage 3: the generated C and the observations it is verified on."""
+
+    c_dir: Path
+    samples: np.ndarray
+    from_rollouts: int
+    section: FixedSection | None
+
+
+@dataclass(frozen=True)
+class Built:
+    """Stage 4: the C compiled into a loadable library and measured."""
+
+    compiled: build.CPolicy
+    code_size: dict[str, int]
+    build_dir: Path
+
+
+@dataclass(frozen=True)
+class Verified:
+    """Stage 5: every check's numbers, the Cortex-M targets and the closed loop."""
+
+    checks: dict[str, Any]
+    targets: dict[str, Any]
+    loop: dict[str, Any]
+
+
 def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> dict[str, Any]:
+    """The stages in order: load, lower, generate, build, verify, write (the report)."""
+    loaded = _load(staging, opts, log)
+    lowered = _lower(loaded, staging, opts)
+    generated = _generate(loaded, lowered, staging, opts, log)
+    with tempfile.TemporaryDirectory(prefix="embedrl-build-") as tmp:
+        built = _build(generated, Path(tmp), opts, lowered.graph, log)
+        verified = _verify(loaded, lowered, generated, built, staging, opts, log)
+    return _write_report(loaded, lowered, built, verified, staging, opts)
+
+
+def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loaded:
     source = opts.source
     suffix = source.suffix.lower()
     if suffix not in (".zip", ".onnx"):
@@ -185,27 +252,25 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
             f"{source}: unsupported source type '{suffix or '(none)'}'; "
             "give an SB3 model (.zip) or an ONNX file (.onnx)"
         )
-    files: dict[str, Path] = {}
-    loaded: LoadedPolicy | None = None
-    vecnorm_path = None
-    if suffix == ".zip":
-        vecnorm_path = opts.vecnormalize or vecnormalize_beside(source)
-        log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
-        try:
-            loaded = load_sb3(source, vecnorm_path)
-        except UnsupportedModelFileError as exc:
-            raise UnsupportedModelError(str(exc)) from None
-        except InvalidModelFileError as exc:
-            raise InvalidModelError(str(exc)) from None
-        model = build_onnx(loaded, tool_version())
-        onnx_path = staging / "policy.onnx"  # saved below, with the interface in its metadata
-        files["policy.onnx"] = onnx_path
-    else:
+    if suffix == ".onnx":
         log(f"[1/5] loading {source}")
-        model = load_onnx(source)
-        onnx_path = source
+        return Loaded(load_onnx(source), source, None, None, {})
+    vecnorm_path = opts.vecnormalize or vecnormalize_beside(source)
+    log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
+    try:
+        loaded = load_sb3(source, vecnorm_path)
+    except UnsupportedModelFileError as exc:
+        raise UnsupportedModelError(str(exc)) from None
+    except InvalidModelFileError as exc:
+        raise InvalidModelError(str(exc)) from None
+    onnx_path = staging / "policy.onnx"  # saved by _lower, with the interface in its metadata
+    return Loaded(
+        build_onnx(loaded, tool_version()), onnx_path, loaded, vecnorm_path, {"policy.onnx": onnx_path}
+    )
 
-    graph = to_ir(model)
+
+def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
+    graph = to_ir(loaded.model)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     env = gym.make(opts.env_id)
     obs_space, act_space = env.observation_space, env.action_space
@@ -230,27 +295,33 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
                 f"--safe-action {list(opts.safe_action)} must be {act_dim} values within the action space "
                 f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
             )
-
     if interface is not None:
         interface = interface.with_safe_action(opts.safe_action)
         (staging / INTERFACE_FILE).write_text(interface.dumps())
-        files[INTERFACE_FILE] = staging / INTERFACE_FILE
-    if loaded is not None:
+        loaded.files[INTERFACE_FILE] = staging / INTERFACE_FILE
+    if loaded.loaded is not None:
         if interface is not None:
-            _set_metadata(model, INTERFACE_METADATA_KEY, interface.dumps())
-        onnx.save(model, str(onnx_path))
+            _set_metadata(loaded.model, INTERFACE_METADATA_KEY, interface.dumps())
+        onnx.save(loaded.model, str(loaded.onnx_path))
+    reference = loaded.loaded.predict if loaded.loaded is not None else _ort_policy(loaded.model)
+    return Lowered(graph, obs_space, interface, interface_problem, reference, _ort_policy(loaded.model))
 
-    reference = loaded.predict if loaded is not None else _ort_policy(model)
-    onnx_policy = _ort_policy(model)
+
+def _generate(
+    loaded: Loaded, lowered: Lowered, staging: Path, opts: ExportOptions, log: Callable[[str], None]
+) -> Generated:
+    graph, interface = lowered.graph, lowered.interface
     # Observations for verification (and for calibrating q15's fixed-point scales).
-    samples, from_rollouts = verify.sample_observations(obs_space, opts.env_id, reference, opts.seed)
+    samples, from_rollouts = verify.sample_observations(
+        lowered.obs_space, opts.env_id, lowered.reference, opts.seed
+    )
     section = fixed_point.plan(graph, samples) if opts.quantize == "q15" else None
-
+    obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     log(f"[2/5] generating C ({len(graph.nodes)} ops, {obs_dim} -> {act_dim})")
     header = {
         "tool": f"embedrl {tool_version()}",
-        "source": f"{source.name} sha256 {sha256(source)}",
-        "onnx": f"sha256 {sha256(onnx_path)}",
+        "source": f"{opts.source.name} sha256 {sha256(opts.source)}",
+        "onnx": f"sha256 {sha256(loaded.onnx_path)}",
     }
     safe_action = interface.safe_action if interface is not None else opts.safe_action
     sources = generate(
@@ -260,106 +331,119 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
     c_dir.mkdir()
     for filename, text in sources.items():
         (c_dir / filename).write_text(text)
-        files[f"c/{filename}"] = c_dir / filename
+        loaded.files[f"c/{filename}"] = c_dir / filename
+    return Generated(c_dir, samples, from_rollouts, section)
 
+
+def _build(
+    generated: Generated, build_dir: Path, opts: ExportOptions, graph: Graph, log: Callable[[str], None]
+) -> Built:
     log("[3/5] compiling with make -C runtime_c")
-    with tempfile.TemporaryDirectory(prefix="embedrl-build-") as tmp:
-        build_dir = Path(tmp)
-        build.make("lib", c_dir, build_dir)
-        build.make("obj", c_dir, build_dir)
-        code_size = build.object_size(build_dir / "policy.o")
-        compiled = build.CPolicy(build_dir / "libpolicy.so", opts.name, obs_dim, act_dim)
+    build.make("lib", generated.c_dir, build_dir)
+    build.make("obj", generated.c_dir, build_dir)
+    obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
+    compiled = build.CPolicy(build_dir / "libpolicy.so", opts.name, obs_dim, act_dim)
+    return Built(compiled, build.object_size(build_dir / "policy.o"), build_dir)
 
-        log("[4/5] verifying: ONNX vs SB3, C vs onnxruntime")
-        onnx_actions = onnx_policy(samples)
-        checks: dict[str, Any] = {
-            "samples": len(samples),
-            "samples_from_rollouts": int(from_rollouts),
-            "tolerance": verify.TOLERANCE,
-            "onnx_vs_sb3_max_abs_error": None,
+
+def _verify(
+    loaded: Loaded,
+    lowered: Lowered,
+    generated: Generated,
+    built: Built,
+    staging: Path,
+    opts: ExportOptions,
+    log: Callable[[str], None],
+) -> Verified:
+    graph, samples, section, compiled = lowered.graph, generated.samples, generated.section, built.compiled
+    obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
+    log("[4/5] verifying: ONNX vs SB3, C vs onnxruntime")
+    onnx_actions = lowered.onnx_policy(samples)
+    checks: dict[str, Any] = {
+        "samples": len(samples),
+        "samples_from_rollouts": int(generated.from_rollouts),
+        "tolerance": verify.TOLERANCE,
+        "onnx_vs_sb3_max_abs_error": None,
+    }
+    if loaded.loaded is not None:
+        err = verify.max_abs_error(onnx_actions, loaded.loaded.predict(samples))
+        checks["onnx_vs_sb3_max_abs_error"] = err
+        if err > verify.TOLERANCE:
+            raise VerificationError(f"ONNX differs from SB3 predict() by {err:.3g} > {verify.TOLERANCE}")
+    c_actions, codes = compiled.batch(samples)
+    if np.any(codes != 0):
+        raise VerificationError(
+            f"the generated C returned an error code on {int(np.sum(codes != 0))} samples"
+        )
+    err = verify.max_abs_error(c_actions, onnx_actions)
+    checks["c_vs_onnxruntime_max_abs_error"] = err
+    if opts.quantize:
+        # Quantised: the C must equal the Python model of its arithmetic bit for bit; its
+        # distance from the float policy is reported (and judged in closed loop).
+        mismatches = verify.bitwise_mismatches(c_actions, quantize.evaluate(graph, samples, section))
+        checks["quantization"] = {
+            "scheme": quantize.SCHEMES[opts.quantize],
+            "worst_action_error_vs_float": err,
+            "model_mismatches": mismatches,
         }
-        if loaded is not None:
-            err = verify.max_abs_error(onnx_actions, loaded.predict(samples))
-            checks["onnx_vs_sb3_max_abs_error"] = err
-            if err > verify.TOLERANCE:
-                raise VerificationError(f"ONNX differs from SB3 predict() by {err:.3g} > {verify.TOLERANCE}")
-        c_actions, codes = compiled.batch(samples)
-        if np.any(codes != 0):
+        if mismatches:
             raise VerificationError(
-                f"the generated C returned an error code on {int(np.sum(codes != 0))} samples"
+                f"the {opts.quantize} C differs from the Python model of its arithmetic "
+                f"on {mismatches} samples"
             )
-        err = verify.max_abs_error(c_actions, onnx_actions)
-        checks["c_vs_onnxruntime_max_abs_error"] = err
-        if opts.quantize:
-            # Quantised: the C must equal the Python model of its arithmetic bit for bit; its
-            # distance from the float policy is reported (and judged in closed loop).
-            mismatches = verify.bitwise_mismatches(c_actions, quantize.evaluate(graph, samples, section))
-            checks["quantization"] = {
-                "scheme": quantize.SCHEMES[opts.quantize],
-                "worst_action_error_vs_float": err,
-                "model_mismatches": mismatches,
-            }
-            if mismatches:
-                raise VerificationError(
-                    f"the {opts.quantize} C differs from the Python model of its arithmetic "
-                    f"on {mismatches} samples"
-                )
-        elif err > verify.TOLERANCE:
-            raise VerificationError(
-                f"the generated C differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
-            )
-        vectors = target.pick_test_vectors(samples, from_rollouts)
-        vectors_path = staging / "test" / "test_vectors.c"
-        vectors_path.parent.mkdir()
-        vectors_path.write_text(target.test_vectors_source(vectors))
-        files["test/test_vectors.c"] = vectors_path
-        targets = {}
-        for name in opts.targets:
-            log(f"[4/5] {name}: building firmware, running it on QEMU")
-            expected = quantize.evaluate(graph, vectors, section) if opts.quantize else onnx_policy(vectors)
-            targets[name] = _verify_target(
-                target.TARGETS[name],
-                c_dir,
-                vectors_path,
-                vectors,
-                expected,
-                build_dir,
-                act_dim,
-                opts.quantize,
-            )
+    elif err > verify.TOLERANCE:
+        raise VerificationError(f"the generated C differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}")
+    vectors = target.pick_test_vectors(samples, generated.from_rollouts)
+    vectors_path = staging / "test" / "test_vectors.c"
+    vectors_path.parent.mkdir()
+    vectors_path.write_text(target.test_vectors_source(vectors))
+    loaded.files["test/test_vectors.c"] = vectors_path
+    targets = {}
+    for name in opts.targets:
+        log(f"[4/5] {name}: building firmware, running it on QEMU")
+        expected = (
+            quantize.evaluate(graph, vectors, section) if opts.quantize else lowered.onnx_policy(vectors)
+        )
+        targets[name] = _verify_target(
+            target.TARGETS[name], generated.c_dir, vectors_path, vectors, expected, built.build_dir, act_dim,
+            opts.quantize,
+        )  # fmt: skip
 
-        nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
-        safe = compiled(nan_obs)
-        checks["non_finite_observation"] = {"return_code": compiled.status, "action": safe.tolist()}
-        if compiled.status != 1 or not np.all(np.isfinite(safe)):
-            raise VerificationError("the generated C did not reject a NaN observation with the safe action")
+    nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
+    safe = compiled(nan_obs)
+    checks["non_finite_observation"] = {"return_code": compiled.status, "action": safe.tolist()}
+    if compiled.status != 1 or not np.all(np.isfinite(safe)):
+        raise VerificationError("the generated C did not reject a NaN observation with the safe action")
 
-        if opts.episodes and verify.supports_closed_loop(opts.env_id):
-            log(f"[5/5] closed loop: {opts.episodes} episodes, reference and generated C")
-            loop: dict[str, Any] = verify.closed_loop(
-                reference, compiled, opts.episodes, opts.seed, opts.progress
-            )
-            failure = (
-                verify.quantized_closed_loop_failure(loop)
-                if opts.quantize
-                else verify.closed_loop_failure(loop)
-            )
-            if failure:
-                raise VerificationError(failure)
-        else:
-            reason = (
-                "episodes=0" if not opts.episodes else f"{opts.env_id} reports no success/collision outcomes"
-            )
-            log(f"[5/5] closed loop skipped ({reason})")
-            loop = {"skipped": reason}
+    if opts.episodes and verify.supports_closed_loop(opts.env_id):
+        log(f"[5/5] closed loop: {opts.episodes} episodes, reference and generated C")
+        loop: dict[str, Any] = verify.closed_loop(
+            lowered.reference, compiled, opts.episodes, opts.seed, opts.progress
+        )
+        failure = (
+            verify.quantized_closed_loop_failure(loop) if opts.quantize else verify.closed_loop_failure(loop)
+        )
+        if failure:
+            raise VerificationError(failure)
+    else:
+        reason = "episodes=0" if not opts.episodes else f"{opts.env_id} reports no success/collision outcomes"
+        log(f"[5/5] closed loop skipped ({reason})")
+        loop = {"skipped": reason}
+    return Verified(checks, targets, loop)
 
+
+def _write_report(
+    loaded: Loaded, lowered: Lowered, built: Built, verified: Verified, staging: Path, opts: ExportOptions
+) -> dict[str, Any]:
+    graph, interface, source = lowered.graph, lowered.interface, opts.source
+    vecnorm_path = loaded.vecnormalize
     report: dict[str, Any] = {
         "tool": f"embedrl {tool_version()}",
         "source": {
             "path": str(source),
             "sha256": sha256(source),
-            "kind": "sb3" if loaded is not None else "onnx",
-            "policy_class": loaded.kind if loaded is not None else None,
+            "kind": "sb3" if loaded.loaded is not None else "onnx",
+            "policy_class": loaded.loaded.kind if loaded.loaded is not None else None,
             "vecnormalize": None
             if vecnorm_path is None
             else {"path": str(vecnorm_path), "sha256": sha256(vecnorm_path)},
@@ -367,16 +451,18 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         "name": opts.name,
         "quantize": opts.quantize,
         "env_id": opts.env_id,
-        "interface": interface.to_json() if interface is not None else {"unavailable": interface_problem},
-        "observation_dim": obs_dim,
-        "action_dim": act_dim,
+        "interface": interface.to_json()
+        if interface is not None
+        else {"unavailable": lowered.interface_problem},
+        "observation_dim": graph.size(graph.input),
+        "action_dim": graph.size(graph.output),
         "ops": [n.op for n in graph.nodes],
         "compiler": build.compiler(),
-        "verification": checks,
-        "closed_loop": loop,
-        "code_size": code_size,
-        "targets": targets,
-        "files": {k: sha256(v) for k, v in sorted(files.items())},
+        "verification": verified.checks,
+        "closed_loop": verified.loop,
+        "code_size": built.code_size,
+        "targets": verified.targets,
+        "files": {k: sha256(v) for k, v in sorted(loaded.files.items())},
         "provenance": provenance(),
     }
     (staging / "export_report.json").write_text(json.dumps(report, indent=2) + "\n")
