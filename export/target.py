@@ -35,14 +35,29 @@ class Target:
     qemu_machine: str
     flash_kib: int
     ram_kib: int
-    """Memory of the modelled part (runtime_c/cortex_m/<name>.ld)."""
+    part: str
+    cpu_flags: str
 
 
-TARGETS = {
-    "cortex-m4": Target("cortex-m4", "mps2-an386", 1024, 192),
-    "cortex-m3": Target("cortex-m3", "mps2-an385", 256, 64),
-    "cortex-m7": Target("cortex-m7", "mps2-an500", 2048, 512),
-}
+TARGET_TABLE = build.RUNTIME_C / "cortex_m" / "targets.mk"
+"""The one table of targets, read by the Makefile too (which writes each linker script's memory from it)."""
+_ENTRY = re.compile(r"^([\w-]+)\.(CPU|FLASH|RAM|QEMU|PART)\s*:=\s*(.*?)\s*$")
+
+
+def load_targets(table: Path = TARGET_TABLE) -> dict[str, Target]:
+    """The targets of ``targets.mk`` (``<name>.KEY := value`` lines), in their order."""
+    entries: dict[str, dict[str, str]] = {}
+    for line in table.read_text().splitlines():
+        match = _ENTRY.match(line)
+        if match:
+            entries.setdefault(match.group(1), {})[match.group(2)] = match.group(3)
+    return {
+        name: Target(name, e["QEMU"], int(e["FLASH"]), int(e["RAM"]), e["PART"], e["CPU"])
+        for name, e in entries.items()
+    }
+
+
+TARGETS = load_targets()
 
 
 def test_vectors_source(observations: np.ndarray) -> str:

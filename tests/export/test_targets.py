@@ -150,3 +150,35 @@ def test_q15_firmware_on_the_fpu_less_m3_is_bit_exact(tmp_path: Path) -> None:
     assert t["ram_bytes"] <= 1024 and t["flash_bytes"] < 32 * 1024
     source = (out / "c" / "policy.c").read_text()
     assert "int16_t" in source and "int64_t acc" in source
+
+
+def test_one_table_gives_the_linker_script_and_the_report_their_memory(tmp_path: Path) -> None:
+    """runtime_c/cortex_m/targets.mk is read by both make (linker script, flags) and the exporter."""
+    from embedrl.export import build
+    from embedrl.export.target import TARGETS
+
+    assert list(TARGETS) == ["cortex-m4", "cortex-m3", "cortex-m7"]
+    for name, t in TARGETS.items():
+        script = tmp_path / name / "memory.ld"
+        subprocess.run(
+            [
+                "make",
+                "-s",
+                "-C",
+                str(build.RUNTIME_C),
+                f"TARGET={name}",
+                f"BUILD_DIR={tmp_path}",
+                str(script),
+            ],
+            check=True,
+            capture_output=True,
+        )
+        text = script.read_text()
+        assert f"LENGTH = {t.flash_kib}K" in text and f"LENGTH = {t.ram_kib}K" in text and t.part in text
+        flags = subprocess.run(
+            ["make", "-s", "-C", str(build.RUNTIME_C), f"TARGET={name}", "flags"],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout
+        assert t.cpu_flags in flags
