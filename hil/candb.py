@@ -16,7 +16,8 @@ cantools' generated ``*_is_in_range`` checks it at the node's trust boundary. Be
 module generates the node's C: cantools' codec (``policy_dbc.c/h``) and the glue that maps frames to the
 policy's observation and action vectors (``policy_io.c/h``), both never edited by hand.
 
-Run as ``python -m embedrl.hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]``.
+Run as ``python -m embedrl.hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]
+[--use-float]``.
 """
 
 from __future__ import annotations
@@ -208,11 +209,14 @@ def dbc_text(interface: Interface) -> str:
     return str(database(interface).as_dbc_string())
 
 
-def c_sources(interface: Interface) -> dict[str, str]:
-    """The node's generated C for this interface: cantools' codec and the frame <-> vector glue."""
+def c_sources(interface: Interface, use_float: bool = False) -> dict[str, str]:
+    """The node's generated C for this interface: cantools' codec and the frame <-> vector glue.
+
+    ``use_float``: cantools' scaling in ``float`` instead of ``double`` (cores without double-precision
+    hardware, e.g. a Cortex-M4F)."""
     db = database(interface)
     header, source, _, _ = generate_c(
-        db, DATABASE_NAME, f"{DATABASE_NAME}.h", f"{DATABASE_NAME}.c", "unused_fuzzer.c"
+        db, DATABASE_NAME, f"{DATABASE_NAME}.h", f"{DATABASE_NAME}.c", "unused_fuzzer.c", use_float=use_float
     )
     io_h, io_c = _glue(interface, layout(interface))
     return {
@@ -343,10 +347,10 @@ def load_interface(path: Path) -> Interface:
         raise HilError(f"{path}: {exc}") from None
 
 
-def write(interface: Interface, out: Path, dbc_only: bool = False) -> list[Path]:
+def write(interface: Interface, out: Path, dbc_only: bool = False, use_float: bool = False) -> list[Path]:
     """Write ``policy.dbc`` (and unless ``dbc_only`` the node's generated C) into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    files = {"policy.dbc": dbc_text(interface)} | ({} if dbc_only else c_sources(interface))
+    files = {"policy.dbc": dbc_text(interface)} | ({} if dbc_only else c_sources(interface, use_float))
     written = []
     for name, text in files.items():
         (out / name).write_text(text)
@@ -361,10 +365,13 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--interface", type=Path, help="an export's interface.json")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--dbc-only", action="store_true")
+    parser.add_argument(
+        "--use-float", action="store_true", help="scale signals in float (cores without double-precision FPU)"
+    )
     args = parser.parse_args(argv)
     try:
         interface = SCENARIOS[args.scenario] if args.scenario else load_interface(args.interface)
-        write(interface, args.out, args.dbc_only)
+        write(interface, args.out, args.dbc_only, args.use_float)
     except (HilError, InterfaceError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -112,3 +112,13 @@ def test_the_generator_cli_writes_the_node_sources(tmp_path: Path) -> None:
     (tmp_path / "bad.json").write_text('{"format": 1, "name": "x"}')
     assert candb.main(["--interface", str(tmp_path / "bad.json"), "--out", str(tmp_path / "b")]) == 2
     assert not (tmp_path / "b").exists()
+
+
+def test_use_float_scales_signals_in_single_precision() -> None:
+    double = candb.c_sources(STATIC)["policy_dbc.c"]
+    single = candb.c_sources(STATIC, use_float=True)["policy_dbc.c"]
+    assert "double policy_dbc_observation_a_x_decode" in double
+    assert (
+        "float policy_dbc_observation_a_x_decode" in single
+        and "double" not in single.split("_decode")[1][:40]
+    )
