@@ -53,6 +53,9 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     for required in ("embedrl/runtime_c/Makefile", "embedrl/runtime_c/node/node.c", "embedrl/hil/policy.dbc"):
         assert required in names
     assert not any(n.startswith(("train/", "export/", "hil/")) for n in names)  # one namespace only
+    for folder in ("train", "export", "hil"):  # every package of the checkout, subpackages included
+        for module in (REPO / folder).rglob("*.py"):
+            assert f"embedrl/{module.relative_to(REPO)}" in names
     venv = root / "venv"
     _run([sys.executable, "-m", "venv", str(venv)], root)
     site = next((venv / "lib").glob("python3.*/site-packages"))
