@@ -261,7 +261,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     from embedrl.common import write_json
     from embedrl.hil.doctor import doctor, print_table
 
-    report = doctor(say=print)
+    report = doctor(say=print, mode=args.sandbox)
     print_table(report)
     if args.json:
         write_json(report, args.json)
@@ -309,6 +309,9 @@ def register(sub: Any) -> None:
         "doctor", help="check every CAN sandbox provider on this machine (run this first when HIL fails)"
     )
     d.add_argument("--json", type=Path, help="also write the checks here")
+    d.add_argument(
+        "--sandbox", choices=MODES, default="auto", help="check only this provider's candidates (auto: all)"
+    )
     d.set_defaults(func=cmd_doctor)
 
 

@@ -47,19 +47,20 @@ def _lines(path: Path) -> list[str]:
         return []
 
 
-def doctor(say: Callable[[str], None] = print) -> dict[str, Any]:
-    """Check every provider (``auto``'s order); the report with ``first_working`` (what ``auto`` picks)."""
+def doctor(say: Callable[[str], None] = print, mode: str = "auto") -> dict[str, Any]:
+    """Check every provider of ``mode`` (``auto``: all, in the order ``auto`` tries them); the report
+    with ``first_working`` (what ``--sandbox mode`` picks)."""
     info = machine()
     say(f"machine: {info['cpu']}, AMX {'yes' if info['amx'] else 'no'}, host kernel {info['host_kernel']}")
     checks = []
     with tempfile.TemporaryDirectory(prefix="embedrl-doctor-") as tmp:
-        for provider in sandbox.providers("auto"):
+        for provider in sandbox.providers(mode):
             say(f"checking {provider.label} ...")
             start = time.monotonic()
             result = sandbox.check(provider, Path(tmp))
             checks.append({**asdict(result), "check_s": round(time.monotonic() - start, 2)})
     first = next((c["label"] for c in checks if c["works"]), None)
-    return {"machine": info, "providers": checks, "first_working": first}
+    return {"machine": info, "mode": mode, "providers": checks, "first_working": first}
 
 
 def print_table(report: dict[str, Any], say: Callable[[str], None] = print) -> None:
@@ -71,4 +72,4 @@ def print_table(report: dict[str, Any], say: Callable[[str], None] = print) -> N
     for r in rows:
         say(f"{r[0]:<{widths[0]}}  {r[1]:<{widths[1]}}  {r[2]:>{widths[2]}}  {r[3]}")
     first = report["first_working"]
-    say(f"--sandbox auto uses: {first}" if first else "no provider works: see the reasons above")
+    say(f"--sandbox {report['mode']} uses: {first}" if first else "no provider works: see the reasons above")
