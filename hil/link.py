@@ -7,11 +7,15 @@ virtual bus for fast tests of the session logic.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import can
 
 from embedrl.hil.codec import STEP_MODULO, Action, Codec, Status
+
+ALIVE_POLL_S = 0.05
+"""While waiting for an action, how often to ask whether the node is still running."""
 
 
 @dataclass
@@ -65,13 +69,18 @@ class Link:
             self.stats.last_status, self.stats.last_status_time = decoded, time.monotonic()
         return decoded
 
-    def wait_action(self, step: int, timeout_s: float) -> Action | None:
-        """Drain the bus until the action for ``step`` arrives or the timeout passes."""
+    def wait_action(
+        self, step: int, timeout_s: float, alive: Callable[[], bool] | None = None
+    ) -> Action | None:
+        """Drain the bus until the action for ``step`` arrives or the timeout passes; stop early once
+        ``alive()`` says the node is gone (checked every :data:`ALIVE_POLL_S` of silence)."""
         deadline = time.monotonic() + timeout_s
         while (remaining := deadline - time.monotonic()) > 0:
-            decoded = self.receive(remaining)
+            decoded = self.receive(min(remaining, ALIVE_POLL_S) if alive else remaining)
             if decoded is False:
-                return None
+                if alive is not None and not alive():
+                    return None
+                continue
             if isinstance(decoded, Action) and decoded.step == step % STEP_MODULO:
                 return decoded
         return None

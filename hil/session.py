@@ -119,7 +119,7 @@ class BusPolicy:
         start = time.perf_counter_ns()
         sent_at = time.monotonic()
         self.link.send(frames)
-        action = self.link.wait_action(self.step, self.cfg.action_timeout_s)
+        action = self.link.wait_action(self.step, self.cfg.action_timeout_s, self.node.alive)
         if action is None:
             stats.rx_timeouts += 1
             raise NodeFault(self._silence_reason(sent_at))
