@@ -32,6 +32,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         episodes=args.episodes,
         seed=args.seed,
         vecnormalize=args.vecnormalize,
+        trust_pickle=args.trust_pickle,
         safe_action=args.safe_action,
         force=args.force,
         targets=tuple(args.target or ()),
@@ -118,7 +119,15 @@ def register(sub: Any) -> None:
     p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
-        "--vecnormalize", type=Path, help="VecNormalize statistics (default: vecnormalize.pkl beside)"
+        "--vecnormalize",
+        type=Path,
+        help="normalisation statistics, .npz (default: <model>_vecnormalize.npz or vecnormalize.npz beside)",
+    )
+    p.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="open pickles inside or beside the model (SB3 fields, .pkl statistics): this runs code "
+        "from them, so only for files you trust",
     )
     p.add_argument(
         "--safe-action",

@@ -52,6 +52,8 @@ class ExportOptions:
     """Closed-loop episodes (0 skips the closed loop)."""
     seed: int = 0
     vecnormalize: Path | None = None
+    trust_pickle: bool = False
+    """Open pickles inside or beside an SB3 model (runs code from them: only for trusted files)."""
     safe_action: tuple[float, ...] | None = None
     force: bool = False
     progress: bool = False
@@ -258,7 +260,7 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
     vecnorm_path = opts.vecnormalize or vecnormalize_beside(source)
     log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
     try:
-        loaded = load_sb3(source, vecnorm_path)
+        loaded = load_sb3(source, vecnorm_path, opts.trust_pickle)
     except UnsupportedModelFileError as exc:
         raise UnsupportedModelError(str(exc)) from None
     except InvalidModelFileError as exc:

@@ -26,17 +26,19 @@ def _controller(name: str):  # type: ignore[no-untyped-def]
 
 def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     if args.model is not None:
-        return load_model_policy(args.model)
+        return load_model_policy(args.model, args.trust_pickle)
     return _controller(args.controller)
 
 
-def load_model_policy(path: Path):  # type: ignore[no-untyped-def]
-    """A trained SB3 model as a deterministic policy (VecNormalize statistics beside it are applied)."""
+def load_model_policy(path: Path, trust_pickle: bool = False):  # type: ignore[no-untyped-def]
+    """A trained SB3 model as a deterministic policy (normalisation statistics beside it are applied).
+
+    Nothing is unpickled unless ``trust_pickle`` (see :mod:`embedrl.train.sb3_archive`)."""
     if path.suffix != ".zip":
         raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
     from embedrl.train.models import load_sb3, vecnormalize_beside
 
-    loaded = load_sb3(path, vecnormalize_beside(path))
+    loaded = load_sb3(path, vecnormalize_beside(path), trust_pickle)
 
     def act(obs):  # type: ignore[no-untyped-def]
         return loaded.predict(obs.reshape(1, -1))[0]
@@ -48,6 +50,12 @@ def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
     src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
+    p.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="open pickles inside or beside the model (SB3 fields, .pkl statistics): this runs code "
+        "from them, so only for files you trust",
+    )
 
 
 def _positive(text: str) -> int:

@@ -1,5 +1,8 @@
 """Trained Stable-Baselines3 models as policies: the policy network, and its normalisation statistics.
 
+Files from users are untrusted: nothing is unpickled unless the user says it trusts the file
+(``trust_pickle``, the CLI's ``--trust-pickle``).
+
 Loading a model is a training concept: evaluation uses it here, and the exporter builds its ONNX graph
 from the :class:`LoadedPolicy` this module returns.
 """
@@ -19,17 +22,24 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.sac.policies import SACPolicy
 from stable_baselines3.td3.policies import TD3Policy
 
+from embedrl.train import sb3_archive as archive
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 
-VECNORMALIZE_FILE = "vecnormalize.pkl"
-"""Statistics next to a model with this name are used unless told otherwise."""
+NORMALIZATION_STEM = "vecnormalize"
+"""Statistics next to a model with this name are used unless told otherwise: ``.npz`` (safe), else SB3's
+``.pkl`` (opened only when the user trusts it)."""
 
 
 def vecnormalize_beside(model: Path) -> Path | None:
-    """``<model>_vecnormalize.pkl`` (shipped policies share a folder), else ``vecnormalize.pkl`` (a run)."""
-    for candidate in (model.with_name(f"{model.stem}_{VECNORMALIZE_FILE}"), model.parent / VECNORMALIZE_FILE):
-        if candidate.is_file():
-            return candidate
+    """``<model>_vecnormalize.npz`` (shipped policies share a folder), else ``vecnormalize.npz`` (a run);
+    the ``.pkl`` of either if there is no ``.npz``."""
+    for suffix in (".npz", ".pkl"):
+        for candidate in (
+            model.with_name(f"{model.stem}_{NORMALIZATION_STEM}{suffix}"),
+            model.parent / f"{NORMALIZATION_STEM}{suffix}",
+        ):
+            if candidate.is_file():
+                return candidate
     return None
 
 
@@ -68,56 +78,128 @@ class LoadedPolicy:
         return np.asarray(actions, dtype=np.float32)
 
 
-def load_sb3(path: Path, vecnormalize: Path | None = None) -> LoadedPolicy:
-    """Load the policy of an SB3 ``.zip`` (any algorithm) without its algorithm or environment."""
+def load_sb3(path: Path, vecnormalize: Path | None = None, trust_pickle: bool = False) -> LoadedPolicy:
+    """Load the policy of an SB3 ``.zip`` (any algorithm) without its algorithm or environment.
+
+    Nothing from the files is unpickled (:mod:`embedrl.train.sb3_archive`) unless ``trust_pickle``.
+    """
     if not path.is_file():
         raise InvalidModelFileError(f"{path}: no such file")
     try:
-        data, params, _ = load_from_zip_file(path, device="cpu", print_system_info=False)
+        data, params, _ = load_from_zip_file(
+            path, load_data=trust_pickle, device="cpu", print_system_info=False
+        )
     except (zipfile.BadZipFile, KeyError, ValueError, EOFError, RuntimeError, pickle.UnpicklingError) as exc:
         raise InvalidModelFileError(f"{path}: not a readable Stable-Baselines3 model ({exc})") from None
-    if data is None or params is None or "policy" not in params:
+    if params is None or "policy" not in params:
         raise InvalidModelFileError(f"{path}: the archive has no policy parameters")
-    cls = data.get("policy_class")
+    if trust_pickle:
+        assert data is not None
+        cls = data.get("policy_class")
+        obs_space, act_space = data.get("observation_space"), data.get("action_space")
+        raw_kwargs = data.get("policy_kwargs", {})
+        if not isinstance(raw_kwargs, dict):
+            raise InvalidModelFileError(f"{path}: policy_kwargs is not a dict")
+        kwargs = dict(raw_kwargs)
+    else:
+        data = archive.read_data(path)
+        cls = archive.policy_class(path, data)
+        obs_space, act_space = archive.box(path, data, "observation"), archive.box(path, data, "action")
+        kwargs = archive.policy_kwargs(path, data)
     if not isinstance(cls, type) or not issubclass(cls, (TD3Policy, SACPolicy, ActorCriticPolicy)):
         name = getattr(cls, "__name__", repr(cls))
         raise UnsupportedModelFileError(
             f"{path}: policy class {name} is not supported; supported: TD3Policy (TD3, DDPG), "
             "SACPolicy (SAC), ActorCriticPolicy (PPO, A2C)"
         )
-    obs_space, act_space = data.get("observation_space"), data.get("action_space")
     for role, space in (("observation", obs_space), ("action", act_space)):
         if not isinstance(space, spaces.Box) or len(space.shape) != 1:
             raise UnsupportedModelFileError(f"{path}: {role} space {space} is not supported; need a 1-D Box")
     assert isinstance(obs_space, spaces.Box) and isinstance(act_space, spaces.Box)
-    kwargs = dict(data.get("policy_kwargs", {}))
     if data.get("use_sde") or kwargs.get("use_sde"):
         raise UnsupportedModelFileError(f"{path}: policies with gSDE (use_sde=True) are not supported")
-    policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
+    try:
+        policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
+    except TypeError as exc:
+        raise UnsupportedModelFileError(f"{path}: policy_kwargs do not fit {cls.__name__} ({exc})") from None
     try:
         policy.load_state_dict(params["policy"])  # type: ignore[arg-type]
     except RuntimeError as exc:
         raise InvalidModelFileError(f"{path}: policy parameters do not match the policy ({exc})") from None
     policy.set_training_mode(False)
-    normalization = _load_vecnormalize(vecnormalize, obs_space) if vecnormalize else None
+    normalization = load_normalization(vecnormalize, obs_space, trust_pickle) if vecnormalize else None
     return LoadedPolicy(policy, obs_space, act_space, normalization)
 
 
-def _load_vecnormalize(path: Path, obs_space: spaces.Box) -> ObsNormalization | None:
+def save_normalization(stats: Any, path: Path) -> None:
+    """VecNormalize's observation statistics as ``.npz`` (plain arrays: safe to open anywhere)."""
+    rms = stats.obs_rms
+    np.savez(
+        path,
+        mean=np.asarray(rms.mean, np.float64),
+        var=np.asarray(rms.var, np.float64),
+        epsilon=np.float64(stats.epsilon),
+        clip_obs=np.float64(stats.clip_obs),
+        norm_obs=np.bool_(stats.norm_obs),
+    )
+
+
+def load_normalization(
+    path: Path, obs_space: spaces.Box, trust_pickle: bool = False
+) -> ObsNormalization | None:
+    """Statistics from ``.npz``; from SB3's ``.pkl`` only with ``trust_pickle`` (unpickling runs code)."""
     if not path.is_file():
-        raise InvalidModelFileError(f"{path}: no such file (VecNormalize statistics)")
-    try:
-        with path.open("rb") as f:
-            stats: Any = pickle.load(f)
-        rms, enabled = stats.obs_rms, bool(stats.norm_obs)
-        mean, var = np.asarray(rms.mean, np.float64), np.asarray(rms.var, np.float64)
-        epsilon, clip = float(stats.epsilon), float(stats.clip_obs)
-    except (pickle.UnpicklingError, EOFError, AttributeError, ValueError, TypeError) as exc:
-        raise InvalidModelFileError(f"{path}: not VecNormalize statistics saved by SB3 ({exc})") from None
+        raise InvalidModelFileError(f"{path}: no such file (normalisation statistics)")
+    if path.suffix == ".npz":
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                mean, var = np.asarray(f["mean"], np.float64), np.asarray(f["var"], np.float64)
+                epsilon, clip, enabled = float(f["epsilon"]), float(f["clip_obs"]), bool(f["norm_obs"])
+        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+            raise InvalidModelFileError(
+                f"{path}: not normalisation statistics written by embedrl ({exc})"
+            ) from None
+    elif not trust_pickle:
+        raise UnsupportedModelFileError(
+            f"{path} is a pickle: opening it can run code from it. Use the statistics as .npz "
+            f"(`python -m embedrl.train.models {path}` converts a file you trust), or {archive.TRUST_HINT}"
+        )
+    else:
+        try:
+            with path.open("rb") as f:
+                stats: Any = pickle.load(f)
+            rms, enabled = stats.obs_rms, bool(stats.norm_obs)
+            mean, var = np.asarray(rms.mean, np.float64), np.asarray(rms.var, np.float64)
+            epsilon, clip = float(stats.epsilon), float(stats.clip_obs)
+        except (pickle.UnpicklingError, EOFError, AttributeError, ValueError, TypeError) as exc:
+            raise InvalidModelFileError(f"{path}: not VecNormalize statistics saved by SB3 ({exc})") from None
     if not enabled:
         return None
     if mean.shape != obs_space.shape or var.shape != obs_space.shape:
         raise InvalidModelFileError(
             f"{path}: statistics of shape {mean.shape} do not fit observations {obs_space.shape}"
         )
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
+        raise InvalidModelFileError(f"{path}: statistics contain non-finite or negative values")
     return ObsNormalization(mean, var, epsilon, clip)
+
+
+def _convert(argv: list[str]) -> int:
+    """``python -m embedrl.train.models FILE.pkl``: write FILE.npz from SB3 statistics you trust."""
+    if len(argv) != 1 or not argv[0].endswith(".pkl"):
+        print(
+            "usage: python -m embedrl.train.models STATISTICS.pkl  (unpickles it: only for files you trust)"
+        )
+        return 2
+    source = Path(argv[0])
+    with source.open("rb") as f:
+        stats = pickle.load(f)
+    save_normalization(stats, source.with_suffix(".npz"))
+    print(f"wrote {source.with_suffix('.npz')}")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.exit(_convert(sys.argv[1:]))

@@ -31,8 +31,8 @@ def ship(run: Path, name: str) -> dict[str, object]:
     POLICIES.mkdir(parents=True, exist_ok=True)
     target = POLICIES / f"{name}.zip"
     shutil.copyfile(run / "model.zip", target)
-    if (run / "vecnormalize.pkl").is_file():
-        shutil.copyfile(run / "vecnormalize.pkl", POLICIES / f"{name}_vecnormalize.pkl")
+    if (run / "vecnormalize.npz").is_file():
+        shutil.copyfile(run / "vecnormalize.npz", POLICIES / f"{name}_vecnormalize.npz")
     meta = {
         "model": target.name,
         "sha256": hashlib.sha256(target.read_bytes()).hexdigest(),

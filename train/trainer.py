@@ -6,7 +6,7 @@ A run directory is self-describing::
     curve.csv          one row per training episode: steps, return, 50-episode average, Episode Q0
     summary.json       criterion reached?, episodes and env steps to it, first deterministic success, time
     progress.png       MATLAB-style: episode return, 50-episode average, Episode Q0
-    model.zip          the final policy (plus vecnormalize.pkl when observations are normalised)
+    model.zip          the final policy (plus vecnormalize.npz and .pkl when observations are normalised)
     checkpoint/        model, replay buffer, normalisation and counters of the last checkpoint
     tb/                TensorBoard logs
 """
@@ -50,6 +50,7 @@ from embedrl.train.config import (
 )
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
+from embedrl.train.models import save_normalization
 
 STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
@@ -379,7 +380,8 @@ def train(
     state.update(steps=model.num_timesteps, returns=monitor.returns)
     save()
     model.save(out / "model.zip")
-    if normalize:
+    if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
+        save_normalization(env, out / "vecnormalize.npz")
         env.save(str(out / "vecnormalize.pkl"))  # type: ignore[attr-defined]
     summary = {
         "algo": algo,

@@ -18,6 +18,7 @@ from embedrl import train
 from embedrl.cli import main
 from embedrl.export.verify import MAX_DIFFERING_OUTCOMES, MIN_SAMPLES, TOLERANCE
 from embedrl.train.interface import Interface
+from embedrl.train.models import save_normalization
 from embedrl.train.scenarios import STATIC
 
 pytestmark = pytest.mark.slow
@@ -148,9 +149,18 @@ def test_vecnormalize_statistics_go_into_the_graph(tmp_path: Path) -> None:
     folder = tmp_path / "run"
     folder.mkdir()
     model.save(folder / "ppo.zip")
-    venv.save(str(folder / "vecnormalize.pkl"))
+    venv.save(str(folder / "vecnormalize.pkl"))  # SB3's pickle: opened only with --trust-pickle
+    save_normalization(venv, folder / "vecnormalize.npz")  # what embedrl's training writes beside it
     report = _export(folder / "ppo.zip", tmp_path / "export")
-    assert report["source"]["vecnormalize"]["path"].endswith("vecnormalize.pkl")
+    assert report["source"]["vecnormalize"]["path"].endswith("vecnormalize.npz")
+    trusted = _export(
+        folder / "ppo.zip",
+        tmp_path / "trusted",
+        "--vecnormalize",
+        str(folder / "vecnormalize.pkl"),
+        "--trust-pickle",
+    )
+    assert trusted["files"]["policy.onnx"] == report["files"]["policy.onnx"]  # the same statistics either way
     assert report["ops"][:3] == ["Sub", "Div", "Clip"]
     assert report["verification"]["onnx_vs_sb3_max_abs_error"] <= TOLERANCE
     assert report["verification"]["c_vs_onnxruntime_max_abs_error"] <= TOLERANCE
