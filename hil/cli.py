@@ -68,7 +68,10 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
         results = _build_and_run(args, guest, export_dir, onnx, work)
     except HilError as exc:
         raise HilError(f"{exc} [node build and guest console kept in {work}]") from None
-    shutil.rmtree(work, ignore_errors=True)
+    if args.keep_work:
+        print(f"kept the node build and guest files in {work}")
+    else:
+        shutil.rmtree(work, ignore_errors=True)
     return results
 
 
@@ -218,8 +221,13 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")
     if not 1 <= args.timeout_ms <= 60_000:
         raise HilError(f"--timeout-ms must be within 1..60000, got {args.timeout_ms}")
+    if args.inject and not args.allow_faults:
+        print(
+            f"note: --inject {args.inject} ends an episode in a fault; without --allow-faults the run fails"
+        )
     results = run_hil(args, guest)
     data = _report(args, results)
+    data["verdict"] = verdict(data, args.allow_faults)
     lat = data["latency_us"]
     diff = data["max_action_abs_diff"]
     rows = [
@@ -251,10 +259,33 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         )
     if data["injection"]:
         rows.append(("injection", json.dumps(data["injection"])))
+    failures = data["verdict"]["failures"]
+    rows.append(("verdict", "PASS" if not failures else "FAIL: " + "; ".join(failures)))
     print(table(rows))
     write_json(data, args.json)
     print(f"wrote {args.json}" + (f", {args.log}" if args.log else ""))
-    return 0
+    return 0 if not failures else 1
+
+
+def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
+    """Whether the run passed: no episode ended in a fault (unless ``allow_faults``), none ended
+    differently from the simulation (a faulted one aside, when faults are allowed), and the node's
+    actions matched the exported ONNX within the tolerance at every step."""
+    from embedrl.hil.session import TOLERANCE
+
+    faulted = {row["seed"] for row in data["per_episode"] if row["outcome"] == "fault"}
+    differing = [s for s in data["outcomes_differing_from_simulation"] if not (allow_faults and s in faulted)]
+    failures = []
+    if faulted and not allow_faults:
+        failures.append(f"{len(faulted)} episode(s) ended in a fault (seeds {sorted(faulted)})")
+    if differing:
+        failures.append(
+            f"{len(differing)} episode(s) ended differently from the simulation (seeds {differing})"
+        )
+    diff = data["max_action_abs_diff"]
+    if diff is not None and diff > TOLERANCE:
+        failures.append(f"the node's actions differ from the ONNX by {diff:.3g} > {TOLERANCE}")
+    return {"passed": not failures, "failures": failures, "faults_allowed": allow_faults}
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
@@ -297,6 +328,12 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--inject", choices=sorted(INJECTORS), help="fault injection at step 3 of the first episode"
     )
+    r.add_argument(
+        "--allow-faults",
+        action="store_true",
+        help="pass even if episodes end in a fault (fault-injection runs); by default a fault fails the run",
+    )
+    r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
     r.add_argument(
         "--node",
         choices=("c", "python"),

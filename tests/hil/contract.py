@@ -7,13 +7,15 @@ over SocketCAN vcan0 in a sandbox (the verdict). The assertions are the same for
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Any, ClassVar
 
 import pytest
 
-from embedrl.cli import main
+from embedrl.cli import build_parser, main
+from embedrl.hil.cli import cmd_run
 from embedrl.hil.sandbox import Guest
 from tests.hil.helpers import hil
 
@@ -51,6 +53,7 @@ class HilContract:
         assert report["sandbox"] in self.sandboxes
         assert report["episodes"] == 4 and report["faults"] == 0
         assert report["successes"] == report["simulation"]["successes"] == 4
+        assert report["verdict"] == {"passed": True, "failures": [], "faults_allowed": False}
         assert report["outcomes_differing_from_simulation"] == []
         assert report["max_action_abs_diff"] <= 1e-5 and report["first_divergent_step"] is None
         assert report["frames_tx"] == 3 * report["steps"] and report["frames_rx"] >= report["steps"]
@@ -81,7 +84,9 @@ class HilContract:
     def test_corrupted_observation_frame_is_dropped_and_counted(
         self, where: Guest | None, export_dir: Path, tmp_path: Path
     ) -> None:
-        report = self.run_hil(where, export_dir, tmp_path, "--episodes", "1", "--inject", "corrupt")
+        report = self.run_hil(
+            where, export_dir, tmp_path, "--episodes", "1", "--inject", "corrupt", "--allow-faults"
+        )
         injection = report["injection"]
         assert injection["kind"] == "corrupt"
         assert injection["action_received"] is False  # no action computed from the corrupted observation
@@ -91,7 +96,9 @@ class HilContract:
     def test_silent_simulator_gets_the_safe_action_within_the_timeout(
         self, where: Guest | None, export_dir: Path, tmp_path: Path
     ) -> None:
-        report = self.run_hil(where, export_dir, tmp_path, "--episodes", "1", "--inject", "silent")
+        report = self.run_hil(
+            where, export_dir, tmp_path, "--episodes", "1", "--inject", "silent", "--allow-faults"
+        )
         injection = report["injection"]
         assert injection["safe_action_after_ms"] is not None
         assert NODE_TIMEOUT_MS * 0.9 <= injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
@@ -102,7 +109,9 @@ class HilContract:
         self, where: Guest | None, safe_export_dir: Path, tmp_path: Path
     ) -> None:
         # An export with --safe-action 0.1,0: the node's watchdog must send (0.1, 0), not zeros.
-        report = self.run_hil(where, safe_export_dir, tmp_path, "--episodes", "1", "--inject", "silent")
+        report = self.run_hil(
+            where, safe_export_dir, tmp_path, "--episodes", "1", "--inject", "silent", "--allow-faults"
+        )
         injection = report["injection"]
         assert injection["expected_safe_action"] == [0.1, 0.0]
         assert injection["safe_action"] == pytest.approx([0.1, 0.0], abs=4e-6)
@@ -112,13 +121,27 @@ class HilContract:
         self, where: Guest | None, export_dir: Path, tmp_path: Path
     ) -> None:
         start = time.monotonic()
-        report = self.run_hil(where, export_dir, tmp_path, "--episodes", "3", "--inject", "kill")
+        report = self.run_hil(
+            where, export_dir, tmp_path, "--episodes", "3", "--inject", "kill", "--allow-faults"
+        )
         assert time.monotonic() - start < 120
         assert report["injection"]["kind"] == "kill"
         assert report["faults"] == 1 and report["episodes"] == 1  # the session stops: the node is gone
         assert report["per_episode"][0]["fault"].startswith("the node exited")
         assert report["per_episode"][0]["fault"] == report["injection"]["node_exit"]
         assert report["rx_timeouts"] == 1
+        assert report["verdict"] == {"passed": True, "failures": [], "faults_allowed": True}
+
+    def test_a_fault_fails_the_run_unless_faults_are_allowed(
+        self, where: Guest | None, export_dir: Path, tmp_path: Path
+    ) -> None:
+        out = tmp_path / "hil.json"
+        argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), "--node", self.node]
+        args = build_parser().parse_args([*argv, "--episodes", "2", "--inject", "kill"])
+        assert cmd_run(args, where) == 1  # a script or CI can tell a failed HIL run from a good one
+        report = json.loads(out.read_text())
+        assert report["verdict"]["passed"] is False
+        assert report["verdict"]["failures"][0].startswith("1 episode(s) ended in a fault (seeds [0])")
 
     def test_realtime_mode_reports_latency_jitter_and_deadline_misses(
         self, where: Guest | None, export_dir: Path, tmp_path: Path

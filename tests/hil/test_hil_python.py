@@ -34,3 +34,23 @@ def test_an_export_without_an_interface_is_a_clear_error(
 def test_missing_export_folder_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["hil", "run", "--export-dir", str(tmp_path), "--json", str(tmp_path / "x.json")]) == 2
     assert "no c/policy.c" in capsys.readouterr().err
+
+
+def test_keep_work_keeps_the_temporary_folder_and_names_it(
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = [
+        "hil",
+        "run",
+        "--export-dir",
+        str(export_dir),
+        "--json",
+        str(tmp_path / "h.json"),
+        "--node",
+        "python",
+    ]
+    assert main([*argv, "--episodes", "1", "--keep-work"]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("kept the node build"))
+    kept = Path(line.rsplit(" in ", 1)[1])
+    assert (kept / "results.json").is_file()
+    shutil.rmtree(kept)
