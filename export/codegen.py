@@ -355,7 +355,9 @@ int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
 #include "{name}.h"
 
 #include <math.h>
-{"#include <stdint.h>" + chr(10) if quantize else ""}
+#include <stdint.h>
+#include <string.h>
+
 {chr(10).join(ctx.declarations)}
 
 {safe_decl}
@@ -363,6 +365,15 @@ int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
 /* Scratch buffers ({ram} bytes). */
 {chr(10).join(buffers) if buffers else "/* none */"}
 {"".join(chr(10) + h + chr(10) for h in ctx.helpers.values())}
+/* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
+ * compiler assume that no NaN or infinity exists and drop isfinite(). */
+static int {name}_finite(float x)
+{{
+    uint32_t bits;
+    memcpy(&bits, &x, sizeof bits);
+    return (bits & 0x7f800000u) != 0x7f800000u;
+}}
+
 static int {name}_safe(float act[{up}_ACT_DIM], int code)
 {{
     for (int i = 0; i < {up}_ACT_DIM; ++i) {{
@@ -374,13 +385,13 @@ static int {name}_safe(float act[{up}_ACT_DIM], int code)
 int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
 {{
     for (int i = 0; i < {up}_OBS_DIM; ++i) {{
-        if (!isfinite(obs[i])) {{
+        if (!{name}_finite(obs[i])) {{
             return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
         }}
     }}
 {indented}
     for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        if (!isfinite({out_ref}[i])) {{
+        if (!{name}_finite({out_ref}[i])) {{
             return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
         }}
     }}

@@ -96,20 +96,28 @@ def test_op_matches_onnxruntime_and_reference(case: str, tmp_path: Path) -> None
         np.testing.assert_allclose(got, expected_ref, rtol=0, atol=1e-5 * scale)
 
 
-def test_non_finite_observation_gives_the_safe_action(tmp_path: Path) -> None:
+FAST_MATH = "-O3 -march=native -ffast-math"
+"""Flags embedded users often set: the compiler may then assume that no NaN or infinity exists."""
+
+
+@pytest.mark.parametrize("opt", [None, FAST_MATH])
+def test_non_finite_observation_gives_the_safe_action(opt: str | None, tmp_path: Path) -> None:
     nodes, inits, out_dim = CASES["Gemm transB=1 with bias"]
-    policy = compile_model(make_model(nodes, inits, N, out_dim), tmp_path)
-    for bad in (np.nan, np.inf, -np.inf):
+    policy = compile_model(make_model(nodes, inits, N, out_dim), tmp_path, opt=opt)
+    for bad in (np.nan, -np.nan, np.inf, -np.inf):
         x = V.copy()
         x[3] = bad
         assert np.array_equal(policy(x), np.zeros(5, F))
         assert policy.status == 1
 
 
-def test_non_finite_result_gives_the_safe_action(tmp_path: Path) -> None:
+@pytest.mark.parametrize("opt", [None, FAST_MATH])
+def test_non_finite_result_gives_the_safe_action(opt: str | None, tmp_path: Path) -> None:
     # Dividing by a zero weight makes infinities: the C must not let them out.
     model = make_model([mk("Div", ["x", "z"], ["y"])], {"z": np.zeros(N, F)}, N, N)
-    policy = compile_model(model, tmp_path)
+    policy = compile_model(model, tmp_path, opt=opt)
     out = policy(np.ones(N, F))
     assert policy.status == 2
     assert np.array_equal(out, np.zeros(N, F))
+    out = policy(np.zeros(N, F))  # 0 / 0: NaN
+    assert policy.status == 2 and np.array_equal(out, np.zeros(N, F))

@@ -8,6 +8,8 @@
 #include "policy.h"
 
 #include <math.h>
+#include <stdint.h>
+#include <string.h>
 
 /* normalize.sub operand [3] */
 static const float policy_w0_mean[3] = {
@@ -59,6 +61,15 @@ static const float policy_safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;
 static float policy_buf0[3];
 static float policy_buf1[4];
 
+/* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
+ * compiler assume that no NaN or infinity exists and drop isfinite(). */
+static int policy_finite(float x)
+{
+    uint32_t bits;
+    memcpy(&bits, &x, sizeof bits);
+    return (bits & 0x7f800000u) != 0x7f800000u;
+}
+
 static int policy_safe(float act[POLICY_ACT_DIM], int code)
 {
     for (int i = 0; i < POLICY_ACT_DIM; ++i) {
@@ -70,7 +81,7 @@ static int policy_safe(float act[POLICY_ACT_DIM], int code)
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
     for (int i = 0; i < POLICY_OBS_DIM; ++i) {
-        if (!isfinite(obs[i])) {
+        if (!policy_finite(obs[i])) {
             return policy_safe(act, POLICY_ERR_OBS_NOT_FINITE);
         }
     }
@@ -124,7 +135,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         policy_buf0[i] = v;
     }
     for (int i = 0; i < POLICY_ACT_DIM; ++i) {
-        if (!isfinite(policy_buf0[i])) {
+        if (!policy_finite(policy_buf0[i])) {
             return policy_safe(act, POLICY_ERR_ACT_NOT_FINITE);
         }
     }
