@@ -24,8 +24,38 @@ from embedrl.export.ops.base import c_float
 from embedrl.export.ops.deterministic import helper_source
 from embedrl.train.interface import Interface
 
-NAME_PATTERN = re.compile(r"[a-z_][a-z0-9_]{0,30}")
-"""Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol."""
+NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]{0,30}")
+"""Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol (no leading
+underscore: such identifiers are reserved)."""
+C_KEYWORDS = (
+    "auto break case char const continue default do double else enum extern float for goto if inline int long "
+    "register restrict return short signed sizeof static struct switch typedef union unsigned void volatile "
+    "while bool true false"
+)
+STANDARD_HEADERS = (
+    "assert complex ctype errno fenv inttypes iso646 limits locale math setjmp signal stdarg stdbool stddef "
+    "stdint stdio stdlib string tgmath time wchar wctype"
+)
+"""A generated ``name.h`` beside the sources would shadow ``<name.h>``."""
+RUNTIME_FILES = "node e2e platform policy_io policy_dbc main startup"
+"""The C runtime's own files, compiled beside the policy."""
+RESERVED_NAMES = frozenset(f"{C_KEYWORDS} {STANDARD_HEADERS} {RUNTIME_FILES}".split())
+"""Names a generated ``{name}.h``/``{name}_step`` would collide with."""
+
+
+def check_name(name: str) -> None:
+    """A clear error unless ``name`` can prefix every generated symbol and file."""
+    if not NAME_PATTERN.fullmatch(name):
+        raise ExportError(
+            f"--name {name!r} is not valid: use a lower-case C identifier (a-z first, then a-z, 0-9, _; "
+            "at most 31 characters)"
+        )
+    if name in RESERVED_NAMES:
+        raise ExportError(
+            f"--name {name!r} is reserved (a C keyword, a standard header or a runtime file); choose another"
+        )
+
+
 VALUES_PER_LINE = 6
 _INTEGER_CTYPES = {"int8": "int8_t", "uint8": "uint8_t", "int16": "int16_t", "int64": "int64_t"}
 
@@ -269,8 +299,7 @@ def generate(
     ``quantize`` is None, "int8" or "q15"; q15 needs the ``section`` planned by
     :func:`export.fixed_point.plan`.
     """
-    if not NAME_PATTERN.fullmatch(name):
-        raise ExportError(f"name {name!r} is not a valid prefix: use a lower-case C identifier (a-z, 0-9, _)")
+    check_name(name)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     safe = [0.0] * act_dim if safe_action is None else [float(v) for v in safe_action]
     if len(safe) != act_dim:

@@ -25,7 +25,7 @@ import onnxruntime as ort
 from embedrl import train
 from embedrl.common import provenance
 from embedrl.export import build, fixed_point, quantize, target, verify
-from embedrl.export.codegen import NAME_PATTERN, generate
+from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
 from embedrl.export.fixed_point import FixedSection
 from embedrl.export.ir import Graph
@@ -105,8 +105,7 @@ def _check_output_folder(out: Path, force: bool) -> None:
 
 def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run every step; return the export report. Raises :class:`ExportError` on any failure."""
-    if not NAME_PATTERN.fullmatch(opts.name):
-        raise ExportError(f"--name {opts.name!r} is not valid: use a lower-case C identifier (a-z, 0-9, _)")
+    check_name(opts.name)
     unknown = [t for t in opts.targets if t not in target.TARGETS]
     if unknown:
         raise ExportError(f"unknown target(s) {unknown}; supported: {', '.join(target.TARGETS)}")

@@ -110,9 +110,21 @@ def test_missing_truncated_and_foreign_files(tmp_path: Path) -> None:
         load_onnx(foreign)
 
 
-def test_invalid_name_is_rejected() -> None:
-    with pytest.raises(ExportError, match="not a valid prefix"):
-        generate(to_ir(_mlp()), name="2fast")
+@pytest.mark.parametrize(
+    ("name", "message"),
+    [
+        ("2fast", "is not valid: use a lower-case C identifier"),
+        ("_", "is not valid"),
+        ("_policy", "is not valid"),
+        ("Policy", "is not valid"),
+        ("int", "is reserved"),
+        ("math", "is reserved"),
+        ("node", "is reserved"),
+    ],
+)
+def test_invalid_or_reserved_name_is_rejected(name: str, message: str) -> None:
+    with pytest.raises(ExportError, match=message):
+        generate(to_ir(_mlp()), name=name)
 
 
 def _cli_error(args: list[str], capsys: pytest.CaptureFixture[str]) -> str:
