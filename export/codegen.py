@@ -28,8 +28,8 @@ NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]{0,30}")
 """Allowed ``--name``: a lower-case C identifier, so the prefix is valid in every symbol (no leading
 underscore: such identifiers are reserved)."""
 C_KEYWORDS = (
-    "auto break case char const continue default do double else enum extern float for goto if inline int long "
-    "register restrict return short signed sizeof static struct switch typedef union unsigned void volatile "
+    "auto break case char const continue default do double else enum extern float for goto if inline int "
+    "long register restrict return short signed sizeof static struct switch typedef union unsigned void volatile "
     "while bool true false"
 )
 STANDARD_HEADERS = (
