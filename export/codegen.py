@@ -29,8 +29,8 @@ NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]{0,30}")
 underscore: such identifiers are reserved)."""
 C_KEYWORDS = (
     "auto break case char const continue default do double else enum extern float for goto if inline int "
-    "long register restrict return short signed sizeof static struct switch typedef union unsigned void volatile "
-    "while bool true false"
+    "long register restrict return short signed sizeof static struct switch typedef union unsigned void "
+    "volatile while bool true false"
 )
 STANDARD_HEADERS = (
     "assert complex ctype errno fenv inttypes iso646 limits locale math setjmp signal stdarg stdbool stddef "
