@@ -35,6 +35,7 @@ from cantools.database.can.c_source import camel_to_snake_case
 from cantools.database.can.c_source import generate as generate_c
 from cantools.database.conversion import BaseConversion
 
+from embedrl.export.ops.base import c_float
 from embedrl.hil.errors import HilError
 from embedrl.train.interface import Field, Interface, InterfaceError
 from embedrl.train.scenarios import SCENARIOS
@@ -265,9 +266,10 @@ policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[
                                               float obs[POLICY_IO_OBS_DIM], uint16_t *step, uint8_t *counter);
 
 /* Pack action frame `part` (0 .. POLICY_IO_ACT_FRAMES - 1) with its fields of act, Step and Counter
- * (the E2E CRC byte is left for the caller). */
-void policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,
-                             uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES]);
+ * (the E2E CRC byte is left for the caller). Each value is saturated to its field's range first (a value
+ * outside it would wrap around in the signal's bits: 2.0 would arrive as -2.0); returns how many were. */
+unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,
+                                 uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES]);
 
 #endif /* POLICY_IO_H */
 """
@@ -297,7 +299,8 @@ void policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], 
     for k, (name, _, slots) in enumerate(plan.action):
         m = _c_name(name)
         stores = "\n".join(
-            f"        msg.{_c_name(s.signal)} = {db}_{m}_{_c_name(s.signal)}_encode((double)act[{s.index}]);"
+            f"        msg.{_c_name(s.signal)} = {db}_{m}_{_c_name(s.signal)}_encode("
+            f"(double)saturate(act[{s.index}], {c_float(s.field.low)}, {c_float(s.field.high)}, &saturated));"
             for s in slots
         )
         encode_cases.append(f"""    case {k}u: {{ /* {name}: {", ".join(s.field.name for s in slots)} */
@@ -307,7 +310,7 @@ void policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], 
         msg.step = step;
 {stores}
         (void){db}_{m}_pack(data, &msg, POLICY_IO_FRAME_BYTES);
-        return;
+        return saturated;
     }}""")
     c = f"""{banner}#include "policy_io.h"
 
@@ -325,14 +328,25 @@ policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[
     }}
 }}
 
-void policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,
-                             uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES])
+/* v within [lo, hi]; anything else (NaN included) is moved to the nearest bound and counted. */
+static float saturate(float v, float lo, float hi, unsigned *count)
 {{
+    if (v >= lo && v <= hi) {{
+        return v;
+    }}
+    *count += 1u;
+    return v > hi ? hi : lo;
+}}
+
+unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,
+                                 uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES])
+{{
+    unsigned saturated = 0u;
     memset(data, 0, POLICY_IO_FRAME_BYTES);
     switch (part) {{
 {chr(10).join(encode_cases)}
     default:
-        return;
+        return saturated;
     }}
 }}
 """

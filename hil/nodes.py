@@ -96,7 +96,7 @@ class PythonNode(Node):
         self.tx_counters: dict[int, int] = {}
         self.state = "RUN"
         self.counts = dict.fromkeys(
-            ("frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors"), 0
+            ("frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors", "saturations"), 0
         )
         self.inference_us = 0
         self.pending_step: int | None = None
@@ -152,7 +152,13 @@ class PythonNode(Node):
 
     def _send_action(self, action: np.ndarray, step: int) -> None:
         for name, _, slots in self.plan.action:
-            self._send(name, {"Step": step, **{s.signal: float(action[s.index]) for s in slots}})
+            values = {}
+            for s in slots:
+                value = float(action[s.index])
+                inside = min(max(value, s.field.low), s.field.high) if value == value else s.field.low
+                self.counts["saturations"] += inside != value  # never wrapped around in the signal's bits
+                values[s.signal] = inside
+            self._send(name, {"Step": step, **values})
 
     def _send_status(self) -> None:
         self._send(

@@ -34,7 +34,7 @@ static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t 
 {
     for (unsigned part = 0; part < POLICY_IO_ACT_FRAMES; ++part) {
         can_frame_t frame = {POLICY_IO_ACT_FIRST_ID + part, POLICY_IO_FRAME_BYTES, {0}};
-        policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
+        node->saturations += policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
         e2e_protect(frame.id, frame.data);
         node->action_counter[part] = (uint8_t)((node->action_counter[part] + 1u) % E2E_COUNTER_MODULO);
         (void)transport_send(&frame);

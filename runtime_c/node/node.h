@@ -41,6 +41,7 @@ typedef struct {
     uint32_t inference_us;
     uint32_t rejected;     /* unknown ID or wrong length: dropped before any decoding */
     uint32_t range_errors; /* a signal outside its range in the DBC: frame dropped */
+    uint32_t saturations;  /* action values moved into their signal's range before sending */
     uint32_t incomplete; /* observation steps abandoned before all frames arrived */
     uint32_t actions_sent;
     e2e_receiver rx[POLICY_IO_OBS_FRAMES];

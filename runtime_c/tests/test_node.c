@@ -10,6 +10,7 @@
 #include "fake_platform.h"
 #include "node.h"
 #include "policy_dbc.h"
+#include "policy_io.h"
 
 static int failures;
 static int checks;
@@ -313,6 +314,22 @@ static void test_non_finite_output_gives_the_safe_action(void)
     CHECK(last_action(act, &step) && step == 7 && act[0] == 0.25f && act[1] == -0.5f);
 }
 
+static void test_actions_outside_their_range_are_saturated_not_wrapped(void)
+{
+    /* 20-bit signals: without saturation 2.5 would arrive as -1.5 (a sign-flipped wheel force). */
+    const float act[2] = {2.5f, -30000.0f};
+    uint8_t data[8];
+    CHECK(policy_io_encode_action(0u, act, 5u, 0u, data) == 2u);
+    struct policy_dbc_action_t m;
+    CHECK(policy_dbc_action_unpack(&m, data, 8) == 0);
+    CHECK(policy_dbc_action_force_left_decode(m.force_left) == 1.0);
+    CHECK(policy_dbc_action_force_right_decode(m.force_right) == -1.0);
+    const float inside[2] = {0.25f, -1.0f};
+    CHECK(policy_io_encode_action(0u, inside, 6u, 1u, data) == 0u);
+    CHECK(policy_dbc_action_unpack(&m, data, 8) == 0 && m.step == 6u);
+    CHECK(policy_dbc_action_force_left_decode(m.force_left) == 0.25);
+}
+
 static void test_a_value_outside_its_range_is_never_given_to_the_policy(void)
 {
     node_t node;
@@ -356,6 +373,7 @@ int main(void)
     test_watchdog_safe_and_recovery();
     test_non_finite_output_gives_the_safe_action();
     test_a_value_outside_its_range_is_never_given_to_the_policy();
+    test_actions_outside_their_range_are_saturated_not_wrapped();
     test_status_frame_reports_counters();
     printf("%d checks, %d failures\n", checks, failures);
     return failures == 0 ? 0 : 1;
