@@ -25,6 +25,7 @@ import onnxruntime as ort
 from embedrl import train
 from embedrl.common import provenance
 from embedrl.export import build, fixed_point, quantize, target, verify
+from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
 from embedrl.export.fixed_point import FixedSection
@@ -201,6 +202,8 @@ class Lowered:
     obs_space: gym.spaces.Box
     interface: Interface | None
     interface_problem: str | None
+    action_clamp: dict[str, Any]
+    """Whether a clamp to the action space was appended, and the action bounds that decided it."""
     reference: Callable[[np.ndarray], np.ndarray]
     """The policy the export is verified against (SB3's ``predict`` or onnxruntime)."""
     onnx_policy: Callable[[np.ndarray], np.ndarray]
@@ -296,6 +299,17 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
                 f"--safe-action {list(opts.safe_action)} must be {act_dim} values within the action space "
                 f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
             )
+    bounds = action_bounds(graph, obs_space.low, obs_space.high)
+    finite_space = bool(np.all(np.isfinite(act_space.low)) and np.all(np.isfinite(act_space.high)))
+    clamp = finite_space and not within(bounds, act_space.low, act_space.high)
+    action_clamp = {"added": clamp, "bounds": [bounds[0].tolist(), bounds[1].tolist()]}
+    if clamp:  # the policy's actions can leave the action space: bound them in the graph itself
+        loaded.model = append_clamp(loaded.model, act_space.low, act_space.high)
+        graph = to_ir(loaded.model)
+        if loaded.loaded is None:  # an ONNX source: the export carries the clamped graph
+            loaded.onnx_path = staging / "policy.onnx"
+            loaded.files["policy.onnx"] = loaded.onnx_path
+            onnx.save(loaded.model, str(loaded.onnx_path))
     if interface is not None:
         interface = interface.with_safe_action(opts.safe_action)
         (staging / INTERFACE_FILE).write_text(interface.dumps())
@@ -305,7 +319,9 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
             _set_metadata(loaded.model, INTERFACE_METADATA_KEY, interface.dumps())
         onnx.save(loaded.model, str(loaded.onnx_path))
     reference = loaded.loaded.predict if loaded.loaded is not None else _ort_policy(loaded.model)
-    return Lowered(graph, obs_space, interface, interface_problem, reference, _ort_policy(loaded.model))
+    return Lowered(
+        graph, obs_space, interface, interface_problem, action_clamp, reference, _ort_policy(loaded.model)
+    )
 
 
 def _generate(
@@ -455,6 +471,7 @@ def _write_report(
         "interface": interface.to_json()
         if interface is not None
         else {"unavailable": lowered.interface_problem},
+        "action_clamp": lowered.action_clamp,
         "observation_dim": graph.size(graph.input),
         "action_dim": graph.size(graph.output),
         "ops": [n.op for n in graph.nodes],
