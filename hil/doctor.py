@@ -21,30 +21,26 @@ CPUINFO = Path("/proc/cpuinfo")
 
 def machine() -> dict[str, Any]:
     """CPU model and the flags that matter to the sandboxes, the host kernel."""
-    model, flags = "unknown", set[str]()
+    model, flags, cores = "unknown", set[str](), 0
     try:
-        for line in CPUINFO.read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and model == "unknown":
-                model = value.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(value.split())
+        lines = CPUINFO.read_text().splitlines()
     except OSError:
-        pass
+        lines = []
+    for line in lines:
+        key, _, value = (part.strip() for part in line.partition(":"))
+        if key == "processor":
+            cores += 1
+        elif key == "model name" and model == "unknown":
+            model = value
+        elif key == "flags" and not flags:
+            flags = set(value.split())
     return {
         "cpu": model,
         "amx": any(f.startswith("amx") for f in flags),
-        "cores": len([1 for line in _lines(CPUINFO) if line.startswith("processor")]) or None,
+        "cores": cores or None,
         "host_kernel": platform.release(),
         "kvm_device": Path("/dev/kvm").exists(),
     }
-
-
-def _lines(path: Path) -> list[str]:
-    try:
-        return path.read_text().splitlines()
-    except OSError:
-        return []
 
 
 def doctor(say: Callable[[str], None] = print, mode: str = "auto") -> dict[str, Any]:

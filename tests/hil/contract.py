@@ -17,6 +17,7 @@ import pytest
 from embedrl.cli import build_parser, main
 from embedrl.hil.cli import cmd_run
 from embedrl.hil.sandbox import Guest
+from embedrl.train.evaluate import REPORT_KEYS
 from tests.hil.helpers import hil
 
 NODE_TIMEOUT_MS = 200
@@ -59,16 +60,7 @@ class HilContract:
         assert report["frames_tx"] == 3 * report["steps"] and report["frames_rx"] >= report["steps"]
         assert report["crc_errors"] == 0 and report["sequence_errors"] == 0 and report["rx_timeouts"] == 0
         assert 0 < report["latency_us"]["p50"] <= report["latency_us"]["p99"] <= report["latency_us"]["max"]
-        for key in (
-            "episodes",
-            "successes",
-            "collisions",
-            "timeouts",
-            "success_rate",
-            "mean_return",
-            "mean_time_s",
-        ):
-            assert key in report
+        assert all(key in report for key in REPORT_KEYS)
         assert all(row["collided_with"] is None for row in report["per_episode"])
         lines = log.read_text().splitlines()
         assert len(lines) == report["frames_tx"] + report["frames_rx"]
