@@ -8,7 +8,10 @@ Layout (classic CAN, 8-byte frames, every frame E2E protected, see :mod:`hil.e2e
 - ``Action`` (0x200; ``ActionA, B, ...`` from 0x200 if there are more than two actions, node ->
   simulator): the same header, ``Step`` echoing the observation it answers, two action fields per frame;
 - ``NodeStatus`` (0x300, node -> simulator, every :data:`STATUS_PERIOD_MS`, the DBC's cycle time): RUN or
-  SAFE and the node's error counters.
+  SAFE and the node's error counters;
+- ``NodeDiag`` (0x301, node -> simulator, same cycle): the CAN controller's bus state and the counters of
+  the node's recovery rules (range errors, stale steps, counter resynchronisations, incomplete steps,
+  saturated actions, failed sends, link re-opens).
 
 Each field is a signed 20-bit signal with a power-of-two scale: the finest, :data:`FINEST_SCALE`,
 unless the field's range needs a coarser one. The DBC's minimum and maximum are the field's range, so
@@ -43,6 +46,7 @@ from embedrl.train.scenarios import SCENARIOS
 OBSERVATION_FIRST_ID = 0x100
 ACTION_FIRST_ID = 0x200
 STATUS_ID = 0x300
+DIAG_ID = 0x301
 FRAME_BYTES = 8
 VALUE_BITS = 20
 VALUES_PER_FRAME = 2
@@ -61,6 +65,17 @@ DATABASE_NAME = "policy_dbc"
 SIMULATOR, NODE = "SIM", "NODE"
 MAX_FRAMES = len(string.ascii_uppercase)
 STATUS_STATES = {0: "RUN", 1: "SAFE"}
+BUS_STATES = {0: "ACTIVE", 1: "PASSIVE", 2: "BUS_OFF"}
+DIAG_COUNTERS = (
+    ("Resyncs", 6, "Alive-counter re-synchronisations (a loss burst or a sender restart)"),
+    ("RangeErrors", 8, "Observation frames dropped for a signal outside its range"),
+    ("StaleSteps", 8, "Observations dropped because their Step was not after the last answered one"),
+    ("Incomplete", 8, "Observation steps abandoned before all their frames arrived"),
+    ("Saturations", 8, "Action values moved into their signal's range before sending"),
+    ("SendFailures", 8, "Frames the CAN interface refused to send"),
+    ("LinkResets", 4, "Times the CAN interface failed and was re-opened"),
+)
+"""NodeDiag's counters after its header (Crc, Counter, BusState): name, bits (saturating), meaning."""
 CRC_COMMENT = "CRC-8 SAE J1850 over the data ID (the CAN ID, low byte then high byte) and bytes 1..7"
 COUNTER_COMMENT = "4-bit alive counter of this message"
 
@@ -199,6 +214,30 @@ def database(interface: Interface) -> Database:
             comment="Node state and error counters (saturating), sent periodically",
         )
     )
+    diag = [
+        Signal("Crc", 0, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
+        Signal("Counter", 8, 4, receivers=[SIMULATOR], minimum=0, maximum=15),
+        Signal("BusState", 12, 2, receivers=[SIMULATOR], minimum=0, maximum=3,
+               conversion=BaseConversion.factory(choices=BUS_STATES),  # type: ignore[arg-type]
+               comment="The CAN controller's state, from the error frames the node subscribes to"),
+    ]  # fmt: skip
+    start = 14
+    for name, bits, comment in DIAG_COUNTERS:
+        diag.append(Signal(name, start, bits, receivers=[SIMULATOR], minimum=0, maximum=2**bits - 1,
+                           comment=comment))  # fmt: skip
+        start += bits
+    assert start == 8 * FRAME_BYTES, "NodeDiag fills its frame exactly"
+    messages.append(
+        Message(
+            DIAG_ID,
+            "NodeDiag",
+            FRAME_BYTES,
+            diag,
+            senders=[NODE],
+            cycle_time=STATUS_PERIOD_MS,
+            comment="Bus state and the recovery rules' counters (saturating), sent with NodeStatus",
+        )
+    )
     return Database(messages, [Node(SIMULATOR, None), Node(NODE, None)], version=f"embedrl {interface.name}")
 
 
@@ -251,6 +290,7 @@ def _glue(interface: Interface, plan: Layout) -> tuple[str, str]:
 #define POLICY_IO_ACT_FRAMES {len(plan.action)}u
 #define POLICY_IO_ACT_FIRST_ID 0x{ACTION_FIRST_ID:X}u
 #define POLICY_IO_STATUS_ID 0x{STATUS_ID:X}u
+#define POLICY_IO_DIAG_ID 0x{DIAG_ID:X}u
 #define POLICY_IO_FRAME_BYTES {FRAME_BYTES}u
 #define POLICY_IO_STEP_MODULO {STEP_MODULO}u
 #define POLICY_IO_STATUS_PERIOD_MS {STATUS_PERIOD_MS}u /* NodeStatus cycle time in the DBC */

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
-from embedrl.hil.faults import INJECTORS
+from embedrl.hil.faults import INJECT_STEP, INJECTORS, parse_schedule
 from embedrl.hil.sandbox import MODES
 from embedrl.train.interface import INTERFACE_FILE
 
@@ -80,7 +80,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
 
     print(
         f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
-        + (f", injecting '{args.inject}'" if args.inject else "")
+        + (f", injecting {', '.join(args.inject)}" if args.inject else "")
     )
     return SessionConfig(
         onnx=str(onnx),
@@ -90,7 +90,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
         seed=args.seed,
         node_timeout_ms=args.timeout_ms,
         realtime=args.realtime,
-        inject=args.inject,
+        inject=tuple(args.inject),
         **where,
     )
 
@@ -194,7 +194,10 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         "deadline_misses",
         "jitter_us",
         "node_status",
-        "injection",
+        "node_diag",
+        "retries",
+        "injections",
+        "fault_catalogue",
     )
     extra = {k: results.get(k) for k in keys}
     extra["faults"] = sum(e.outcome == "fault" for e in episodes)
@@ -203,6 +206,8 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     data = report.to_json(extra)
     for row, e in zip(data["per_episode"], results["episodes"], strict=True):
         row["fault"] = e["fault"]
+        row["injected"] = e["injected"]
+        row["max_action_abs_diff"] = e["max_action_abs_diff"]
     if args.plot:
         from embedrl.hil.plots import plot_latency
         from embedrl.train.plots import plot_trajectories
@@ -221,10 +226,19 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")
     if not 1 <= args.timeout_ms <= 60_000:
         raise HilError(f"--timeout-ms must be within 1..60000, got {args.timeout_ms}")
-    if args.inject and not args.allow_faults:
-        print(
-            f"note: --inject {args.inject} ends an episode in a fault; without --allow-faults the run fails"
-        )
+    try:
+        schedule = parse_schedule(args.inject)
+    except ValueError as exc:
+        raise HilError(str(exc)) from None
+    for s in schedule:
+        if s.episode >= args.episodes:
+            raise HilError(
+                f"--inject {s.injector.name}@{s.episode}:{s.step}: the run has {args.episodes} episode(s)"
+            )
+        if s.injector.needs_socketcan and args.node == "python":
+            raise HilError(f"--inject {s.injector.name} acts on the kernel's CAN interface: use --node c")
+    if schedule and not args.allow_faults:
+        print("note: injected faults change their episodes; without --allow-faults the run fails")
     results = run_hil(args, guest)
     data = _report(args, results)
     data["verdict"] = verdict(data, args.allow_faults)
@@ -257,8 +271,13 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
                 f"{data['deadline_misses']}, {jitter['std']:.0f} / {jitter['max_abs']:.0f}",
             )
         )
-    if data["injection"]:
-        rows.append(("injection", json.dumps(data["injection"])))
+    for kind, row in (data["fault_catalogue"] or {}).items():
+        rows.append(
+            (
+                f"fault {kind}: injected / detected / answered as expected",
+                f"{row['injected']} / {row['detected']} / {row['answered_as_expected']}",
+            )
+        )
     failures = data["verdict"]["failures"]
     rows.append(("verdict", "PASS" if not failures else "FAIL: " + "; ".join(failures)))
     print(table(rows))
@@ -268,23 +287,38 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
 
 
 def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
-    """Whether the run passed: no episode ended in a fault (unless ``allow_faults``), none ended
-    differently from the simulation (a faulted one aside, when faults are allowed), and the node's
-    actions matched the exported ONNX within the tolerance at every step."""
+    """Whether the run passed: no episode ended in a fault, none ended differently from the
+    simulation, and the node's actions matched the exported ONNX within the tolerance at every step.
+    With ``allow_faults`` the episodes with an injected fault are exempt from these three, and instead
+    every injection must have been detected by the node (for the classes it must detect) and the step
+    answered or not as its class requires."""
     from embedrl.hil.session import TOLERANCE
 
-    faulted = {row["seed"] for row in data["per_episode"] if row["outcome"] == "fault"}
-    differing = [s for s in data["outcomes_differing_from_simulation"] if not (allow_faults and s in faulted)]
+    exempt = {row["seed"] for row in data["per_episode"] if allow_faults and row["injected"]}
+    faulted = sorted(
+        r["seed"] for r in data["per_episode"] if r["outcome"] == "fault" and r["seed"] not in exempt
+    )
+    differing = [s for s in data["outcomes_differing_from_simulation"] if s not in exempt]
+    diffs = [
+        r["max_action_abs_diff"]
+        for r in data["per_episode"]
+        if r["seed"] not in exempt and r["max_action_abs_diff"] is not None
+    ]
     failures = []
-    if faulted and not allow_faults:
-        failures.append(f"{len(faulted)} episode(s) ended in a fault (seeds {sorted(faulted)})")
+    if faulted:
+        failures.append(f"{len(faulted)} episode(s) ended in a fault (seeds {faulted})")
     if differing:
         failures.append(
             f"{len(differing)} episode(s) ended differently from the simulation (seeds {differing})"
         )
-    diff = data["max_action_abs_diff"]
-    if diff is not None and diff > TOLERANCE:
-        failures.append(f"the node's actions differ from the ONNX by {diff:.3g} > {TOLERANCE}")
+    if diffs and max(diffs) > TOLERANCE:
+        failures.append(f"the node's actions differ from the ONNX by {max(diffs):.3g} > {TOLERANCE}")
+    for record in data["injections"] or []:
+        where = f"{record['kind']}@{record['episode']}:{record['step']}"
+        if record["detected"] is False:
+            failures.append(f"fault {where} was not detected by the node ({record['detects']})")
+        if not record["answered_as_expected"]:
+            failures.append(f"fault {where}: the step was {'' if record['answered'] else 'not '}answered")
     return {"passed": not failures, "failures": failures, "faults_allowed": allow_faults}
 
 
@@ -326,7 +360,12 @@ def register(sub: Any) -> None:
         help=f"the node's watchdog (default {candb.WATCHDOG_MS}); must exceed the policy's sample time",
     )
     r.add_argument(
-        "--inject", choices=sorted(INJECTORS), help="fault injection at step 3 of the first episode"
+        "--inject",
+        action="append",
+        default=[],
+        metavar="FAULT[@EPISODE:STEP]",
+        help=f"inject a fault (repeatable; default at step {INJECT_STEP} of episode 0): "
+        + ", ".join(INJECTORS),
     )
     r.add_argument(
         "--allow-faults",

@@ -12,6 +12,7 @@ from typing import Any, cast
 import can
 import cantools
 import numpy as np
+from cantools.database.can.c_source import camel_to_snake_case
 
 from embedrl.hil import candb, e2e
 from embedrl.train.interface import Interface
@@ -35,6 +36,20 @@ class Status:
     inference_us: int
 
 
+@dataclass(frozen=True)
+class Diag:
+    """NodeDiag: the bus state and the counters of the node's recovery rules."""
+
+    bus_state: str
+    resyncs: int
+    range_errors: int
+    stale_steps: int
+    incomplete: int
+    saturations: int
+    send_failures: int
+    link_resets: int
+
+
 def decode_fields(message: cantools.database.can.Message, data: bytes) -> dict[str, Any]:
     """Signal values of an 8-byte frame (raw choices as numbers)."""
     return cast(dict[str, Any], message.decode(data, decode_choices=False))
@@ -53,10 +68,28 @@ class Codec:
         self.sequence_errors = 0
         self.action_parts = {frame_id: slots for _, frame_id, slots in self.plan.action}
         self.status_id = candb.STATUS_ID
+        self.receive_ids = (*self.action_parts, candb.STATUS_ID, candb.DIAG_ID)
+        """Every ID the simulator listens to (its kernel filter)."""
         self._pending: dict[int, tuple[np.ndarray, set[int]]] = {}
         """Per step: the action values received so far and the frame IDs they came in."""
 
-    def _next_counter(self, name: str) -> int:
+    def restart(self) -> None:
+        """Forget the E2E counters, as a restarted simulator would (its frames start from 0 again)."""
+        self.counters.clear()
+        self.receivers.clear()
+
+    def skip_counters(self, frames: int) -> None:
+        """Advance every observation message's counter by ``frames``, as if that many were lost."""
+        for name, _, _ in self.plan.observation:
+            self.counters[name] = (self.counters.get(name, 0) + frames) % e2e.COUNTER_MODULO
+
+    def rewind(self) -> None:
+        """Take back the counters of the observation just encoded (its frames will not be sent)."""
+        for name, _, _ in self.plan.observation:
+            self.counters[name] = (self.counters.get(name, 0) - 1) % e2e.COUNTER_MODULO
+
+    def next_counter(self, name: str) -> int:
+        """The alive counter for the next frame of message ``name``."""
         value = self.counters.get(name, 0)
         self.counters[name] = (value + 1) % e2e.COUNTER_MODULO
         return value
@@ -70,7 +103,7 @@ class Codec:
             message = self.db.get_message_by_frame_id(frame_id)
             payload: dict[str, float] = {
                 "Crc": 0,
-                "Counter": self._next_counter(name),
+                "Counter": self.next_counter(name),
                 "Step": step % STEP_MODULO,
             }
             payload.update({s.signal: float(values[s.index]) for s in slots})
@@ -96,10 +129,10 @@ class Codec:
                 return None
         return fields
 
-    def decode(self, msg: can.Message) -> Action | Status | None:
-        """A complete E2E-valid action (all its frames for one step) or a NodeStatus, else None
-        (other IDs, bad CRC, repeated or old counter, an action still missing frames)."""
-        known = msg.arbitration_id == self.status_id or msg.arbitration_id in self.action_parts
+    def decode(self, msg: can.Message) -> Action | Status | Diag | None:
+        """A complete E2E-valid action (all its frames for one step), a NodeStatus or a NodeDiag, else
+        None (other IDs, bad CRC, repeated or old counter, an action still missing frames)."""
+        known = msg.arbitration_id in self.receive_ids
         if msg.is_extended_id or not known or msg.dlc != candb.FRAME_BYTES:
             return None
         fields = self._checked(msg)
@@ -113,6 +146,12 @@ class Codec:
                 int(fields["SequenceErrors"]),
                 int(fields["Timeouts"]),
                 int(fields["InferenceUs"]),
+            )
+        if msg.arbitration_id == candb.DIAG_ID:
+            counters = {name: int(fields[name]) for name, _, _ in candb.DIAG_COUNTERS}
+            return Diag(
+                candb.BUS_STATES.get(int(fields["BusState"]), "UNKNOWN"),
+                **{camel_to_snake_case(k): v for k, v in counters.items()},
             )
         step = int(fields["Step"])
         values, seen = self._pending.get(step, (np.zeros(len(self.interface.action), np.float32), set()))

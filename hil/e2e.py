@@ -11,6 +11,8 @@ from dataclasses import dataclass
 CRC8_POLY = 0x1D
 COUNTER_MODULO = 16
 MAX_FORWARD_JUMP = 7
+RESYNC_FRAMES = 2
+"""Consecutive counters outside the accepted window that re-establish the sequence."""
 
 
 def crc8(data_id: int, data: bytes) -> int:
@@ -36,20 +38,26 @@ class Receiver:
     """Alive-counter check of one message, as the C node does it."""
 
     last: int | None = None
+    candidate: int = 0
+    candidate_run: int = 0
 
     def check(self, counter: int) -> str:
-        """ "ok", "lost" (accepted after a forward jump), "repeated" or "wrong_sequence" (rejected)."""
+        """ "ok", "lost" (accepted after a forward jump), "resync" (accepted: the second consecutive
+        counter of a new sequence), "repeated" or "wrong_sequence" (rejected); as ``e2e_check_counter``."""
         counter %= COUNTER_MODULO
         if self.last is None:
             self.last = counter
             return "ok"
         delta = (counter - self.last) % COUNTER_MODULO
-        if delta == 1:
-            self.last = counter
-            return "ok"
         if delta == 0:
             return "repeated"
         if delta <= MAX_FORWARD_JUMP:
-            self.last = counter
-            return "lost"
+            self.last, self.candidate_run = counter, 0
+            return "ok" if delta == 1 else "lost"
+        follows = (self.candidate + 1) % COUNTER_MODULO
+        self.candidate_run = self.candidate_run + 1 if self.candidate_run and counter == follows else 1
+        self.candidate = counter
+        if self.candidate_run >= RESYNC_FRAMES:
+            self.last, self.candidate_run = counter, 0
+            return "resync"
         return "wrong_sequence"

@@ -1,17 +1,28 @@
-"""Fault injection: a registry of injectors and when they strike.
+"""Fault injection: a catalogue of injectors, a schedule saying when each strikes, and what each expects.
 
-Each injector acts once, at :data:`INJECT_STEP` of the first episode, in place of sending that step's
-observation normally, and reports what it observed. ``ends_episode``: the episode ends there as a fault
-(``injected: NAME``); otherwise the step goes on and the session sees what the fault did (a killed node
-leaves the step unanswered).
+An injection replaces the normal sending of one step's observation (``NAME@EPISODE:STEP``, by default
+at step :data:`INJECT_STEP` of the first episode). Around it the session takes the node's NodeStatus and
+NodeDiag before and after, so every record says what was injected, whether the node *detected* it
+(the counter the class must move moved) and whether the step was still *answered* (the simulator sends
+an unanswered step again with fresh counters, see :mod:`embedrl.hil.session`).
+
+``ends_episode``: the episode ends there as a fault (``injected: NAME``). ``detects``: the node counter
+(a NodeStatus or NodeDiag field; ``a|b``: either) that must grow, ``node_exit`` when the simulator itself
+sees the node die, or None for the classes a node must simply tolerate (reordered frames, a flood of
+foreign IDs). ``answered``: whether the step must still get an action.
+``needs_socketcan``: classes that act on the kernel interface (link down and up) and cannot run on
+python-can's virtual bus.
 """
 
 from __future__ import annotations
 
+import subprocess
+import threading
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 
@@ -20,61 +31,252 @@ from embedrl.hil import candb
 if TYPE_CHECKING:  # the command lists the injectors without loading the session's machinery
     import can
 
+    from embedrl.hil.codec import Codec
     from embedrl.hil.link import Link
     from embedrl.hil.nodes import Node
     from embedrl.train.interface import Interface
 
 INJECT_STEP = 3
-"""Injections happen at this step of the first episode."""
+"""Where an injection strikes unless its schedule entry says otherwise."""
 SILENCE_S = 5.0
 """How long the silent simulator listens for the node's safe action."""
+BURST_FRAMES = 9
+"""Frames lost per message in a burst: beyond the E2E forward window of 7, so the node must resync."""
+LINK_DOWN_S = 0.3
+"""How long the link stays down."""
+FLOOD_MAX_S = 30.0
+"""The foreign-ID flood lasts from its step to the end of the episode, at most this long."""
+FLOOD_ID = 0x050
+"""A foreign ID of higher priority than every one of the policy's."""
+DELAY_FACTOR = 1.5
+"""A delayed observation is held this many watchdog timeouts."""
 
 
-@dataclass(frozen=True)
+@dataclass
 class Context:
     link: Link
     node: Node
     interface: Interface
     node_timeout_ms: int
     action_timeout_s: float
+    bus_kind: str
+    """python-can interface of the session (``socketcan`` or ``virtual``)."""
+    iface: str
+    previous: list[can.Message] | None = None
+    """The frames of the previous step, as sent (for replays)."""
+    at_episode_end: list[Callable[[], dict[str, Any]]] = field(default_factory=list)
+    """What an injection leaves running until its episode ends; each returns what to add to its record."""
+
+    @property
+    def codec(self) -> Codec:
+        return self.link.codec
 
 
 class Injector(ABC):
     name: ClassVar[str]
-    ends_episode: ClassVar[bool]
+    description: ClassVar[str]
+    expected: ClassVar[str]
+    """The node's required reaction, in words (the README's catalogue)."""
+    ends_episode: ClassVar[bool] = False
+    detects: ClassVar[str | None]
+    answered: ClassVar[bool] = True
+    needs_socketcan: ClassVar[bool] = False
+    restarts_steps: ClassVar[bool] = False
+    """The simulator's step count starts again from 0 (a restarted sender)."""
 
     @abstractmethod
-    def apply(self, ctx: Context, frames: list[can.Message], step: int) -> dict[str, Any]:
-        """Inject the fault at ``step`` (whose observation ``frames`` are ready); what was observed."""
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        """Inject the fault in place of sending ``frames`` (the observation ``obs`` of ``step``)."""
 
 
-class CorruptFrame(Injector):
-    """One payload bit of the second observation frame flipped: the CRC no longer matches."""
+class Loss(Injector):
+    name = "loss"
+    description = "the second observation frame of the step is lost"
+    expected = "no action from a partial observation; the resent step is answered (counter jump counted)"
+    detects = "sequence_errors"
 
-    name, ends_episode = "corrupt", True
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.link.send([f for k, f in enumerate(frames) if k != 1])
+        return {}
 
-    def apply(self, ctx: Context, frames: list[can.Message], step: int) -> dict[str, Any]:
-        before = ctx.link.wait_status(1.0)
+
+class Burst(Injector):
+    name = "burst"
+    description = f"{BURST_FRAMES} frames of every observation message lost"
+    expected = "frames beyond the counter window dropped; the sequence re-synchronises on the next one"
+    detects = "resyncs"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.codec.skip_counters(BURST_FRAMES)
+        fresh, _ = ctx.codec.encode_observation(obs, step)
+        ctx.link.send(fresh)
+        return {}
+
+
+class Duplicate(Injector):
+    name = "duplicate"
+    description = "every frame of the step sent twice"
+    expected = "the copies dropped as repeated counters; exactly one action for the step"
+    detects = "sequence_errors"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.link.send([copy for f in frames for copy in (f, _copy(f))])
+        return {}
+
+
+class Replay(Injector):
+    name = "replay"
+    description = "the previous step's frames sent again verbatim, then this step"
+    expected = "the replayed frames dropped (old counters); this step answered"
+    detects = "sequence_errors"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.link.send([_copy(f) for f in ctx.previous or []])
+        ctx.link.send(frames)
+        return {"replayed_frames": len(ctx.previous or [])}
+
+
+class ReplayFresh(Injector):
+    name = "replay-fresh"
+    description = "the previous step re-sent with valid counters and CRCs (a forged replay), then this step"
+    expected = "the old step completes but is not answered (its Step does not go forward); this step answered"
+    detects = "stale_steps"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        if ctx.previous is None:
+            raise ValueError("replay-fresh needs a previous step: schedule it at step 1 or later")
+        ctx.codec.rewind()  # this step's frames go after the replay, with the counters after its
+        old = [_copy(f) for f in ctx.previous]
+        for frame in old:  # fresh counters, recomputed CRC: only the Step shows it is old
+            message = ctx.codec.db.get_message_by_frame_id(frame.arbitration_id)
+            fields = cast(
+                dict[str, Any], message.decode(bytes(frame.data), decode_choices=False, scaling=False)
+            )
+            fields["Counter"] = ctx.codec.next_counter(message.name)
+            frame.data = bytearray(_protect(frame.arbitration_id, message.encode(fields, scaling=False)))
+        fresh, _ = ctx.codec.encode_observation(obs, step)
+        ctx.link.send(old)
+        ctx.link.send(fresh)
+        return {}
+
+
+class Reorder(Injector):
+    name = "reorder"
+    description = "the step's frames sent in reverse order"
+    expected = "tolerated: the same action as in order"
+    detects = None
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.link.send(list(reversed(frames)))
+        return {}
+
+
+class Delay(Injector):
+    name = "delay"
+    description = f"the step's frames held for {DELAY_FACTOR} watchdog timeouts"
+    expected = "SAFE at the timeout with the safe action; the late step answered with the safe action"
+    detects = "timeouts"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        held_s = DELAY_FACTOR * ctx.node_timeout_ms / 1000
+        ctx.link.drain(held_s)
+        ctx.link.send(frames)
+        return {"held_ms": held_s * 1000}
+
+
+class Corrupt(Injector):
+    name = "corrupt"
+    description = "one payload bit of the second observation frame flipped"
+    expected = "the frame dropped (CRC); the resent step answered"
+    detects = "crc_errors"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
         bad = bytearray(frames[1].data)
         bad[4] ^= 0x10
         frames[1].data = bad
         ctx.link.send(frames)
-        action = ctx.link.wait_action(step, min(ctx.action_timeout_s, 3 * ctx.node_timeout_ms / 1000))
-        after = ctx.link.wait_status(1.0)
-        return {
-            "kind": self.name,
-            "action_received": action is not None,
-            "node_crc_errors_before": before.crc_errors if before else None,
-            "node_crc_errors_after": after.crc_errors if after else None,
-        }
+        return {}
 
 
-class SilentSimulator(Injector):
-    """The simulator stops sending: the node's watchdog must send the interface's safe action."""
+class Masquerade(Injector):
+    name = "masquerade"
+    description = "the first frame's payload sent under the second frame's ID (wrong data ID)"
+    expected = "the frame dropped (the CRC covers the data ID); the resent step answered"
+    detects = "crc_errors"
 
-    name, ends_episode = "silent", True
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        fake = _copy(frames[0])
+        fake.arbitration_id = frames[1].arbitration_id
+        ctx.link.send([frames[0], fake, *frames[2:]])
+        return {}
 
-    def apply(self, ctx: Context, frames: list[can.Message], step: int) -> dict[str, Any]:
+
+class OutOfRange(Injector):
+    name = "out-of-range"
+    description = "the first observation field sent beyond its range in the DBC"
+    expected = "the frame dropped and counted, never given to the policy; the resent step answered"
+    detects = "range_errors"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        slot = candb.layout(ctx.interface).observation_slots[0]
+        wrong = np.array(obs, dtype=np.float32)
+        wrong[slot.index] = slot.field.high + 64 * slot.scale
+        ctx.codec.rewind()
+        bad, _ = ctx.codec.encode_observation(wrong, step)  # the other fields as they were
+        ctx.link.send(bad)
+        return {"value": float(wrong[slot.index]), "high": slot.field.high}
+
+
+class Flood(Injector):
+    name = "flood"
+    description = (
+        f"frames of foreign ID 0x{FLOOD_ID:03X}, as fast as the bus takes them, until the episode ends"
+    )
+    expected = (
+        "tolerated: every step answered as in the simulation; the node's bus filter keeps the flood out"
+    )
+    detects = None
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        import can
+
+        sent = [0]
+        stop = threading.Event()
+
+        def flood() -> None:
+            with can.Bus(interface=ctx.bus_kind, channel=ctx.iface, receive_own_messages=False) as bus:
+                junk = can.Message(arbitration_id=FLOOD_ID, data=bytes(8), is_extended_id=False)
+                end = time.monotonic() + FLOOD_MAX_S
+                while not stop.is_set() and time.monotonic() < end:
+                    try:
+                        bus.send(junk, timeout=0.01)
+                        sent[0] += 1
+                    except can.CanError:
+                        time.sleep(0.0005)  # the queue is full: the bus is saturated
+
+        thread = threading.Thread(target=flood, name="flood", daemon=True)
+        thread.start()
+
+        def finish() -> dict[str, Any]:
+            stop.set()
+            thread.join()
+            return {"flood_frames": sent[0]}
+
+        ctx.at_episode_end.append(finish)
+        time.sleep(0.05)  # the flood is on when the step goes out
+        ctx.link.send(frames)
+        return {}
+
+
+class Silence(Injector):
+    name = "silent"
+    description = "the simulator stops sending"
+    expected = "SAFE within the watchdog timeout, the interface's safe action sent"
+    detects = "timeouts"
+    ends_episode = True
+    answered = False
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
         from embedrl.hil.codec import Action
 
         last_sent = time.monotonic()
@@ -88,31 +290,127 @@ class SilentSimulator(Injector):
                 safe_after_ms = (time.monotonic() - last_sent) * 1000
                 safe_seen = decoded.action.tolist()
                 break
-        status = ctx.link.wait_status(1.0)
         return {
-            "kind": self.name,
             "safe_action_after_ms": safe_after_ms,
             "safe_action": safe_seen,
             "expected_safe_action": list(ctx.interface.safe_action),
             "node_timeout_ms": ctx.node_timeout_ms,
-            "node_state": status.state if status else None,
         }
 
 
-class KillNode(Injector):
-    """The node dies (SIGKILL for the C node): the step goes unanswered and must end as a fault."""
+class LinkDownUp(Injector):
+    name = "link-down-up"
+    description = f"the CAN interface set down for {LINK_DOWN_S} s, then up"
+    expected = "the node stays up, SAFE while down; it re-opens the interface and answers (safe action first)"
+    detects = "link_resets"
+    needs_socketcan = True
 
-    name, ends_episode = "kill", False
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        _ip("link", "set", ctx.iface, "down")
+        time.sleep(LINK_DOWN_S)
+        _ip("link", "set", ctx.iface, "up")
+        ctx.link.drain(0.3)  # the node re-opens every 100 ms
+        ctx.link.send(frames)
+        return {"node_alive": ctx.node.alive()}
 
-    def apply(self, ctx: Context, frames: list[can.Message], step: int) -> dict[str, Any]:
+
+class KillRestart(Injector):
+    name = "kill-restart"
+    description = "the node killed (SIGKILL) and started again"
+    expected = "the death seen by the simulator; the restarted node answers the step"
+    detects = "node_exit"
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
         ctx.node.kill()
-        return {"kind": self.name, "node_exit": ctx.node.exit_reason()}
+        died = not ctx.node.alive()
+        reason = ctx.node.exit_reason()
+        ctx.node.restart()
+        ctx.codec.receivers.clear()  # the simulator restarted it: its counters start from 0 again
+        ctx.link.snapshot(1.0)  # the fresh node is up once it reports
+        ctx.link.send(frames)
+        return {"node_died": died, "node_exit": reason}
 
 
-INJECTORS: dict[str, Injector] = {i.name: i for i in (CorruptFrame(), SilentSimulator(), KillNode())}
+class SenderRestart(Injector):
+    name = "sender-restart"
+    description = "the simulator restarts: its counters and its step count start from 0 again"
+    expected = "the node re-synchronises (or times out to SAFE) and answers the new steps"
+    detects = "resyncs|stale_steps|timeouts"
+    restarts_steps = True
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.codec.restart()
+        fresh, _ = ctx.codec.encode_observation(obs, 0)  # the session counts its steps from 0 again
+        ctx.link.send(fresh)
+        return {}
+
+
+class Kill(Injector):
+    name = "kill"
+    description = "the node dies (SIGKILL) and stays dead"
+    expected = "the step unanswered: the episode ends as a fault naming the node's exit, not a hang"
+    detects = "node_exit"
+    answered = False
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        ctx.node.kill()
+        return {"node_exit": ctx.node.exit_reason()}
+
+
+CATALOGUE: tuple[Injector, ...] = (
+    Loss(), Burst(), Duplicate(), Replay(), ReplayFresh(), Reorder(), Delay(), Corrupt(), Masquerade(),
+    OutOfRange(), Flood(), LinkDownUp(), KillRestart(), SenderRestart(), Silence(), Kill(),
+)  # fmt: skip
+INJECTORS: dict[str, Injector] = {i.name: i for i in CATALOGUE}
+
+
+@dataclass(frozen=True)
+class Scheduled:
+    injector: Injector
+    episode: int
+    step: int
+
+
+def parse_schedule(entries: list[str]) -> list[Scheduled]:
+    """``NAME`` or ``NAME@EPISODE:STEP`` (step within the episode), each at most once per step."""
+    schedule = []
+    for entry in entries:
+        name, _, when = entry.partition("@")
+        if name not in INJECTORS:
+            raise ValueError(f"unknown fault {name!r}; the catalogue: {', '.join(INJECTORS)}")
+        episode, step = 0, INJECT_STEP
+        if when:
+            try:
+                episode_text, step_text = when.split(":")
+                episode, step = int(episode_text), int(step_text)
+            except ValueError:
+                raise ValueError(f"--inject {entry!r}: expected NAME@EPISODE:STEP, e.g. {name}@0:3") from None
+            if episode < 0 or step < 1:
+                raise ValueError(f"--inject {entry!r}: the episode must be >= 0 and the step >= 1")
+        schedule.append(Scheduled(INJECTORS[name], episode, step))
+    slots = [(s.episode, s.step) for s in schedule]
+    if len(set(slots)) != len(slots):
+        raise ValueError("--inject: two faults scheduled at the same step")
+    return schedule
 
 
 def is_safe(action: np.ndarray, interface: Interface) -> bool:
     """Whether ``action`` is the interface's safe action, within the CAN quantisation."""
     step = max(slot.scale for slot in candb.layout(interface).action_slots)
     return bool(np.max(np.abs(action - np.asarray(interface.safe_action))) <= step)
+
+
+def _copy(frame: can.Message) -> can.Message:
+    import can
+
+    return can.Message(arbitration_id=frame.arbitration_id, data=bytes(frame.data), is_extended_id=False)
+
+
+def _protect(frame_id: int, data: bytes) -> bytes:
+    from embedrl.hil import e2e
+
+    return e2e.protect(frame_id, data)
+
+
+def _ip(*argv: str) -> None:
+    subprocess.run(["ip", *argv], check=True, capture_output=True, timeout=10)

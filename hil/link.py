@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import can
 
-from embedrl.hil.codec import STEP_MODULO, Action, Codec, Status
+from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 
 ALIVE_POLL_S = 0.05
 """While waiting for an action, how often to ask whether the node is still running."""
@@ -31,6 +31,15 @@ class Stats:
     """Real time: when each step's observation went out (monotonic seconds), per episode."""
     last_status: Status | None = None
     last_status_time: float = 0.0
+    last_diag: Diag | None = None
+    snapshots: list[tuple[float, Status, Diag]] = field(default_factory=list)
+    """Every NodeStatus with the NodeDiag after it, and when the pair arrived (monotonic seconds)."""
+    retries: int = 0
+    """Observations sent again because their action did not come within the retry interval."""
+    send_failures: int = 0
+    """Frames the simulator's own interface refused (e.g. while the link is down)."""
+    actions_by_step: dict[int, int] = field(default_factory=dict)
+    """How many complete actions arrived per Step value (a duplicate answer shows as 2)."""
 
 
 class Link:
@@ -48,14 +57,22 @@ class Link:
             frame.timestamp = time.time()
             frame.channel = self.channel
             frame.is_rx = False
-            self.bus.send(frame)
+            try:
+                self.bus.send(frame)
+            except can.CanError:
+                self.stats.send_failures += 1  # link down: the frame is lost, as on a real bus
+                continue
             self.stats.frames_tx += 1
             if self.log:
                 self.log(frame)
 
-    def receive(self, timeout_s: float) -> Action | Status | bool | None:
+    def receive(self, timeout_s: float) -> Action | Status | Diag | bool | None:
         """One frame within ``timeout_s``, decoded (None: not ours or not valid); False if none came."""
-        msg = self.bus.recv(timeout=max(timeout_s, 0.0))
+        try:
+            msg = self.bus.recv(timeout=max(timeout_s, 0.0))
+        except can.CanError:  # the interface went down: nothing can arrive until it is back
+            time.sleep(max(timeout_s, 0.0))
+            return False
         if msg is None:
             return False
         # python-can flags frames from another local socket (the node) as Tx; they are received here.
@@ -67,6 +84,12 @@ class Link:
         decoded = self.codec.decode(msg)
         if isinstance(decoded, Status):
             self.stats.last_status, self.stats.last_status_time = decoded, time.monotonic()
+        elif isinstance(decoded, Diag):
+            self.stats.last_diag = decoded
+            if self.stats.last_status is not None:
+                self.stats.snapshots.append((time.monotonic(), self.stats.last_status, decoded))
+        elif isinstance(decoded, Action):
+            self.stats.actions_by_step[decoded.step] = self.stats.actions_by_step.get(decoded.step, 0) + 1
         return decoded
 
     def wait_action(
@@ -94,6 +117,27 @@ class Link:
             if isinstance(decoded, Status):
                 return decoded
         return None
+
+    def snapshot(self, timeout_s: float) -> tuple[Status, Diag] | None:
+        """The node's next NodeStatus and the NodeDiag sent with it (None if they do not come)."""
+        deadline = time.monotonic() + timeout_s
+        status = None
+        while (remaining := deadline - time.monotonic()) > 0:
+            decoded = self.receive(remaining)
+            if decoded is False:
+                return None
+            if isinstance(decoded, Status):
+                status = decoded
+            elif isinstance(decoded, Diag) and status is not None:
+                return status, decoded
+        return None
+
+    def drain(self, seconds: float) -> None:
+        """Receive (and count) whatever arrives for ``seconds``."""
+        deadline = time.monotonic() + seconds
+        while (remaining := deadline - time.monotonic()) > 0:
+            if self.receive(remaining) is False:
+                return
 
     def close(self) -> None:
         if self.log:

@@ -1,11 +1,12 @@
 """The policy node behind one interface: the compiled C node as a process, or a Python reference node.
 
 :class:`PythonNode` follows the C node's rules (``runtime_c/node/node.c``) frame for frame: E2E checks
-(CRC, alive counter), each signal's range, an observation only from frames of one step, the watchdog
-with the interface's safe action, recovery after K valid observations, a status frame every
-:data:`~embedrl.hil.candb.STATUS_PERIOD_MS`. Its policy is the exported ONNX under onnxruntime. It runs in
-a thread on any python-can bus, so the session logic is tested on python-can's virtual bus in
-milliseconds; the C node over SocketCAN gives the verdict.
+(CRC, alive counter with re-synchronisation), each signal's range, an observation only from frames of
+one step, steps that do not go forward never answered, the watchdog with the interface's safe action,
+recovery after K valid observations, NodeStatus and NodeDiag every
+:data:`~embedrl.hil.candb.STATUS_PERIOD_MS`, a bus filter for its own IDs. Its policy is the exported
+ONNX under onnxruntime. It runs in a thread on any python-can bus, so the session logic is tested on
+python-can's virtual bus in milliseconds; the C node over SocketCAN gives the verdict.
 """
 
 from __future__ import annotations
@@ -15,10 +16,12 @@ import subprocess
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 
 import can
 import numpy as np
 import onnxruntime as ort
+from cantools.database.can.c_source import camel_to_snake_case
 
 from embedrl.hil import candb, e2e
 from embedrl.hil.codec import decode_fields
@@ -46,16 +49,24 @@ class Node(ABC):
     def stop(self) -> None:
         """End it in order."""
 
+    @abstractmethod
+    def restart(self) -> None:
+        """Start it again after it died (a fresh node: all its state from the beginning)."""
+
 
 class CNode(Node):
     """``policy_node --iface IFACE --timeout-ms T --recover K`` as a child process."""
 
     def __init__(self, binary: str, iface: str, timeout_ms: int, recover: int) -> None:
-        self.process = subprocess.Popen(
-            [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover)],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
+        self.argv = [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover)]
+        self.process = self._start()
+
+    def _start(self) -> subprocess.Popen[bytes]:
+        return subprocess.Popen(self.argv, stdout=subprocess.DEVNULL)  # its stderr: the session log
+
+    def restart(self) -> None:
+        self.stop()
+        self.process = self._start()
 
     def alive(self) -> bool:
         return self.process.poll() is None
@@ -80,9 +91,14 @@ class PythonNode(Node):
     """The reference node: the C node's rules in Python, the exported ONNX as the policy."""
 
     def __init__(
-        self, bus: can.BusABC, interface: Interface, onnx: str, timeout_ms: int, recover: int
+        self,
+        open_bus: Callable[[], can.BusABC],
+        interface: Interface,
+        onnx: str,
+        timeout_ms: int,
+        recover: int,
     ) -> None:
-        self.bus = bus
+        self.open_bus = open_bus
         self.interface = interface
         self.db = candb.database(interface)
         self.plan = candb.layout(interface)
@@ -92,25 +108,40 @@ class PythonNode(Node):
         self.recover = recover
         self.safe = np.asarray(interface.safe_action, dtype=np.float32)
         self.obs_ids = [frame_id for _, frame_id, _ in self.plan.observation]
+        self._start()
+
+    def _start(self) -> None:
+        """All state from the beginning, a new bus and thread (as a freshly started node)."""
+        self.bus = self.open_bus()
+        self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in self.obs_ids])
         self.rx = {frame_id: e2e.Receiver() for frame_id in self.obs_ids}
         self.tx_counters: dict[int, int] = {}
         self.state = "RUN"
         self.counts = dict.fromkeys(
-            ("frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors", "saturations"), 0
-        )
+            (
+                "frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors", "saturations",
+                "resyncs", "stale_steps", "incomplete",
+            ),
+            0,
+        )  # fmt: skip
         self.inference_us = 0
         self.pending_step: int | None = None
         self.pending_parts: set[int] = set()
-        self.pending_obs = np.zeros(len(interface.observation), dtype=np.float32)
+        self.pending_obs = np.zeros(len(self.interface.observation), dtype=np.float32)
         self.armed = False
         self.consecutive_valid = 0
         self.last_step = 0
+        self.step_reference = False
         now = time.monotonic()
         self.last_valid = self.last_safe = self.next_status = now
         self._stop = threading.Event()
         self._killed = False
         self.thread = threading.Thread(target=self._run, name="python-node", daemon=True)
         self.thread.start()
+
+    def restart(self) -> None:
+        self.stop()
+        self._start()
 
     def alive(self) -> bool:
         return self.thread.is_alive()
@@ -172,12 +203,17 @@ class PythonNode(Node):
                 "InferenceUs": min(self.inference_us, INFERENCE_US_MAX),
             },
         )
+        diag: dict[str, float] = {"BusState": 0}  # python-can's virtual bus has no controller
+        for name, bits, _ in candb.DIAG_COUNTERS:
+            diag[name] = min(self.counts.get(camel_to_snake_case(name), 0), 2**bits - 1)
+        self._send("NodeDiag", diag)
 
     def _poll(self, now: float) -> float:
         """Watchdog and status; the seconds until the next deadline (as ``node_poll``)."""
         if self.armed and self.state == "RUN" and now - self.last_valid >= self.timeout_s:
             self.counts["timeouts"] += 1
             self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
+            self.step_reference = False  # a sender that comes back may have restarted its steps
             self._send_action(self.safe, self.last_step)
             self._send_status()
         elif self.state == "SAFE" and min(now - self.last_safe, now - self.last_valid) >= self.timeout_s:
@@ -202,6 +238,9 @@ class PythonNode(Node):
         if verdict != "ok":
             self.counts["sequence_errors"] += 1
             self.consecutive_valid = 0
+        if verdict == "resync":
+            self.counts["resyncs"] += 1
+            self.step_reference = False  # a new sequence: its steps may start anywhere
         if verdict in ("repeated", "wrong_sequence"):
             return
         slots = self.plan.observation[self.obs_ids.index(msg.arbitration_id)][2]
@@ -214,6 +253,7 @@ class PythonNode(Node):
         self.counts["frames_ok"] += 1
         step = int(fields["Step"])
         if self.pending_step != step:
+            self.counts["incomplete"] += bool(self.pending_parts)
             self.pending_step, self.pending_parts = step, set()  # never mix frames of two steps
         for s in slots:
             self.pending_obs[s.index] = fields[s.signal]
@@ -222,6 +262,13 @@ class PythonNode(Node):
             self._complete(step, now)
 
     def _complete(self, step: int, now: float) -> None:
+        self.pending_step, self.pending_parts = None, set()
+        ahead = (step - self.last_step) % candb.STEP_MODULO
+        if self.step_reference and not 0 < ahead < candb.STEP_MODULO // 2:
+            self.counts["stale_steps"] += 1  # a replayed or repeated step: never answered twice
+            self.consecutive_valid = 0
+            return
+        self.step_reference = True
         self.last_valid, self.armed = now, True
         self.consecutive_valid += 1
         if self.state == "SAFE" and self.consecutive_valid >= self.recover:
@@ -237,4 +284,3 @@ class PythonNode(Node):
             action = out.astype(np.float32) if np.all(np.isfinite(out)) else self.safe
         self._send_action(action, step)
         self.last_step = step
-        self.pending_step, self.pending_parts = None, set()

@@ -2,10 +2,12 @@
 
 Lock-step (the basis of every verdict): each step the simulator sends the observation frames, waits
 for the node's action for that step, applies it and steps the physics; the exported ONNX policy runs
-on the observation the node decoded and the difference is recorded. ``realtime`` paces the loop at the
-interface's sample time and counts deadline misses (a report, not a verdict). The episodes are the
-ordinary evaluation loop (:func:`embedrl.train.evaluate.run_episode`) with a policy that talks over the
-bus; a step the node does not answer ends the episode as a fault.
+on the observation the node decoded and the difference is recorded. A step not answered within
+:data:`RETRY_S` (or half the node's watchdog, if shorter) is sent again with fresh E2E counters, as a
+cyclic sender would, until ``action_timeout_s``; a node never answers a step twice. ``realtime`` paces
+the loop at the interface's sample time and counts deadline misses (a report, not a verdict). The
+episodes are the ordinary evaluation loop (:func:`embedrl.train.evaluate.run_episode`) with a policy that
+talks over the bus; a step the node does not answer ends the episode as a fault.
 
 Backends: ``node="c"`` runs the compiled node on SocketCAN (``bus="socketcan"``, the verdict);
 ``node="python"`` runs the reference node (:class:`~embedrl.hil.nodes.PythonNode`) in this process,
@@ -19,6 +21,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -29,8 +32,8 @@ import numpy as np
 import onnxruntime as ort
 
 from embedrl.hil import candb
-from embedrl.hil.codec import Codec, Status
-from embedrl.hil.faults import INJECT_STEP, INJECTORS, Context
+from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
+from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode
 from embedrl.train.evaluate import run_episode
@@ -39,6 +42,10 @@ from embedrl.train.interface import Interface
 TOLERANCE = 1e-5
 NODE_BOOT_S = 1.0
 """The node is up when its first status frame arrives (or after this long)."""
+RETRY_S = 0.25
+"""An unanswered step is sent again after this long (or half the node's watchdog, if shorter)."""
+SNAPSHOT_S = 1.0
+"""How long to wait for the node's status after an injection, if none came while the episode ran."""
 
 
 @dataclass(frozen=True)
@@ -61,8 +68,8 @@ class SessionConfig:
     realtime: bool = False
     log: str | None = None
     results: str = "hil_results.json"
-    inject: str | None = None
-    """A name in :data:`embedrl.hil.faults.INJECTORS`, or None."""
+    inject: tuple[str, ...] = ()
+    """The fault schedule: ``NAME`` or ``NAME@EPISODE:STEP`` (:func:`embedrl.hil.faults.parse_schedule`)."""
 
 
 class NodeFault(Exception):
@@ -94,7 +101,19 @@ class BusPolicy:
         self.episode = -1
         self.in_episode = 0
         self.next_tick = 0.0
-        self.injection: dict[str, Any] | None = None
+        self.schedule = {(s.episode, s.step): s for s in parse_schedule(list(cfg.inject))}
+        self.injections: list[dict[str, Any]] = []
+        self.previous: list[can.Message] | None = None
+        self.retry_s = min(RETRY_S, cfg.node_timeout_ms / 2000)
+        self.pending: list[tuple[dict[str, Any], Callable[[], dict[str, Any]]]] = []
+        self.unresolved: list[tuple[dict[str, Any], Injector, dict[str, Any], Any, float]] = []
+        """Injections still running (a flood), with the record each completes when its episode ends."""
+
+    def end_episode(self) -> None:
+        self._resolve()
+        for record, finish in self.pending:
+            record.update(finish())
+        self.pending = []
 
     def begin_episode(self) -> None:
         self.episode += 1
@@ -105,21 +124,16 @@ class BusPolicy:
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         stats = self.link.stats
         frames, decoded = self.link.codec.encode_observation(obs, self.step)
-        if self.cfg.inject and self.episode == 0 and self.in_episode == INJECT_STEP:
-            injector = INJECTORS[self.cfg.inject]
-            context = Context(
-                self.link, self.node, self.interface, self.cfg.node_timeout_ms, self.cfg.action_timeout_s
-            )
-            self.injection = injector.apply(context, frames, self.step)
-            if injector.ends_episode:
-                raise NodeFault(f"injected: {injector.name}")
-            frames, decoded = self.link.codec.encode_observation(obs, self.step)
         if self.cfg.realtime:
             self._pace()
         start = time.perf_counter_ns()
         sent_at = time.monotonic()
-        self.link.send(frames)
-        action = self.link.wait_action(self.step, self.cfg.action_timeout_s, self.node.alive)
+        scheduled = self.schedule.get((self.episode, self.in_episode))
+        if scheduled is None:
+            self.link.send(frames)
+            action = self._answer(obs)
+        else:
+            action = self._inject(scheduled, frames, obs)
         if action is None:
             stats.rx_timeouts += 1
             raise NodeFault(self._silence_reason(sent_at))
@@ -129,9 +143,78 @@ class BusPolicy:
         stats.diffs.append(diff)
         if diff > TOLERANCE and stats.first_divergent_step is None:
             stats.first_divergent_step = self.step
+        self.previous = frames
         self.step += 1
         self.in_episode += 1
         return action.action
+
+    def _answer(self, obs: np.ndarray) -> Action | None:
+        """The node's action for this step; unanswered, the step is sent again every ``retry_s``."""
+        deadline = time.monotonic() + self.cfg.action_timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            action = self.link.wait_action(self.step, min(self.retry_s, remaining), self.node.alive)
+            if action is not None or remaining <= self.retry_s or not self.node.alive():
+                return action
+            frames, _ = self.link.codec.encode_observation(obs, self.step)
+            self.link.stats.retries += 1
+            self.link.send(frames)
+
+    def _inject(self, scheduled: Scheduled, frames: list[can.Message], obs: np.ndarray) -> Action | None:
+        """Apply one scheduled fault in place of sending ``frames``; record what the node did."""
+        injector = scheduled.injector
+        if injector.needs_socketcan and self.cfg.bus != "socketcan":
+            raise ValueError(
+                f"the fault {injector.name!r} needs SocketCAN (the C node), not bus {self.cfg.bus!r}"
+            )
+        self._resolve()
+        stats = self.link.stats
+        before = (stats.last_status, stats.last_diag) if stats.last_status and stats.last_diag else None
+        stats.actions_by_step.clear()  # count the answers to this step only
+        context = Context(
+            self.link, self.node, self.interface, self.cfg.node_timeout_ms, self.cfg.action_timeout_s,
+            self.cfg.bus, self.cfg.iface, self.previous,
+        )  # fmt: skip
+        extra = injector.apply(context, frames, obs, self.step)  # may leave work for the episode's end
+        if injector.restarts_steps:
+            self.step = 0
+        action = None if injector.ends_episode else self._answer(obs)
+        if action is not None:
+            self.link.drain(self.retry_s / 2)  # a second answer to the same step would arrive now
+        # (counted before a SAFE node's periodic safe action, which repeats the last step, can come)
+        answers = stats.actions_by_step.get(self.step % STEP_MODULO, 0)
+        record = {
+            "kind": injector.name,
+            "episode": scheduled.episode,
+            "step": scheduled.step,
+            "injected": injector.description,
+            "expected": injector.expected,
+            "detects": injector.detects,
+            "detected": None,
+            "answered": action is not None,
+            "answered_as_expected": (action is not None) == injector.answered,
+            "answer_is_safe_action": None if action is None else is_safe(action.action, self.interface),
+            "answers_to_the_step": answers,
+            "before": _counters(before),
+            "after": None,
+            **extra,
+        }
+        self.injections.append(record)
+        self.unresolved.append((record, injector, extra, before, time.monotonic()))
+        self.pending += [(record, finish) for finish in context.at_episode_end]
+        if injector.ends_episode:
+            raise NodeFault(f"injected: {injector.name}")
+        return action
+
+    def _resolve(self) -> None:
+        """Complete the injection records with the node's first status after each: taken as the next
+        steps run (waiting for it here would leave the node without observations), or now."""
+        for record, injector, extra, before, since in self.unresolved:
+            later = [(st, dg) for t, st, dg in self.link.stats.snapshots if t >= since]
+            after = later[0] if later else (self.link.snapshot(SNAPSHOT_S) if self.node.alive() else None)
+            record["after"] = _counters(after)
+            record["detected"] = _detected(injector, before, after, extra, self.node)
+        self.unresolved = []
 
     def _pace(self) -> None:
         now = time.monotonic()
@@ -153,10 +236,34 @@ class BusPolicy:
         return "no action for the step although the node still sends status"
 
 
+def _counters(snapshot: tuple[Status, Diag] | None) -> dict[str, Any] | None:
+    return None if snapshot is None else {**asdict(snapshot[0]), **asdict(snapshot[1])}
+
+
+def _detected(
+    injector: Injector,
+    before: tuple[Status, Diag] | None,
+    after: tuple[Status, Diag] | None,
+    extra: dict[str, Any],
+    node: Node,
+) -> bool | None:
+    """Whether the node registered the fault: the counter(s) the class must move grew (any of them)."""
+    if injector.detects is None:
+        return None  # a class to tolerate, not to detect
+    if injector.detects == "node_exit":
+        return bool(extra.get("node_died", not node.alive()))
+    old, new = _counters(before), _counters(after)
+    if old is None or new is None:
+        return False
+    return any(new[key] > old[key] for key in injector.detects.split("|"))
+
+
 def _start_node(cfg: SessionConfig, interface: Interface) -> Node:
     if cfg.node == "python":
-        bus = can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False)
-        return PythonNode(bus, interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover)
+        return PythonNode(
+            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
+            interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover,
+        )  # fmt: skip
     if cfg.node_binary is None:
         raise ValueError("the C node needs node_binary")
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover)
@@ -166,21 +273,28 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     """Run the episodes; return the results (also written to cfg.results)."""
     interface = candb.load_interface(Path(cfg.interface))
     stats = Stats()
-    bus = can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False)
-    link = Link(bus, Codec(interface), stats, cfg.iface, cfg.log)
+    codec = Codec(interface)
+    bus = can.Bus(
+        interface=cfg.bus, channel=cfg.iface, receive_own_messages=False,
+        can_filters=[{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in codec.receive_ids],
+    )  # fmt: skip
+    link = Link(bus, codec, stats, cfg.iface, cfg.log)
     node = _start_node(cfg, interface)
     policy = BusPolicy(cfg, interface, link, node)
     env = _Tally(gym.make(interface.env_id))
     episodes: list[dict[str, Any]] = []
     try:
         link.wait_status(NODE_BOOT_S)
+        first_diff = 0
         for index in range(cfg.episodes):
             seed = cfg.seed + index
             policy.begin_episode()
             try:
                 result = run_episode(env, policy, seed, interface.sample_time_s)
-                row = {**asdict(result), "fault": None}
+                policy.end_episode()
+                row: dict[str, Any] = {**asdict(result), "fault": None}
             except NodeFault as fault:
+                policy.end_episode()
                 trajectory = list(getattr(env.unwrapped, "trajectory", []))
                 row = {
                     "seed": seed,
@@ -192,21 +306,29 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                     "trajectory": trajectory,
                     "fault": str(fault),
                 }
+            row["injected"] = [r["kind"] for r in policy.injections if r["episode"] == index]
+            row["max_action_abs_diff"] = max(stats.diffs[first_diff:], default=None)
+            first_diff = len(stats.diffs)
             episodes.append(row)
             if row["fault"] and not node.alive():
                 break  # the node is gone: later episodes could only fail the same way
         link.wait_status(0.3)
     finally:
+        policy.end_episode()  # nothing of an injection keeps running
         node.stop()
         link.close()
         env.close()
-    results = _results(cfg, stats, episodes, policy.injection, interface.sample_time_s)
+    results = _results(cfg, stats, episodes, policy.injections, interface.sample_time_s)
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
 
 
 def _results(
-    cfg: SessionConfig, stats: Stats, episodes: list[dict[str, Any]], injection: Any, sample_time: float
+    cfg: SessionConfig,
+    stats: Stats,
+    episodes: list[dict[str, Any]],
+    injections: list[dict[str, Any]],
+    sample_time: float,
 ) -> dict[str, Any]:
     lat = np.array(stats.latencies_us) if stats.latencies_us else np.zeros(1)
     status = stats.last_status
@@ -229,7 +351,10 @@ def _results(
         "deadline_misses": stats.deadline_misses if cfg.realtime else None,
         "jitter_us": _jitter(stats.step_starts, sample_time) if cfg.realtime else None,
         "node_status": asdict(status) if status else None,
-        "injection": injection,
+        "node_diag": asdict(stats.last_diag) if stats.last_diag else None,
+        "retries": stats.retries,
+        "injections": injections,
+        "fault_catalogue": catalogue_summary(injections),
         "config": asdict(cfg),
     }
 
@@ -246,11 +371,23 @@ def _jitter(starts: list[list[float]], sample_time: float) -> dict[str, float] |
     return {"std": float(np.std(deviation)), "max_abs": float(np.max(np.abs(deviation)))}
 
 
+def catalogue_summary(injections: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
+    """Per fault class: how many were injected, detected by the node, answered as the class requires."""
+    summary: dict[str, dict[str, int]] = {}
+    for r in injections:
+        row = summary.setdefault(r["kind"], {"injected": 0, "detected": 0, "answered_as_expected": 0})
+        row["injected"] += 1
+        row["detected"] += r["detected"] is not False  # None: a class to tolerate counts as handled
+        row["answered_as_expected"] += r["answered_as_expected"]
+    return summary
+
+
 def link_errors(status: Status | None, key: str) -> int | None:
     """Errors the node counted (from its last status frame)."""
     return None if status is None else int(getattr(status, key))
 
 
 if __name__ == "__main__":
-    config = SessionConfig(**json.loads(Path(sys.argv[1]).read_text()))
+    fields = json.loads(Path(sys.argv[1]).read_text())
+    config = SessionConfig(**{**fields, "inject": tuple(fields.get("inject", ()))})
     run(config)

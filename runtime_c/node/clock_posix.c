@@ -22,3 +22,10 @@ uint32_t clock_us(void)
     struct timespec t = now();
     return (uint32_t)((uint64_t)t.tv_sec * 1000000u + (uint64_t)t.tv_nsec / 1000u);
 }
+
+void sleep_ms(uint32_t ms)
+{
+    struct timespec t = {(time_t)(ms / 1000u), (long)(ms % 1000u) * 1000000L};
+    while (nanosleep(&t, &t) != 0) {
+    }
+}

@@ -43,16 +43,21 @@ e2e_status e2e_check_counter(e2e_receiver *rx, uint8_t counter)
         return E2E_OK;
     }
     uint8_t delta = (uint8_t)((counter - rx->last_counter) & (E2E_COUNTER_MODULO - 1u));
-    if (delta == 1u) {
-        rx->last_counter = counter;
-        return E2E_OK;
-    }
     if (delta == 0u) {
         return E2E_REPEATED;
     }
     if (delta <= E2E_MAX_FORWARD_JUMP) {
         rx->last_counter = counter;
-        return E2E_OK_SOME_LOST;
+        rx->candidate_run = 0;
+        return delta == 1u ? E2E_OK : E2E_OK_SOME_LOST;
+    }
+    uint8_t follows = (uint8_t)((rx->candidate + 1u) & (E2E_COUNTER_MODULO - 1u));
+    rx->candidate_run = (rx->candidate_run > 0u && counter == follows) ? (uint8_t)(rx->candidate_run + 1u) : 1u;
+    rx->candidate = counter;
+    if (rx->candidate_run >= E2E_RESYNC_FRAMES) {
+        rx->last_counter = counter;
+        rx->candidate_run = 0;
+        return E2E_OK_RESYNC;
     }
     return E2E_WRONG_SEQUENCE;
 }

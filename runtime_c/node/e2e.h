@@ -13,19 +13,24 @@
 #define E2E_FRAME_BYTES 8u
 #define E2E_COUNTER_MODULO 16u
 #define E2E_MAX_FORWARD_JUMP 7u /* larger "forward" deltas are treated as old frames */
+#define E2E_RESYNC_FRAMES 2u    /* consecutive counters that re-establish a sequence the receiver lost */
 
 typedef enum {
     E2E_OK = 0,
     E2E_OK_SOME_LOST, /* accepted: the counter jumped forward, frames before it were lost */
+    E2E_OK_RESYNC,    /* accepted: a new sequence (loss burst, sender restart) confirmed by its 2nd frame */
     E2E_BAD_CRC,
     E2E_REPEATED,
     E2E_WRONG_SEQUENCE
 } e2e_status;
 
-/* Receiver state of one message: the last accepted alive counter. */
+/* Receiver state of one message: the last accepted alive counter, and the run of consecutive
+ * counters seen outside the accepted window (a candidate new sequence). */
 typedef struct {
     uint8_t last_counter;
     bool seen;
+    uint8_t candidate;
+    uint8_t candidate_run;
 } e2e_receiver;
 
 uint8_t e2e_crc8(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES]);
@@ -38,7 +43,10 @@ bool e2e_crc_ok(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES]);
 /* Check the alive counter of a frame whose CRC is good. Accepts the first frame and every frame
  * whose counter is one more than the last accepted one; a forward jump of up to
  * E2E_MAX_FORWARD_JUMP is accepted as E2E_OK_SOME_LOST (frames before it were lost). A repeated
- * (E2E_REPEATED) or older (E2E_WRONG_SEQUENCE) counter is rejected and changes nothing. */
+ * counter (E2E_REPEATED) is rejected. An older one (E2E_WRONG_SEQUENCE) is rejected too, but
+ * remembered: when E2E_RESYNC_FRAMES frames with consecutive counters arrive outside the window, the
+ * last of them is accepted as E2E_OK_RESYNC and the sequence continues from it (after a burst of
+ * lost frames or a sender restart, as AUTOSAR's E2E state machine re-synchronises). */
 e2e_status e2e_check_counter(e2e_receiver *rx, uint8_t counter);
 
 #endif /* EMBEDRL_E2E_H */

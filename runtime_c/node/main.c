@@ -1,7 +1,9 @@
 /*
  * policy_node --iface vcan0 [--timeout-ms T] [--recover K] [--status-ms P]
  *
- * Runs the policy as a CAN node until SIGTERM/SIGINT (exit 0) or until the interface fails (exit 1).
+ * Runs the policy as a CAN node until SIGTERM/SIGINT (exit 0). An interface that cannot be opened at
+ * start is an error (exit 1); one that fails later (link down, interface removed) puts the node in SAFE
+ * and is re-opened every REOPEN_MS until it is back: the node never exits on its own.
  */
 #define _POSIX_C_SOURCE 199309L
 #include <signal.h>
@@ -12,6 +14,7 @@
 #include "node.h"
 
 #define DEFAULT_RECOVER 3u
+#define REOPEN_MS 100u
 
 static volatile sig_atomic_t stop;
 
@@ -30,6 +33,22 @@ static int parse_u32(const char *text, uint32_t min, uint32_t max, uint32_t *out
     }
     *out = (uint32_t)v;
     return 0;
+}
+
+/* The interface failed: SAFE, then wait for it and open it again (or stop on a signal). */
+static void reopen(node_t *node, const char *iface, const uint32_t *ids)
+{
+    fprintf(stderr, "policy_node: CAN interface %s failed; SAFE until it is back\n", iface);
+    transport_close();
+    node_link_lost(node, clock_ms());
+    while (!stop && transport_open(iface, ids, POLICY_IO_OBS_FRAMES) != 0) {
+        (void)node_poll(node, clock_ms()); /* status and safe action go nowhere: counted as send failures */
+        sleep_ms(REOPEN_MS);
+    }
+    if (!stop) {
+        fprintf(stderr, "policy_node: CAN interface %s re-opened\n", iface);
+        node_link_restored(node, clock_ms());
+    }
 }
 
 static int usage(void)
@@ -74,25 +93,29 @@ int main(int argc, char **argv)
     sa.sa_handler = on_signal;
     sigaction(SIGTERM, &sa, NULL);
     sigaction(SIGINT, &sa, NULL);
-    if (transport_open(iface) != 0) {
+    uint32_t ids[POLICY_IO_OBS_FRAMES];
+    for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
+        ids[k] = POLICY_IO_OBS_FIRST_ID + k;
+    }
+    if (transport_open(iface, ids, POLICY_IO_OBS_FRAMES) != 0) {
+        fprintf(stderr, "policy_node: %s\n", transport_error());
         return 1;
     }
     node_t node;
     node_init(&node, &config, clock_ms());
-    int status = 0;
     while (!stop) {
         uint32_t wait_ms = node_poll(&node, clock_ms());
         can_frame_t frame;
-        int got = transport_recv(&frame, wait_ms);
-        if (got < 0) {
-            fprintf(stderr, "policy_node: CAN interface %s failed\n", iface);
-            status = 1;
-            break;
-        }
-        if (got > 0) {
+        uint8_t bus_state = 0;
+        transport_event event = transport_recv(&frame, &bus_state, wait_ms);
+        if (event == TRANSPORT_FRAME) {
             node_on_frame(&node, &frame, clock_ms());
+        } else if (event == TRANSPORT_BUS_STATE) {
+            node_on_bus_state(&node, (node_bus_state)bus_state);
+        } else if (event == TRANSPORT_FAILED) {
+            reopen(&node, iface, ids);
         }
     }
     transport_close();
-    return status;
+    return 0;
 }

@@ -7,6 +7,8 @@
 #define U8_MAX 255u
 #define U16_MAX 65535u
 #define INFERENCE_US_MAX 1023u
+#define RESYNCS_MAX 63u
+#define LINK_RESETS_MAX 15u
 
 /* The generated CAN glue and the generated policy must describe the same vectors. */
 typedef char node_obs_dims_agree[(POLICY_IO_OBS_DIM == POLICY_OBS_DIM) ? 1 : -1];
@@ -30,6 +32,13 @@ void node_init(node_t *node, const node_config *config, uint32_t now_ms)
     node->next_status_ms = now_ms;
 }
 
+static void send_frame(node_t *node, const can_frame_t *frame)
+{
+    if (transport_send(frame) != 0) {
+        node->send_failures++; /* bus-off, link down or a full queue: visible in NodeDiag */
+    }
+}
+
 static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t step)
 {
     for (unsigned part = 0; part < POLICY_IO_ACT_FRAMES; ++part) {
@@ -37,7 +46,7 @@ static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t 
         node->saturations += policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
         e2e_protect(frame.id, frame.data);
         node->action_counter[part] = (uint8_t)((node->action_counter[part] + 1u) % E2E_COUNTER_MODULO);
-        (void)transport_send(&frame);
+        send_frame(node, &frame);
     }
     node->actions_sent++;
 }
@@ -57,7 +66,24 @@ static void send_status(node_t *node)
     policy_dbc_node_status_pack(frame.data, &msg, sizeof frame.data);
     e2e_protect(frame.id, frame.data);
     node->status_counter = (uint8_t)((node->status_counter + 1u) % E2E_COUNTER_MODULO);
-    (void)transport_send(&frame);
+    send_frame(node, &frame);
+
+    struct policy_dbc_node_diag_t diag;
+    can_frame_t diag_frame = {POLICY_DBC_NODE_DIAG_FRAME_ID, POLICY_DBC_NODE_DIAG_LENGTH, {0}};
+    memset(&diag, 0, sizeof diag);
+    diag.counter = node->diag_counter;
+    diag.bus_state = (uint8_t)node->bus_state;
+    diag.resyncs = (uint8_t)saturate(node->resyncs, RESYNCS_MAX);
+    diag.range_errors = (uint8_t)saturate(node->range_errors, U8_MAX);
+    diag.stale_steps = (uint8_t)saturate(node->stale_steps, U8_MAX);
+    diag.incomplete = (uint8_t)saturate(node->incomplete, U8_MAX);
+    diag.saturations = (uint8_t)saturate(node->saturations, U8_MAX);
+    diag.send_failures = (uint8_t)saturate(node->send_failures, U8_MAX);
+    diag.link_resets = (uint8_t)saturate(node->link_resets, LINK_RESETS_MAX);
+    policy_dbc_node_diag_pack(diag_frame.data, &diag, sizeof diag_frame.data);
+    e2e_protect(diag_frame.id, diag_frame.data);
+    node->diag_counter = (uint8_t)((node->diag_counter + 1u) % E2E_COUNTER_MODULO);
+    send_frame(node, &diag_frame);
 }
 
 static void enter_safe(node_t *node, uint32_t now_ms)
@@ -65,13 +91,29 @@ static void enter_safe(node_t *node, uint32_t now_ms)
     node->state = NODE_SAFE;
     node->consecutive_valid = 0;
     node->last_safe_ms = now_ms;
+    node->step_reference = false; /* a sender that comes back may have restarted its steps */
     send_action(node, safe_action, node->last_step);
     send_status(node);
+}
+
+/* Whether `step` is after `last` on the Step circle: at most half of it ahead. */
+static bool step_is_after(uint16_t step, uint16_t last)
+{
+    uint32_t ahead = ((uint32_t)step - last) % POLICY_IO_STEP_MODULO;
+    return ahead != 0u && ahead < POLICY_IO_STEP_MODULO / 2u;
 }
 
 static void complete_observation(node_t *node, uint32_t now_ms)
 {
     float act[POLICY_ACT_DIM];
+    node->pending_valid = false;
+    node->pending_parts = 0;
+    if (node->step_reference && !step_is_after(node->pending_step, node->last_step)) {
+        node->stale_steps++; /* a replayed or repeated step: never answered twice */
+        node->consecutive_valid = 0;
+        return;
+    }
+    node->step_reference = true;
     node->last_valid_ms = now_ms;
     node->armed = true;
     node->consecutive_valid++;
@@ -87,8 +129,6 @@ static void complete_observation(node_t *node, uint32_t now_ms)
         send_action(node, act, node->pending_step);
     }
     node->last_step = node->pending_step;
-    node->pending_valid = false;
-    node->pending_parts = 0;
 }
 
 void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
@@ -115,7 +155,11 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
         node->sequence_errors++; /* lost, repeated or out-of-order frames */
         node->consecutive_valid = 0;
     }
-    if (status != E2E_OK && status != E2E_OK_SOME_LOST) {
+    if (status == E2E_OK_RESYNC) {
+        node->resyncs++;
+        node->step_reference = false; /* a new sequence: its steps may start anywhere */
+    }
+    if (status != E2E_OK && status != E2E_OK_SOME_LOST && status != E2E_OK_RESYNC) {
         return;
     }
     if (decoded != POLICY_IO_OK) {
@@ -161,4 +205,25 @@ uint32_t node_poll(node_t *node, uint32_t now_ms)
         until_watchdog = since >= node->config.timeout_ms ? 0u : node->config.timeout_ms - since;
     }
     return until_status < until_watchdog ? until_status : until_watchdog;
+}
+
+void node_link_lost(node_t *node, uint32_t now_ms)
+{
+    node->link_resets++;
+    node->state = NODE_SAFE;
+    node->consecutive_valid = 0;
+    node->last_safe_ms = now_ms;
+    node->step_reference = false;
+    node->pending_valid = false;
+    node->pending_parts = 0;
+}
+
+void node_link_restored(node_t *node, uint32_t now_ms)
+{
+    enter_safe(node, now_ms);
+}
+
+void node_on_bus_state(node_t *node, node_bus_state state)
+{
+    node->bus_state = state;
 }

@@ -10,6 +10,16 @@
  * timeout_ms); back to RUN only after recover_count consecutive valid observations, answered with the
  * safe action until then. A non-finite policy output also gives the safe action (policy_step
  * guarantees it). No malloc; every loop is bounded.
+ *
+ * Recovery rules (the README's table):
+ * - alive counters re-synchronise after E2E_RESYNC_FRAMES consecutive counters outside the accepted
+ *   window (a loss burst, a sender restart); the observation in flight is then incomplete;
+ * - an observation whose Step is not after the last answered one (mod POLICY_IO_STEP_MODULO, half the
+ *   range ahead) is a replay: dropped and counted, never answered. The step reference restarts after a
+ *   counter re-synchronisation or a watchdog timeout (a restarted sender counts from 0 again);
+ * - a failed interface (link down): SAFE, then node_link_restored once it is re-opened (main.c waits and
+ *   retries, never exits); frames that cannot be sent are counted;
+ * - error frames set the bus state (ERROR_PASSIVE, BUS_OFF, back to ACTIVE on restart), sent in NodeDiag.
  */
 #ifndef EMBEDRL_NODE_H
 #define EMBEDRL_NODE_H
@@ -23,6 +33,7 @@
 #include "policy_io.h"
 
 typedef enum { NODE_RUN = 0, NODE_SAFE = 1 } node_state;
+typedef enum { NODE_BUS_ACTIVE = 0, NODE_BUS_PASSIVE = 1, NODE_BUS_OFF = 2 } node_bus_state;
 
 typedef struct {
     uint32_t timeout_ms;
@@ -43,6 +54,11 @@ typedef struct {
     uint32_t range_errors; /* a signal outside its range in the DBC: frame dropped */
     uint32_t saturations;  /* action values moved into their signal's range before sending */
     uint32_t incomplete; /* observation steps abandoned before all frames arrived */
+    uint32_t stale_steps;   /* complete observations whose Step was not after the last answered one */
+    uint32_t resyncs;       /* alive-counter re-synchronisations */
+    uint32_t send_failures; /* frames the transport refused */
+    uint32_t link_resets;   /* times the interface failed and was re-opened */
+    node_bus_state bus_state;
     uint32_t actions_sent;
     e2e_receiver rx[POLICY_IO_OBS_FRAMES];
     /* observation being assembled */
@@ -51,6 +67,7 @@ typedef struct {
     uint32_t pending_parts; /* bit k: observation frame k of pending_step has arrived */
     float pending_obs[POLICY_OBS_DIM];
     uint16_t last_step;
+    bool step_reference; /* last_step is a valid reference for the replay check */
     uint32_t last_valid_ms;
     uint32_t last_safe_ms;
     uint32_t next_status_ms;
@@ -58,6 +75,7 @@ typedef struct {
     bool armed; /* the watchdog runs from the first valid observation on */
     uint8_t action_counter[POLICY_IO_ACT_FRAMES];
     uint8_t status_counter;
+    uint8_t diag_counter;
 } node_t;
 
 void node_init(node_t *node, const node_config *config, uint32_t now_ms);
@@ -67,5 +85,14 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms);
 
 /* Time-driven duties: watchdog and periodic status. Returns the ms until the next deadline. */
 uint32_t node_poll(node_t *node, uint32_t now_ms);
+
+/* The interface failed (nothing can be sent or received): SAFE until it is back. */
+void node_link_lost(node_t *node, uint32_t now_ms);
+
+/* The interface was re-opened: announce SAFE with the safe action and the status; recovery as usual. */
+void node_link_restored(node_t *node, uint32_t now_ms);
+
+/* An error frame's controller state (from the transport): the bus state reported in NodeDiag. */
+void node_on_bus_state(node_t *node, node_bus_state state);
 
 #endif /* EMBEDRL_NODE_H */

@@ -2,6 +2,7 @@
 #define _DEFAULT_SOURCE
 #include <errno.h>
 #include <linux/can.h>
+#include <linux/can/error.h>
 #include <linux/can/raw.h>
 #include <net/if.h>
 #include <poll.h>
@@ -13,68 +14,135 @@
 
 #include "platform.h"
 
-static int sock = -1;
+#define MAX_FILTERS 64u
+#define BUS_ACTIVE 0u
+#define BUS_PASSIVE 1u
+#define BUS_OFF 2u
 
-int transport_open(const char *iface)
+#ifndef CAN_ERR_CRTL_ACTIVE
+#define CAN_ERR_CRTL_ACTIVE 0x40 /* linux/can/error.h since 4.x: back to error active */
+#endif
+
+static int sock = -1;
+static char error_text[160];
+
+static int fail(const char *what, const char *iface)
+{
+    snprintf(error_text, sizeof error_text, "%s %s: %s", what, iface, strerror(errno));
+    if (sock >= 0) {
+        close(sock);
+        sock = -1;
+    }
+    return -1;
+}
+
+const char *transport_error(void)
+{
+    return error_text;
+}
+
+int transport_open(const char *iface, const uint32_t *ids, unsigned count)
 {
     struct ifreq ifr;
     struct sockaddr_can addr;
-    if (strlen(iface) >= IFNAMSIZ) {
-        fprintf(stderr, "policy_node: interface name too long: %s\n", iface);
-        return -1;
+    struct can_filter filters[MAX_FILTERS];
+    if (strlen(iface) >= IFNAMSIZ || count == 0u || count > MAX_FILTERS) {
+        errno = EINVAL;
+        return fail("cannot open", iface);
     }
     sock = socket(PF_CAN, SOCK_RAW, CAN_RAW);
     if (sock < 0) {
-        fprintf(stderr, "policy_node: socket(PF_CAN): %s\n", strerror(errno));
-        return -1;
+        return fail("socket(PF_CAN) for", iface);
     }
     memset(&ifr, 0, sizeof ifr);
     strncpy(ifr.ifr_name, iface, IFNAMSIZ - 1);
+    if (ioctl(sock, SIOCGIFFLAGS, &ifr) < 0) {
+        return fail("no CAN interface", iface);
+    }
+    if (!(ifr.ifr_flags & IFF_UP)) {
+        errno = ENETDOWN;
+        return fail("interface down:", iface);
+    }
     if (ioctl(sock, SIOCGIFINDEX, &ifr) < 0) {
-        fprintf(stderr, "policy_node: no CAN interface %s: %s\n", iface, strerror(errno));
-        close(sock);
-        sock = -1;
-        return -1;
+        return fail("no CAN interface", iface);
+    }
+    /* Only our standard-ID data frames wake the node: a flood of other IDs stays in the kernel. */
+    for (unsigned i = 0; i < count; ++i) {
+        filters[i].can_id = ids[i];
+        filters[i].can_mask = CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG;
+    }
+    can_err_mask_t err_mask = CAN_ERR_BUSOFF | CAN_ERR_CRTL | CAN_ERR_RESTARTED;
+    if (setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FILTER, filters, (socklen_t)(count * sizeof filters[0])) < 0 ||
+        setsockopt(sock, SOL_CAN_RAW, CAN_RAW_ERR_FILTER, &err_mask, sizeof err_mask) < 0) {
+        return fail("CAN_RAW_FILTER on", iface);
     }
     memset(&addr, 0, sizeof addr);
     addr.can_family = AF_CAN;
     addr.can_ifindex = ifr.ifr_ifindex;
     if (bind(sock, (struct sockaddr *)&addr, sizeof addr) < 0) {
-        fprintf(stderr, "policy_node: bind %s: %s\n", iface, strerror(errno));
-        close(sock);
-        sock = -1;
-        return -1;
+        return fail("bind", iface);
     }
     return 0;
 }
 
-int transport_recv(can_frame_t *frame, uint32_t timeout_ms)
+/* The controller state an error frame announces; -1 if it announces none. */
+static int bus_state_of(const struct can_frame *raw)
+{
+    if (raw->can_id & CAN_ERR_BUSOFF) {
+        return BUS_OFF;
+    }
+    if (raw->can_id & CAN_ERR_RESTARTED) {
+        return BUS_ACTIVE;
+    }
+    if (raw->can_id & CAN_ERR_CRTL) {
+        if (raw->data[1] & (CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_PASSIVE)) {
+            return BUS_PASSIVE;
+        }
+        if (raw->data[1] & CAN_ERR_CRTL_ACTIVE) {
+            return BUS_ACTIVE;
+        }
+    }
+    return -1;
+}
+
+transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t timeout_ms)
 {
     struct pollfd pfd = {sock, POLLIN, 0};
     struct can_frame raw;
     int ready = poll(&pfd, 1, (int)timeout_ms);
     if (ready == 0 || (ready < 0 && errno == EINTR)) {
-        return 0;
+        return TRANSPORT_TIMEOUT;
     }
     if (ready < 0 || (pfd.revents & (POLLERR | POLLHUP | POLLNVAL))) {
-        return -1;
+        return TRANSPORT_FAILED; /* e.g. ENETDOWN after `ip link set ... down` */
     }
     ssize_t n = read(sock, &raw, sizeof raw);
     if (n != (ssize_t)sizeof raw) {
-        return n < 0 && errno == EINTR ? 0 : -1;
+        return n < 0 && errno == EINTR ? TRANSPORT_TIMEOUT : TRANSPORT_FAILED;
+    }
+    if (raw.can_id & CAN_ERR_FLAG) {
+        int state = bus_state_of(&raw);
+        if (state < 0) {
+            return TRANSPORT_TIMEOUT;
+        }
+        *bus_state = (uint8_t)state;
+        return TRANSPORT_BUS_STATE;
     }
     frame->id = raw.can_id & CAN_EFF_MASK;
     frame->len = raw.can_dlc > 8u ? 8u : raw.can_dlc;
     memcpy(frame->data, raw.data, 8);
-    if (raw.can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG | CAN_ERR_FLAG)) {
-        frame->len = 0xFFu; /* extended, remote or error frames are never valid here */
+    if (raw.can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG)) {
+        frame->len = 0xFFu; /* extended or remote frames are never valid here */
     }
-    return 1;
+    return TRANSPORT_FRAME;
 }
 
 int transport_send(const can_frame_t *frame)
 {
     struct can_frame raw;
+    if (sock < 0) {
+        return -1;
+    }
     memset(&raw, 0, sizeof raw);
     raw.can_id = frame->id;
     raw.can_dlc = frame->len;

@@ -6,26 +6,48 @@
 static can_frame_t sent[FAKE_MAX_SENT];
 static unsigned sent_count;
 static uint32_t now_us;
+static bool sends_fail;
 
-int transport_open(const char *iface)
+int transport_open(const char *iface, const uint32_t *ids, unsigned count)
 {
     (void)iface;
+    (void)ids;
+    (void)count;
     return 0;
 }
 
-int transport_recv(can_frame_t *frame, uint32_t timeout_ms)
+transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t timeout_ms)
 {
     (void)frame;
+    (void)bus_state;
     (void)timeout_ms;
-    return 0;
+    return TRANSPORT_TIMEOUT;
 }
 
 int transport_send(const can_frame_t *frame)
 {
+    if (sends_fail) {
+        return -1;
+    }
     if (sent_count < FAKE_MAX_SENT) {
         sent[sent_count++] = *frame;
     }
     return 0;
+}
+
+const char *transport_error(void)
+{
+    return "";
+}
+
+void sleep_ms(uint32_t ms)
+{
+    now_us += ms * 1000u;
+}
+
+void fake_fail_sends(bool fail)
+{
+    sends_fail = fail;
 }
 
 void transport_close(void)

@@ -363,6 +363,98 @@ static void test_status_frame_reports_counters(void)
     CHECK(s.state == 0 && s.frames_ok == 3 && s.crc_errors == 0);
 }
 
+static void test_counters_resynchronise_after_a_loss_burst_or_a_sender_restart(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {0.3f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f};
+    float act[2];
+    uint16_t step;
+    send_observation(&node, 10, obs, 1000);
+    CHECK(count_actions() == 1);
+    /* 9 frames of each message lost: beyond the forward window, the next step is dropped ... */
+    for (unsigned i = 0; i < 3; ++i) {
+        counters[i] = (uint8_t)(counters[i] + 9u);
+    }
+    send_observation(&node, 11, obs, 1010);
+    CHECK(count_actions() == 1 && node.sequence_errors == 3 && node.resyncs == 0);
+    /* ... and the second consecutive one re-establishes the sequences and is answered */
+    send_observation(&node, 12, obs, 1020);
+    CHECK(count_actions() == 2 && node.resyncs == 3 && last_action(act, &step) && step == 12);
+    /* a sender restart: counters and steps from 0 again; answered from its second step on */
+    counters[0] = counters[1] = counters[2] = 4u; /* 9 ahead of the node's last ones: outside the window */
+    send_observation(&node, 0, obs, 1030);
+    send_observation(&node, 1, obs, 1040);
+    CHECK(count_actions() == 3 && last_action(act, &step) && step == 1 && node.stale_steps == 0);
+    send_observation(&node, 2, obs, 1050);
+    CHECK(count_actions() == 4 && last_action(act, &step) && step == 2);
+}
+
+static void test_a_step_that_goes_backwards_is_never_answered(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {0.3f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f};
+    float act[2];
+    uint16_t step;
+    send_observation(&node, 104, obs, 1000);
+    send_observation(&node, 7, obs, 1010);    /* backwards, with fresh counters and good CRCs */
+    send_observation(&node, 104, obs, 1020);  /* the same step again */
+    CHECK(count_actions() == 1 && node.stale_steps == 2);
+    send_observation(&node, 105, obs, 1030);
+    CHECK(count_actions() == 2 && last_action(act, &step) && step == 105);
+    /* steps wrap around modulo POLICY_IO_STEP_MODULO */
+    send_observation(&node, POLICY_IO_STEP_MODULO - 1u, obs, 1040);
+    CHECK(count_actions() == 2 && node.stale_steps == 3); /* half the circle ahead: behind */
+    fresh(&node);
+    send_observation(&node, POLICY_IO_STEP_MODULO - 1u, obs, 1000);
+    send_observation(&node, 0, obs, 1010);
+    CHECK(count_actions() == 2 && node.stale_steps == 0 && last_action(act, &step) && step == 0);
+    /* after a watchdog timeout a sender may start again from any step */
+    node_poll(&node, 1010 + TIMEOUT_MS);
+    CHECK(node.state == NODE_SAFE);
+    send_observation(&node, 4000, obs, 1200); /* behind step 0, but a new reference */
+    CHECK(node.stale_steps == 0 && last_action(act, &step) && step == 4000);
+}
+
+static void test_link_loss_send_failures_and_bus_state_are_reported(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {0.3f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f};
+    float act[2];
+    uint16_t step;
+    send_observation(&node, 1, obs, 1000);
+    fake_fail_sends(true);
+    node_link_lost(&node, 1010);
+    CHECK(node.state == NODE_SAFE && node.link_resets == 1);
+    node_poll(&node, 1010 + TIMEOUT_MS); /* status and the repeated safe action cannot go out */
+    CHECK(node.send_failures >= 2);
+    fake_fail_sends(false);
+    fake_reset();
+    node_link_restored(&node, 1200);
+    CHECK(count_actions() == 1 && last_action(act, &step) && act[0] == 0.25f && act[1] == -0.5f);
+    for (uint16_t s = 0; s < RECOVER; ++s) { /* the restarted link may bring a restarted sender */
+        send_observation(&node, s, obs, 1210 + s);
+    }
+    CHECK(node.state == NODE_RUN && last_action(act, &step) && step == RECOVER - 1u);
+    node_on_bus_state(&node, NODE_BUS_OFF);
+    fake_reset();
+    node_poll(&node, 100000);
+    const can_frame_t *diag = NULL;
+    for (unsigned i = 0; i < fake_sent_count(); ++i) {
+        if (fake_sent(i)->id == POLICY_DBC_NODE_DIAG_FRAME_ID) {
+            diag = fake_sent(i);
+        }
+    }
+    CHECK(diag != NULL && e2e_crc_ok(diag->id, diag->data));
+    if (diag != NULL) {
+        struct policy_dbc_node_diag_t d;
+        policy_dbc_node_diag_unpack(&d, diag->data, 8);
+        CHECK(d.bus_state == NODE_BUS_OFF && d.link_resets == 1 && d.send_failures == node.send_failures);
+    }
+}
+
 int main(void)
 {
     test_codec_round_trips();
@@ -375,6 +467,9 @@ int main(void)
     test_a_value_outside_its_range_is_never_given_to_the_policy();
     test_actions_outside_their_range_are_saturated_not_wrapped();
     test_status_frame_reports_counters();
+    test_counters_resynchronise_after_a_loss_burst_or_a_sender_restart();
+    test_a_step_that_goes_backwards_is_never_answered();
+    test_link_loss_send_failures_and_bus_state_are_reported();
     printf("%d checks, %d failures\n", checks, failures);
     return failures == 0 ? 0 : 1;
 }

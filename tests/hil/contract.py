@@ -16,6 +16,7 @@ import pytest
 
 from embedrl.cli import build_parser, main
 from embedrl.hil.cli import cmd_run
+from embedrl.hil.faults import CATALOGUE, INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import Guest
 from embedrl.train.evaluate import REPORT_KEYS
 from tests.hil.helpers import hil
@@ -23,6 +24,11 @@ from tests.hil.helpers import hil
 NODE_TIMEOUT_MS = 200
 SAFE_MARGIN_MS = 200
 """Allowed lateness of the safe action beyond the watchdog timeout (scheduling in a guest, polling)."""
+RECOVERED = (
+    "loss", "burst", "duplicate", "replay", "replay-fresh", "reorder", "corrupt", "masquerade",
+    "out-of-range", "flood", "kill-restart", "sender-restart",
+)  # fmt: skip
+"""Fault classes after which the episode goes on exactly as in the simulation."""
 
 
 class HilContract:
@@ -69,21 +75,55 @@ class HilContract:
         assert len(sent) == report["frames_tx"] and len(received) == report["frames_rx"]
         assert all(line.split()[1].startswith(self.channel) for line in lines)
         assert all(line.split()[2][:3] in ("100", "101", "102") for line in sent)  # ObservationA..C
-        assert all(line.split()[2][:4] in ("200#", "300#") for line in received)  # Action, NodeStatus
+        assert all(line.split()[2][:4] in ("200#", "300#", "301#") for line in received)  # Action, status
+        diag = report["node_diag"]
+        assert diag["bus_state"] == "ACTIVE" and diag["resyncs"] == diag["range_errors"] == 0
+        assert diag["saturations"] == diag["send_failures"] == diag["link_resets"] == 0
+        assert diag["stale_steps"] <= report["retries"]  # a retry of a slow answer is a repeated step
         assert (tmp_path / "plots" / "hil_latency.png").is_file()
         assert (tmp_path / "plots" / "hil_trajectories.png").is_file()
 
-    def test_corrupted_observation_frame_is_dropped_and_counted(
+    def test_the_fault_catalogue_is_detected_and_recovered_from(
         self, where: Guest | None, export_dir: Path, tmp_path: Path
     ) -> None:
+        kinds = [i.name for i in CATALOGUE if not i.ends_episode and i.answered]
+        kinds = [k for k in kinds if self.node == "c" or not INJECTORS[k].needs_socketcan]
+        schedule = [arg for e, k in enumerate(kinds) for arg in ("--inject", f"{k}@{e}:{INJECT_STEP}")]
         report = self.run_hil(
-            where, export_dir, tmp_path, "--episodes", "1", "--inject", "corrupt", "--allow-faults"
+            where, export_dir, tmp_path, "--episodes", str(len(kinds)), "--seed", "0", "--allow-faults",
+            *schedule,
+        )  # fmt: skip
+        records = {r["kind"]: r for r in report["injections"]}
+        assert list(records) == kinds
+        assert report["fault_catalogue"] == {
+            k: {"injected": 1, "detected": 1, "answered_as_expected": 1} for k in kinds
+        }
+        for kind, r in records.items():
+            injector = INJECTORS[kind]
+            assert r["detected"] is (None if injector.detects is None else True), kind
+            assert r["answered"] and r["answers_to_the_step"] == 1, kind  # never answered twice
+        # Recovered without a trace in the episode: same outcome as the simulation, the policy's actions
+        for kind in RECOVERED:
+            row = report["per_episode"][kinds.index(kind)]
+            assert row["injected"] == [kind] and row["fault"] is None, kind
+            assert row["max_action_abs_diff"] <= 1e-5, kind
+            assert row["seed"] not in report["outcomes_differing_from_simulation"], kind
+            assert records[kind]["answer_is_safe_action"] is False or kind == "sender-restart", kind
+        # Timed out or link lost: the late step is answered with the safe action, as the node is SAFE
+        for kind in ("delay", *(["link-down-up"] if self.node == "c" else [])):
+            assert records[kind]["answer_is_safe_action"] is True, kind
+        assert records["delay"]["after"]["timeouts"] == records["delay"]["before"]["timeouts"] + 1
+        assert (
+            records["duplicate"]["after"]["sequence_errors"]
+            >= records["duplicate"]["before"]["sequence_errors"] + 3
         )
-        injection = report["injection"]
-        assert injection["kind"] == "corrupt"
-        assert injection["action_received"] is False  # no action computed from the corrupted observation
-        assert injection["node_crc_errors_after"] == injection["node_crc_errors_before"] + 1
-        assert report["per_episode"][0]["fault"] == "injected: corrupt"
+        assert records["burst"]["after"]["resyncs"] == records["burst"]["before"]["resyncs"] + 3
+        assert (
+            records["out-of-range"]["after"]["range_errors"]
+            == records["out-of-range"]["before"]["range_errors"] + 1
+        )
+        assert records["flood"]["flood_frames"] > 100
+        assert report["verdict"]["passed"], report["verdict"]
 
     def test_silent_simulator_gets_the_safe_action_within_the_timeout(
         self, where: Guest | None, export_dir: Path, tmp_path: Path
@@ -91,11 +131,12 @@ class HilContract:
         report = self.run_hil(
             where, export_dir, tmp_path, "--episodes", "1", "--inject", "silent", "--allow-faults"
         )
-        injection = report["injection"]
+        (injection,) = report["injections"]
         assert injection["safe_action_after_ms"] is not None
         assert NODE_TIMEOUT_MS * 0.9 <= injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
-        assert injection["node_state"] == "SAFE"
+        assert injection["after"]["state"] == "SAFE" and injection["detected"] is True
         assert injection["expected_safe_action"] == [0.0, 0.0] and injection["safe_action"] == [0.0, 0.0]
+        assert report["per_episode"][0]["fault"] == "injected: silent"
 
     def test_the_watchdog_sends_the_exports_own_safe_action(
         self, where: Guest | None, safe_export_dir: Path, tmp_path: Path
@@ -104,7 +145,7 @@ class HilContract:
         report = self.run_hil(
             where, safe_export_dir, tmp_path, "--episodes", "1", "--inject", "silent", "--allow-faults"
         )
-        injection = report["injection"]
+        (injection,) = report["injections"]
         assert injection["expected_safe_action"] == [0.1, 0.0]
         assert injection["safe_action"] == pytest.approx([0.1, 0.0], abs=4e-6)
         assert injection["safe_action_after_ms"] <= NODE_TIMEOUT_MS + SAFE_MARGIN_MS
@@ -117,10 +158,11 @@ class HilContract:
             where, export_dir, tmp_path, "--episodes", "3", "--inject", "kill", "--allow-faults"
         )
         assert time.monotonic() - start < 120
-        assert report["injection"]["kind"] == "kill"
+        (injection,) = report["injections"]
+        assert injection["kind"] == "kill" and injection["detected"] is True and not injection["answered"]
         assert report["faults"] == 1 and report["episodes"] == 1  # the session stops: the node is gone
         assert report["per_episode"][0]["fault"].startswith("the node exited")
-        assert report["per_episode"][0]["fault"] == report["injection"]["node_exit"]
+        assert report["per_episode"][0]["fault"] == injection["node_exit"]
         assert report["rx_timeouts"] == 1
         assert report["verdict"] == {"passed": True, "failures": [], "faults_allowed": True}
 

@@ -35,6 +35,20 @@ def test_receiver_accepts_increments_and_rejects_repeats_and_old_frames() -> Non
     ]
 
 
+def test_receiver_resynchronises_on_two_consecutive_counters_outside_its_window() -> None:
+    rx = e2e.Receiver()
+    # 9 frames lost after 3 (the next is 13): dropped, then the second consecutive counter resyncs
+    assert [rx.check(c) for c in (3, 13, 14, 15, 0)] == ["ok", "wrong_sequence", "resync", "ok", "ok"]
+    # an isolated old frame (9) never moves the sequence
+    assert [rx.check(c) for c in (9, 1)] == ["wrong_sequence", "ok"]
+    # a sender restarted from 0, 11 behind: its second frame resyncs
+    rx = e2e.Receiver(last=5)
+    assert [rx.check(c) for c in (0, 1, 2)] == ["wrong_sequence", "resync", "ok"]
+    # counters that are not consecutive never resync
+    rx = e2e.Receiver(last=5)
+    assert [rx.check(c) for c in (14, 2, 15, 0)] == ["wrong_sequence"] * 3 + ["resync"]
+
+
 def test_observation_frames_round_trip_within_the_signal_resolution() -> None:
     codec = Codec(STATIC)
     obs = np.array([-1.7, 1.25, -0.6, 0.8, -0.69, 1.99], dtype=np.float32)
