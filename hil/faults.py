@@ -8,10 +8,10 @@ an unanswered step again with fresh counters, see :mod:`embedrl.hil.session`).
 
 ``ends_episode``: the episode ends there as a fault (``injected: NAME``). ``detects``: the node counter
 (a NodeStatus or NodeDiag field; ``a|b``: either) that must grow, ``node_exit`` when the simulator itself
-sees the node die, or None for the classes a node must simply tolerate (reordered frames, a flood of
-foreign IDs). ``answered``: whether the step must still get an action.
-``needs_socketcan``: classes that act on the kernel interface (link down and up) and cannot run on
-python-can's virtual bus.
+sees the node die, ``bus_state`` when NodeDiag must report BUS_OFF, or None for the classes a node must
+simply tolerate (reordered frames, a flood of foreign IDs). ``answered``: whether the step must still
+get an action. ``needs_socketcan``: classes that act on the kernel interface (link down and up, error
+frames) and cannot run on python-can's virtual bus.
 """
 
 from __future__ import annotations
@@ -50,6 +50,9 @@ FLOOD_ID = 0x050
 """A foreign ID of higher priority than every one of the policy's."""
 DELAY_FACTOR = 1.5
 """A delayed observation is held this many watchdog timeouts."""
+CAN_ERR_CRTL, CAN_ERR_BUSOFF, CAN_ERR_RESTARTED = 0x04, 0x40, 0x100
+CAN_ERR_CRTL_RX_PASSIVE = 0x10
+"""Error-frame classes and the controller byte's passive flag (linux/can/error.h)."""
 
 
 @dataclass
@@ -268,6 +271,35 @@ class Flood(Injector):
         return {}
 
 
+class BusOff(Injector):
+    name = "bus-off"
+    description = "error frames: the controller error passive, then bus-off; restarted at the episode's end"
+    expected = "the bus state in NodeDiag follows (PASSIVE, BUS_OFF, ACTIVE after the restart)"
+    detects = "bus_state"
+    needs_socketcan = True
+
+    def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
+        import can
+
+        def error_frame(bits: int, data: bytes = bytes(8)) -> can.Message:
+            return can.Message(arbitration_id=bits, data=data, is_error_frame=True, is_extended_id=False)
+
+        with can.Bus(interface=ctx.bus_kind, channel=ctx.iface, receive_own_messages=False) as bus:
+            bus.send(error_frame(CAN_ERR_CRTL, bytes([0, CAN_ERR_CRTL_RX_PASSIVE, 0, 0, 0, 0, 0, 0])))
+            passive = ctx.link.snapshot(1.0)
+            bus.send(error_frame(CAN_ERR_BUSOFF))
+
+        def restart() -> dict[str, Any]:
+            with can.Bus(interface=ctx.bus_kind, channel=ctx.iface, receive_own_messages=False) as bus:
+                bus.send(error_frame(CAN_ERR_RESTARTED))
+            after = ctx.link.snapshot(1.0)
+            return {"bus_state_after_restart": after[1].bus_state if after else None}
+
+        ctx.at_episode_end.append(restart)
+        ctx.link.send(frames)
+        return {"bus_state_when_passive": passive[1].bus_state if passive else None}
+
+
 class Silence(Injector):
     name = "silent"
     description = "the simulator stops sending"
@@ -359,7 +391,7 @@ class Kill(Injector):
 
 CATALOGUE: tuple[Injector, ...] = (
     Loss(), Burst(), Duplicate(), Replay(), ReplayFresh(), Reorder(), Delay(), Corrupt(), Masquerade(),
-    OutOfRange(), Flood(), LinkDownUp(), KillRestart(), SenderRestart(), Silence(), Kill(),
+    OutOfRange(), Flood(), LinkDownUp(), BusOff(), KillRestart(), SenderRestart(), Silence(), Kill(),
 )  # fmt: skip
 INJECTORS: dict[str, Injector] = {i.name: i for i in CATALOGUE}
 

@@ -255,6 +255,8 @@ def _detected(
     old, new = _counters(before), _counters(after)
     if old is None or new is None:
         return False
+    if injector.detects == "bus_state":
+        return bool(new["bus_state"] == "BUS_OFF")
     return any(new[key] > old[key] for key in injector.detects.split("|"))
 
 

@@ -123,6 +123,10 @@ class HilContract:
             == records["out-of-range"]["before"]["range_errors"] + 1
         )
         assert records["flood"]["flood_frames"] > 100
+        if self.node == "c":
+            assert records["bus-off"]["bus_state_when_passive"] == "PASSIVE"
+            assert records["bus-off"]["after"]["bus_state"] == "BUS_OFF"
+            assert records["bus-off"]["bus_state_after_restart"] == "ACTIVE"
         assert report["verdict"]["passed"], report["verdict"]
 
     def test_silent_simulator_gets_the_safe_action_within_the_timeout(
