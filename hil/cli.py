@@ -275,7 +275,8 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         rows.append(
             (
                 f"fault {kind}: injected / detected / answered as expected",
-                f"{row['injected']} / {row['detected']} / {row['answered_as_expected']}",
+                f"{row['injected']} / {'tolerated' if row['detected'] is None else row['detected']}"
+                f" / {row['answered_as_expected']}",
             )
         )
     failures = data["verdict"]["failures"]

@@ -16,12 +16,14 @@ frames) and cannot run on python-can's virtual bus.
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
@@ -46,6 +48,10 @@ LINK_DOWN_S = 0.3
 """How long the link stays down."""
 FLOOD_MAX_S = 30.0
 """The foreign-ID flood lasts from its step to the end of the episode, at most this long."""
+VIRTUAL_FLOOD_GAP_S = 0.0005
+"""On python-can's virtual bus (no kernel filter: the reference node's thread sees every frame) the flood
+is paced to at most 2,000 frames/s; on SocketCAN, can-utils' cangen sends as fast as the interface
+takes frames."""
 FLOOD_ID = 0x050
 """A foreign ID of higher priority than every one of the policy's."""
 DELAY_FACTOR = 1.5
@@ -241,34 +247,70 @@ class Flood(Injector):
     detects = None
 
     def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
-        import can
+        start = time.monotonic()
+        finish = _flood_socketcan(ctx.iface) if ctx.bus_kind == "socketcan" else _flood_python(ctx)
 
-        sent = [0]
-        stop = threading.Event()
+        def done() -> dict[str, Any]:
+            sent = finish()
+            seconds = time.monotonic() - start
+            return {"flood_frames": sent, "flood_s": seconds, "flood_frames_per_s": sent / seconds}
 
-        def flood() -> None:
-            with can.Bus(interface=ctx.bus_kind, channel=ctx.iface, receive_own_messages=False) as bus:
-                junk = can.Message(arbitration_id=FLOOD_ID, data=bytes(8), is_extended_id=False)
-                end = time.monotonic() + FLOOD_MAX_S
-                while not stop.is_set() and time.monotonic() < end:
-                    try:
-                        bus.send(junk, timeout=0.01)
-                        sent[0] += 1
-                    except can.CanError:
-                        time.sleep(0.0005)  # the queue is full: the bus is saturated
-
-        thread = threading.Thread(target=flood, name="flood", daemon=True)
-        thread.start()
-
-        def finish() -> dict[str, Any]:
-            stop.set()
-            thread.join()
-            return {"flood_frames": sent[0]}
-
-        ctx.at_episode_end.append(finish)
-        time.sleep(0.05)  # the flood is on when the step goes out
+        ctx.at_episode_end.append(done)
+        time.sleep(ctx.node_timeout_ms / 4000)  # the flood is on when the step goes out (the node waits)
         ctx.link.send(frames)
         return {}
+
+
+def _flood_socketcan(iface: str) -> Callable[[], int]:
+    """can-utils' ``cangen`` with no gap (C, one write per frame, waiting only when the queue is full)."""
+    cangen = shutil.which("cangen")
+    if cangen is None:
+        raise FileNotFoundError("the flood needs cangen from can-utils (make deps installs it)")
+    process = subprocess.Popen(
+        [cangen, iface, "-g", "0", "-p", "10", "-I", f"{FLOOD_ID:03X}", "-L", "8", "-D", "i", "-x"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    counter = can_statistics(iface)
+
+    def stop() -> int:
+        process.terminate()
+        process.wait()
+        return can_statistics(iface) - counter
+
+    return stop
+
+
+def _flood_python(ctx: Context) -> Callable[[], int]:
+    """python-can's virtual bus has no kernel filter: the flood is paced (:data:`VIRTUAL_FLOOD_GAP_S`)."""
+    import can
+
+    sent = [0]
+    halt = threading.Event()
+
+    def flood() -> None:
+        with can.Bus(interface=ctx.bus_kind, channel=ctx.iface, receive_own_messages=False) as bus:
+            junk = can.Message(arbitration_id=FLOOD_ID, data=bytes(8), is_extended_id=False)
+            end = time.monotonic() + FLOOD_MAX_S
+            while not halt.is_set() and time.monotonic() < end:
+                bus.send(junk)
+                sent[0] += 1
+                time.sleep(VIRTUAL_FLOOD_GAP_S)
+
+    thread = threading.Thread(target=flood, name="flood", daemon=True)
+    thread.start()
+
+    def stop() -> int:
+        halt.set()
+        thread.join()
+        return sent[0]
+
+    return stop
+
+
+def can_statistics(iface: str) -> int:
+    """Frames the interface has carried so far (the kernel's tx_packets: the flood and the session)."""
+    return int(Path(f"/sys/class/net/{iface}/statistics/tx_packets").read_text())
 
 
 class BusOff(Injector):

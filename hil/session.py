@@ -373,14 +373,19 @@ def _jitter(starts: list[list[float]], sample_time: float) -> dict[str, float] |
     return {"std": float(np.std(deviation)), "max_abs": float(np.max(np.abs(deviation)))}
 
 
-def catalogue_summary(injections: list[dict[str, Any]]) -> dict[str, dict[str, int]]:
-    """Per fault class: how many were injected, detected by the node, answered as the class requires."""
-    summary: dict[str, dict[str, int]] = {}
+def catalogue_summary(injections: list[dict[str, Any]]) -> dict[str, dict[str, int | None]]:
+    """Per fault class: how many were injected, detected by the node (None for the classes it must only
+    tolerate), answered as the class requires."""
+    summary: dict[str, dict[str, int | None]] = {}
     for r in injections:
-        row = summary.setdefault(r["kind"], {"injected": 0, "detected": 0, "answered_as_expected": 0})
-        row["injected"] += 1
-        row["detected"] += r["detected"] is not False  # None: a class to tolerate counts as handled
-        row["answered_as_expected"] += r["answered_as_expected"]
+        detectable = r["detects"] is not None
+        row = summary.setdefault(
+            r["kind"], {"injected": 0, "detected": 0 if detectable else None, "answered_as_expected": 0}
+        )
+        row["injected"] = int(row["injected"] or 0) + 1
+        if detectable:
+            row["detected"] = int(row["detected"] or 0) + bool(r["detected"])
+        row["answered_as_expected"] = int(row["answered_as_expected"] or 0) + r["answered_as_expected"]
     return summary
 
 
