@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from stable_baselines3 import PPO
+from stable_baselines3 import PPO, TD3
 
 from embedrl.cli import main
 from embedrl.train.cli import load_model_policy
@@ -84,60 +84,84 @@ def test_same_seed_gives_identical_actions(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_resume_after_a_killed_run_continues_steps_and_episodes(tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    cmd = [
-        sys.executable,
-        "-m",
-        "embedrl.cli",
-        "train",
-        "--algo",
-        "sac",
-        "--preset",
-        "thesis",
-        "--seed",
-        "1",
-        "--out",
-        str(run),
-        "--max-steps",
-        "50000",
-        "--checkpoint-every",
-        "1000",
-        "--eval-every",
-        "100000",
-    ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+def test_a_run_killed_and_resumed_ends_bit_identical_to_the_same_run_uninterrupted(tmp_path: Path) -> None:
+    budget = ["--max-steps", "2500", "--checkpoint-every", "500", "--eval-every", "100000"]
+    new = ["train", "--algo", "td3", "--preset", "thesis", "--seed", "4", *budget]
+    assert main([*new, "--out", str(tmp_path / "whole")]) == 0
+    run = tmp_path / "killed"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "embedrl.cli", *new, "--out", str(run)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.monotonic() + 300
     while not (run / "checkpoint" / "state.json").is_file() and time.monotonic() < deadline:
-        time.sleep(0.2)
-    time.sleep(1.0)
+        time.sleep(0.05)
+    time.sleep(0.5)  # somewhere after the first checkpoint, wherever SIGKILL lands
     proc.send_signal(signal.SIGKILL)
     proc.wait()
+    assert not (run / "summary.json").exists()
     state: dict[str, Any] = json.loads((run / "checkpoint" / "state.json").read_text())
-    assert state["steps"] >= 1000 and not (run / "summary.json").exists()
-    assert (
-        main(
-            [
-                "train",
-                "--resume",
-                str(run),
-                "--max-steps",
-                "3000",
-                "--checkpoint-every",
-                "1000",
-                "--eval-every",
-                "100000",
-            ]
-        )
-        == 0
+    assert main(["train", "--resume", str(run)]) == 0  # everything from the run's own config
+    assert json.loads((run / "summary.json").read_text())["total_steps"] == 2500 > state["steps"]
+    whole, resumed = TD3.load(tmp_path / "whole" / "model.zip"), TD3.load(run / "model.zip")
+    obs = np.random.default_rng(0).uniform(-1, 1, (256, 6)).astype(np.float32)
+    assert np.array_equal(
+        whole.predict(obs, deterministic=True)[0], resumed.predict(obs, deterministic=True)[0]
     )
-    summary = json.loads((run / "summary.json").read_text())
-    assert summary["total_steps"] == 3000
-    episodes = [int(r["episode"]) for r in _curve(run)]
-    assert episodes == list(range(1, len(episodes) + 1)) and len(episodes) == summary["total_episodes"]
-    assert len(episodes) >= len(state["returns"])
-    steps = [int(r["steps"]) for r in _curve(run)]
-    assert steps == sorted(steps) and steps[-1] <= 3000
+    assert (run / "curve.csv").read_text() == (tmp_path / "whole" / "curve.csv").read_text()
+
+
+def _short_run(run: Path) -> None:
+    """A TD3 run with two checkpoints (random warm-up only: no learning, seconds)."""
+    assert main(["train", "--algo", "td3", "--preset", "thesis", "--out", str(run), "--max-steps", "400",
+                 "--checkpoint-every", "200", "--eval-every", "100000"]) == 0  # fmt: skip
+
+
+def test_resume_refuses_flags_that_contradict_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    _short_run(run)
+    capsys.readouterr()
+    for flags, said in (
+        (["--max-steps", "999"], "--max-steps 999 (the run has 400)"),
+        (["--algo", "sac"], "--algo sac (the run has td3)"),
+        (["--seed", "5"], "--seed 5 (the run has 0)"),
+        (["--keep-training"], "--keep-training True (the run has False)"),
+        (["--set", "gamma=0.5"], "a resumed run keeps its own"),
+        (["--out", str(tmp_path / "x")], "not both"),
+    ):
+        assert main(["train", "--resume", str(run), *flags]) == 2, flags
+        err = capsys.readouterr().err
+        assert said in err and len(err.strip().splitlines()) == 1, err
+    # flags equal to the run's own are fine (nothing left to train: the budget is spent)
+    assert main(["train", "--resume", str(run), "--max-steps", "400", "--algo", "td3"]) == 0
+
+
+def test_checkpoints_are_swapped_atomically_and_a_bad_one_is_a_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    _short_run(run)
+    assert sorted(p.name for p in run.iterdir() if p.name.startswith("checkpoint")) == ["checkpoint"]
+    # a kill between the swap's two renames leaves the previous complete checkpoint as checkpoint.old
+    (run / "checkpoint").rename(run / "checkpoint.old")
+    (run / "checkpoint.partial").mkdir()  # and an unfinished new one, never used
+    assert main(["train", "--resume", str(run)]) == 0
+    assert (run / "checkpoint" / "state.json").is_file() and not (run / "checkpoint.old").exists()
+    capsys.readouterr()
+    replay = run / "checkpoint" / "replay_buffer.pkl"
+    replay.write_bytes(replay.read_bytes()[:1000])  # truncated
+    assert main(["train", "--resume", str(run)]) == 2
+    err = capsys.readouterr().err
+    assert "is damaged" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    curve = (run / "curve.csv").read_text()
+    for name in ("state.json",):
+        (run / "checkpoint" / name).unlink()
+    assert main(["train", "--resume", str(run)]) == 2
+    assert "no complete checkpoint" in capsys.readouterr().err
+    assert (run / "curve.csv").read_text() == curve  # nothing overwritten, no fresh start
 
 
 def test_new_run_refuses_a_used_directory_and_resume_needs_a_run(

@@ -118,26 +118,66 @@ def cmd_bench_env(args: argparse.Namespace) -> int:
     return 0
 
 
+TRAIN_DEFAULTS: dict[str, Any] = {
+    "algo": "td3",
+    "preset": "tuned",
+    "seed": 0,
+    "max_steps": 300_000,
+    "max_episodes": 100_000,
+    "checkpoint_every": 10_000,
+    "eval_every": 5_000,
+    "keep_training": False,
+}
+"""A new run's defaults. Unset on the command line (None), so that ``--resume`` can tell a flag that was
+given from one that was not: a resumed run takes everything from its own config.json."""
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from embedrl.train.config import Budget
-    from embedrl.train.trainer import train
+    from embedrl.train.trainer import read_run_config, train
 
+    if (args.resume is None) == (args.out is None):
+        raise UsageError("give --out DIR for a new run or --resume DIR to continue one (not both)")
+    given = {
+        k: getattr(args, k)
+        for k in TRAIN_DEFAULTS
+        if getattr(args, k) is not None and getattr(args, k) is not False
+    }
+    if args.resume is not None:
+        if args.set:
+            raise UsageError("--set changes a new run's hyperparameters; a resumed run keeps its own")
+        saved = read_run_config(args.resume)
+        own = {
+            "algo": saved["algo"],
+            "preset": saved["preset"],
+            "seed": saved["seed"],
+            **{
+                k: saved["budget"][k] for k in ("max_steps", "max_episodes", "checkpoint_every", "eval_every")
+            },
+            "keep_training": not saved["budget"]["stop_at_criterion"],
+        }
+        conflicts = [
+            f"--{k.replace('_', '-')} {v} (the run has {own[k]})" for k, v in given.items() if own[k] != v
+        ]
+        if conflicts:
+            raise UsageError(
+                f"--resume continues {args.resume} as it was configured; drop " + ", ".join(conflicts)
+            )
+        values = own
+    else:
+        values = {**TRAIN_DEFAULTS, **given}
     budget = Budget(
-        max_steps=args.max_steps,
-        max_episodes=args.max_episodes,
-        checkpoint_every=args.checkpoint_every,
-        eval_every=args.eval_every,
-        stop_at_criterion=not args.keep_training,
+        max_steps=values["max_steps"],
+        max_episodes=values["max_episodes"],
+        checkpoint_every=values["checkpoint_every"],
+        eval_every=values["eval_every"],
+        stop_at_criterion=not values["keep_training"],
     )
     out = args.resume or args.out
-    if out is None:
-        raise UsageError("give --out DIR for a new run or --resume DIR to continue one")
-    if args.resume is not None and args.set:
-        raise UsageError("--set changes a new run's hyperparameters; a resumed run keeps its own")
     summary = train(
-        args.algo,
-        args.preset,
-        args.seed,
+        values["algo"],
+        values["preset"],
+        values["seed"],
         out,
         budget,
         resume=args.resume is not None,
@@ -179,9 +219,9 @@ def register(sub: Any) -> None:
     from embedrl.train.config import ALGOS, PRESETS
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
-    p.add_argument("--algo", choices=ALGOS, default="td3")
+    p.add_argument("--algo", choices=ALGOS, help=f"default {TRAIN_DEFAULTS['algo']}")
     p.add_argument("--scenario", choices=["static"], default="static")
-    p.add_argument("--preset", choices=PRESETS, default="tuned")
+    p.add_argument("--preset", choices=PRESETS, help=f"default {TRAIN_DEFAULTS['preset']}")
     p.add_argument(
         "--set",
         action="append",
@@ -189,16 +229,22 @@ def register(sub: Any) -> None:
         metavar="NAME=VALUE",
         help="change one of the preset's hyperparameters, e.g. --set learning_rate=3e-4 (repeatable)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, help="default 0")
     p.add_argument("--out", type=Path, help="new run directory")
-    p.add_argument("--resume", type=Path, help="continue the run in this directory from its last checkpoint")
-    p.add_argument("--max-steps", type=_positive, default=300_000)
-    p.add_argument("--max-episodes", type=_positive, default=100_000)
-    p.add_argument("--checkpoint-every", type=_positive, default=10_000)
-    p.add_argument("--eval-every", type=_positive, default=5_000)
+    p.add_argument(
+        "--resume",
+        type=Path,
+        help="continue the run in this directory from its last checkpoint, with its own configuration "
+        "(flags that contradict it are refused)",
+    )
+    p.add_argument("--max-steps", type=_positive, help="default 300000")
+    p.add_argument("--max-episodes", type=_positive, help="default 100000")
+    p.add_argument("--checkpoint-every", type=_positive, help="default 10000")
+    p.add_argument("--eval-every", type=_positive, help="default 5000")
     p.add_argument(
         "--keep-training",
         action="store_true",
+        default=None,
         help="record the stop criterion but train on to --max-steps (for policies to ship)",
     )
     p.set_defaults(func=cmd_train)

@@ -7,8 +7,14 @@ A run directory is self-describing::
     summary.json       criterion reached?, episodes and env steps to it, first deterministic success, time
     progress.png       MATLAB-style: episode return, 50-episode average, Episode Q0
     model.zip          the final policy (plus vecnormalize.npz and .pkl when observations are normalised)
-    checkpoint/        model, replay buffer, normalisation and counters of the last checkpoint
+    checkpoint/        the last checkpoint: model, replay buffer, the training env itself (mid-episode),
+                       every random generator's state and the counters (written as checkpoint.partial,
+                       then swapped in: a complete checkpoint exists at every moment)
     tb/                TensorBoard logs
+
+Checkpoints are taken where SB3 starts collecting experience (after a training update), so a resumed run
+continues exactly where the checkpoint left it: the same env state, the same random draws, the same
+updates. Killed and resumed, a run ends bit-identical to the same run uninterrupted.
 """
 
 from __future__ import annotations
@@ -16,6 +22,8 @@ from __future__ import annotations
 import csv
 import json
 import os
+import pickle
+import random
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -58,6 +66,8 @@ STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
 CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
 CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0")
+CHECKPOINT_FILES = ("model.zip", "env.pkl", "random.pkl", "state.json")
+"""What every checkpoint holds (plus replay_buffer.pkl for DDPG, TD3 and SAC); state.json is written last."""
 
 
 def make_env(normalize: bool, seed: int) -> VecEnv:
@@ -239,11 +249,32 @@ class RunMonitor(BaseCallback):
             disable=not progress,
             desc="train",
         )
-        self.next_checkpoint = state.get("steps", 0) + budget.checkpoint_every
-        self.next_eval = state.get("steps", 0) + budget.eval_every
+        self.next_checkpoint = state.get("next_checkpoint", budget.checkpoint_every)
+        self.next_eval = state.get("next_eval", budget.eval_every)
+        self.checkpoint_due = False
+        if "pending_q0" in state:
+            self.pending_q0 = state["pending_q0"]
 
     def _on_training_start(self) -> None:
-        self.pending_q0 = q0(self.model, self.model._last_obs[0])  # type: ignore[index]
+        if self.pending_q0 is None:
+            self.pending_q0 = q0(self.model, self.model._last_obs[0])  # type: ignore[index]
+
+    def _on_rollout_start(self) -> None:
+        # Here SB3 has applied every update for the steps so far and holds no unused experience: the
+        # one place where model, buffers and env together are a state a resumed run can continue from.
+        if self.checkpoint_due:
+            self.checkpoint_due = False
+            self.checkpoint()
+
+    def checkpoint(self) -> None:
+        self.state.update(
+            steps=self.num_timesteps,
+            returns=self.returns,
+            next_checkpoint=self.next_checkpoint,
+            next_eval=self.next_eval,
+            pending_q0=self.pending_q0,
+        )
+        self.save()
 
     def _on_step(self) -> bool:
         steps = self.num_timesteps
@@ -261,8 +292,7 @@ class RunMonitor(BaseCallback):
                 self.state["first_deterministic_criterion_step"] = steps
         if steps >= self.next_checkpoint:
             self.next_checkpoint += self.budget.checkpoint_every
-            self.state.update(steps=steps, returns=self.returns)
-            self.save()
+            self.checkpoint_due = True  # taken when SB3 next starts collecting
         stop = self.budget.stop_at_criterion and self.state.get("criterion_step") is not None
         return not stop and len(self.returns) < self.budget.max_episodes
 
@@ -305,9 +335,7 @@ def train(
         raise UsageError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
     torch.set_num_threads(1)  # reproducible, and parallel runs do not fight over cores
     if resume:
-        if not (out / "config.json").is_file():
-            raise UsageError(f"cannot resume {out}: no config.json (not a run directory)")
-        saved = json.loads((out / "config.json").read_text())
+        saved = read_run_config(out)
         algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
         overrides = saved.get("overrides", [])
     elif out.exists() and any(out.iterdir()):
@@ -318,20 +346,13 @@ def train(
         raise UsageError(str(exc)) from None
     normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations
     out.mkdir(parents=True, exist_ok=True)
-    checkpoint = out / "checkpoint"
     state: dict[str, Any] = {}
-    env = make_env(normalize, seed)
-    if resume and (checkpoint / "state.json").is_file():
-        state = json.loads((checkpoint / "state.json").read_text())
-        if normalize:
-            env = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), env.venv)  # type: ignore[attr-defined]
-        model = CLASSES[algo].load(
-            checkpoint / "model.zip", env=env, device="cpu", tensorboard_log=str(out / "tb")
-        )
-        if isinstance(model, OffPolicyAlgorithm):
-            model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
+    generators: dict[str, Any] = {}
+    if resume:
+        model, env, state, generators = _load_checkpoint(_complete_checkpoint(out), algo, out / "tb")
         _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
     else:
+        env = make_env(normalize, seed)
         run_config = RunConfig(
             algo,
             preset_name,
@@ -354,19 +375,9 @@ def train(
     started = time.monotonic()
 
     def save() -> None:
-        tmp = out / "checkpoint.partial"
-        shutil.rmtree(tmp, ignore_errors=True)
-        tmp.mkdir()
-        model.save(tmp / "model.zip")
-        if isinstance(model, OffPolicyAlgorithm):
-            model.save_replay_buffer(tmp / "replay_buffer.pkl")
-        if normalize:
-            env.save(str(tmp / "vecnormalize.pkl"))  # type: ignore[attr-defined]
-        (tmp / "state.json").write_text(
-            json.dumps({**state, "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started})
+        _save_checkpoint(
+            out, model, env, {**state, "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started}
         )
-        shutil.rmtree(checkpoint, ignore_errors=True)
-        os.replace(tmp, checkpoint)
 
     def deterministic_return() -> float:
         return evaluate(
@@ -375,10 +386,11 @@ def train(
 
     monitor = RunMonitor(out, budget, state, save, deterministic_return, progress)
     remaining = budget.max_steps - int(state.get("steps", 0))
+    if resume:
+        _restore_random(generators, model)  # last: loading the model drew from them
     if remaining > 0:
         model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
-    state.update(steps=model.num_timesteps, returns=monitor.returns)
-    save()
+    monitor.checkpoint()
     model.save(out / "model.zip")
     if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
         save_normalization(env, out / "vecnormalize.npz")
@@ -401,6 +413,94 @@ def train(
     plot_progress(out / "curve.csv", out / "progress.png", f"{algo.upper()} ({preset_name}, seed {seed})")
     env.close()
     return summary
+
+
+def read_run_config(out: Path) -> dict[str, Any]:
+    """A run directory's config.json (the run's algorithm, preset, seed, budget and overrides)."""
+    try:
+        saved: dict[str, Any] = json.loads((out / "config.json").read_text())
+        for key in ("algo", "preset", "seed", "budget"):
+            saved[key]
+    except FileNotFoundError:
+        raise UsageError(f"cannot resume {out}: no config.json (not a run directory)") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise UsageError(f"cannot resume {out}: config.json is damaged ({exc})") from None
+    return saved
+
+
+def _complete_checkpoint(out: Path) -> Path:
+    """The run's last complete checkpoint (``checkpoint/``, or ``checkpoint.old/`` if a kill came between
+    the two renames of a swap); a clear error if there is none: never a silent fresh start."""
+    for candidate in (out / "checkpoint", out / "checkpoint.old"):
+        if (candidate / "state.json").is_file():
+            return candidate
+    raise UsageError(
+        f"cannot resume {out}: no complete checkpoint (checkpoint/state.json); the run was stopped before "
+        "its first checkpoint. Start it again with --out"
+    )
+
+
+def _save_checkpoint(out: Path, model: BaseAlgorithm, env: VecEnv, state: dict[str, Any]) -> None:
+    """Write a complete checkpoint beside the current one, then swap: a complete one always exists."""
+    tmp, current, old = out / "checkpoint.partial", out / "checkpoint", out / "checkpoint.old"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    model.save(tmp / "model.zip")
+    if isinstance(model, OffPolicyAlgorithm):
+        model.save_replay_buffer(tmp / "replay_buffer.pkl")
+    with (tmp / "env.pkl").open("wb") as f:  # the env mid-episode
+        pickle.dump(env.venv if isinstance(env, VecNormalize) else env, f)
+    if isinstance(env, VecNormalize):  # its pickle leaves out the env it wraps
+        env.save(str(tmp / "vecnormalize.pkl"))
+    with (tmp / "random.pkl").open("wb") as f:
+        pickle.dump(
+            {
+                "python": random.getstate(),
+                "numpy": np.random.get_state(),
+                "torch": torch.get_rng_state(),
+                "action_space": model.action_space.np_random.bit_generator.state,
+            },
+            f,
+        )
+    (tmp / "state.json").write_text(json.dumps(state))  # last: its presence marks a complete checkpoint
+    if current.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(current, old)
+    os.replace(tmp, current)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _load_checkpoint(
+    checkpoint: Path, algo: str, tb: Path
+) -> tuple[BaseAlgorithm, VecEnv, dict[str, Any], dict[str, Any]]:
+    """Model, training env, counters and random generators' states of a checkpoint (the run's own files:
+    pickles it wrote itself)."""
+    try:
+        state: dict[str, Any] = json.loads((checkpoint / "state.json").read_text())
+        with (checkpoint / "random.pkl").open("rb") as f:
+            generators: dict[str, Any] = pickle.load(f)
+        with (checkpoint / "env.pkl").open("rb") as f:
+            env: VecEnv = pickle.load(f)
+        if (checkpoint / "vecnormalize.pkl").is_file():
+            env = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), env)
+        model = CLASSES[algo].load(
+            checkpoint / "model.zip", env=env, device="cpu", tensorboard_log=str(tb), force_reset=False
+        )
+        if isinstance(model, OffPolicyAlgorithm):
+            model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
+    except Exception as exc:  # any damage: a truncated pickle, a bad zip, a missing file
+        raise UsageError(
+            f"cannot resume from {checkpoint}: it is damaged ({type(exc).__name__}: {exc}); "
+            "start the run again with --out"
+        ) from None
+    return model, env, state, generators
+
+
+def _restore_random(saved: dict[str, Any], model: BaseAlgorithm) -> None:
+    random.setstate(saved["python"])
+    np.random.set_state(saved["numpy"])
+    torch.set_rng_state(saved["torch"])
+    model.action_space.np_random.bit_generator.state = saved["action_space"]
 
 
 def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.ndarray]:
