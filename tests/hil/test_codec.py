@@ -108,3 +108,29 @@ def test_c_unit_tests_pass(target: str, tmp_path: Path) -> None:
     )
     assert result.returncode == 0, result.stdout + result.stderr
     assert "0 failures" in result.stdout
+
+
+FUZZ_SECONDS = 15
+"""A bounded libFuzzer run in the suite; the README quotes a longer one."""
+
+
+@pytest.mark.slow
+def test_the_node_survives_a_bounded_fuzzing_run_with_its_invariants(tmp_path: Path) -> None:
+    """libFuzzer + ASan + UBSan over the receive path from the committed seed corpus; the harness aborts
+    on an action from a partial or mixed observation, a SAFE action that is not the safe action, or a
+    late watchdog (runtime_c/tests/fuzz_node.c)."""
+    corpus = RUNTIME_C / "tests" / "fuzz_corpus"
+    before = sorted(p.read_bytes() for p in corpus.iterdir())
+    result = subprocess.run(
+        ["make", "-s", "-C", str(RUNTIME_C), "fuzz", f"BUILD_DIR={tmp_path}", f"PYTHON={sys.executable}",
+         f"FUZZ_SECONDS={FUZZ_SECONDS}"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )  # fmt: skip
+    log = result.stdout + result.stderr
+    assert result.returncode == 0, log[-3000:]
+    runs = int(log.split("stat::number_of_executed_units:")[1].split()[0])
+    assert runs >= 10_000, log[-2000:]  # it really ran (about 30,000 runs/s here)
+    assert "ERROR:" not in log and "runtime error" not in log
+    assert sorted(p.read_bytes() for p in corpus.iterdir()) == before  # new inputs go to the build folder
