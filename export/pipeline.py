@@ -34,7 +34,7 @@ from embedrl.export.onnx_import import load_onnx, to_ir
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 from embedrl.train.interface import INTERFACE_FILE, Interface, InterfaceError
-from embedrl.train.models import LoadedPolicy, load_sb3, vecnormalize_beside
+from embedrl.train.models import LoadedPolicy, load_sb3
 from embedrl.train.scenarios import interface_of
 
 INTERFACE_METADATA_KEY = "embedrl.interface"
@@ -259,14 +259,16 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
     if suffix == ".onnx":
         log(f"[1/5] loading {source}")
         return Loaded(load_onnx(source), source, None, None, {})
-    vecnorm_path = opts.vecnormalize or vecnormalize_beside(source)
-    log(f"[1/5] loading {source}" + (f" with {vecnorm_path}" if vecnorm_path else ""))
+    log(f"[1/5] loading {source}")
     try:
-        loaded = load_sb3(source, vecnorm_path, opts.trust_pickle)
+        loaded = load_sb3(source, opts.vecnormalize, opts.trust_pickle)
     except UnsupportedModelFileError as exc:
         raise UnsupportedModelError(str(exc)) from None
     except InvalidModelFileError as exc:
         raise InvalidModelError(str(exc)) from None
+    vecnorm_path = loaded.normalization_file
+    if vecnorm_path:
+        log(f"      with the normalisation statistics {vecnorm_path}")
     onnx_path = staging / "policy.onnx"  # saved by _lower, with the interface in its metadata
     return Loaded(
         build_onnx(loaded, tool_version()), onnx_path, loaded, vecnorm_path, {"policy.onnx": onnx_path}

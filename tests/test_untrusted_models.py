@@ -81,7 +81,8 @@ def test_normalisation_pickles_beside_a_model_are_refused_without_trust(
     out = tmp_path / "export"
     assert main(["export", str(tmp_path / "ppo.zip"), "--out", str(out), "--episodes", "0"]) == 2
     err = capsys.readouterr().err
-    assert "ppo_vecnormalize.pkl is a pickle: opening it can run code" in err and "--trust-pickle" in err
+    assert "ppo_vecnormalize.pkl is a pickle that needs more than VecNormalize's statistics" in err
+    assert "posix.system" in err and "--trust-pickle" in err
     assert not marker.exists() and not out.exists()
     assert main(["eval", str(tmp_path / "ppo.zip"), "--episodes", "1"]) == 2
     assert not marker.exists()
@@ -169,3 +170,71 @@ def test_normalisation_statistics_round_trip_as_npz(tmp_path: Path) -> None:
     assert loaded.mean.tolist() == [0.5, -1.0] and loaded.var.tolist() == [2.0, 0.25] and loaded.clip == 10.0
     with pytest.raises(InvalidModelFileError, match="do not fit observations"):
         load_normalization(tmp_path / "n.npz", spaces.Box(-1, 1, (3,)))
+
+
+def _stats_pickle(npz: Path, target: Path) -> None:
+    """SB3's own VecNormalize pickle holding the statistics of ``npz`` (as RL Zoo saves them)."""
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+    with np.load(npz) as f:
+        env = VecNormalize(
+            DummyVecEnv([lambda: gym.make("embedrl/WarehouseRobot-v0")]), epsilon=float(f["epsilon"])
+        )
+        env.obs_rms.mean, env.obs_rms.var = f["mean"].copy(), f["var"].copy()
+        env.clip_obs = float(f["clip_obs"])
+    target.parent.mkdir(parents=True, exist_ok=True)
+    env.save(str(target))
+
+
+def test_a_model_without_its_own_statistics_is_refused_and_rl_zoo_layout_is_found(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    shutil.copy(POLICIES / "ppo.zip", alone / "ppo.zip")  # copied without its statistics
+    export = ["export", str(alone / "ppo.zip"), "--out", str(tmp_path / "x"), "--episodes", "0"]
+    for argv in (["eval", str(alone / "ppo.zip"), "--episodes", "2"], export):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert "trained with observation normalisation but its statistics are missing" in err
+        assert len(err.strip().splitlines()) == 1 and not (tmp_path / "x").exists()
+    # other statistics (a changed mean): refused, named
+    with np.load(POLICIES / "ppo_vecnormalize.npz") as f:
+        arrays = {k: f[k] for k in f.files}
+    arrays["mean"] = arrays["mean"] + 0.01
+    np.savez(alone / "other.npz", **arrays)
+    assert (
+        main(["eval", str(alone / "ppo.zip"), "--episodes", "2", "--vecnormalize", str(alone / "other.npz")])
+        == 2
+    )
+    assert "are not" in capsys.readouterr().err
+    # its own, given explicitly: accepted
+    own = ["--vecnormalize", str(POLICIES / "ppo_vecnormalize.npz")]
+    assert (
+        main(["eval", str(alone / "ppo.zip"), "--episodes", "2", "--json", str(tmp_path / "a.json"), *own])
+        == 0
+    )
+    # RL Zoo's layout: logs/ppo/<env>_1/<env>.zip with <env>/vecnormalize.pkl, read without running code
+    zoo = tmp_path / "logs" / "ppo" / "WarehouseRobot-v0_1"
+    zoo.mkdir(parents=True)
+    shutil.copy(POLICIES / "ppo.zip", zoo / "WarehouseRobot-v0.zip")
+    _stats_pickle(POLICIES / "ppo_vecnormalize.npz", zoo / "WarehouseRobot-v0" / "vecnormalize.pkl")
+    assert (
+        main(
+            [
+                "eval",
+                str(zoo / "WarehouseRobot-v0.zip"),
+                "--episodes",
+                "2",
+                "--json",
+                str(tmp_path / "z.json"),
+            ]
+        )
+        == 0
+    )
+    a, z = (json.loads((tmp_path / n).read_text()) for n in ("a.json", "z.json"))
+    assert a["per_episode"] == z["per_episode"]  # the same statistics, so the same episodes
+    # a model trained without normalisation refuses statistics given to it
+    assert main(["eval", str(POLICIES / "td3.zip"), "--episodes", "2", *own]) == 2
+    assert "trained without observation normalisation" in capsys.readouterr().err

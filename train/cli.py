@@ -26,19 +26,24 @@ def _controller(name: str):  # type: ignore[no-untyped-def]
 
 def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     if args.model is not None:
-        return load_model_policy(args.model, args.trust_pickle)
+        return load_model_policy(args.model, args.trust_pickle, args.vecnormalize)
+    if args.vecnormalize is not None:
+        raise UsageError("--vecnormalize goes with a model, not with --controller")
     return _controller(args.controller)
 
 
-def load_model_policy(path: Path, trust_pickle: bool = False):  # type: ignore[no-untyped-def]
-    """A trained SB3 model as a deterministic policy (normalisation statistics beside it are applied).
+def load_model_policy(  # type: ignore[no-untyped-def]
+    path: Path, trust_pickle: bool = False, vecnormalize: Path | None = None
+):
+    """A trained SB3 model as a deterministic policy, with its normalisation statistics (``vecnormalize``,
+    else found beside it; refused if they are missing or not the model's own).
 
     Nothing is unpickled unless ``trust_pickle`` (see :mod:`embedrl.train.sb3_archive`)."""
     if path.suffix != ".zip":
         raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
-    from embedrl.train.models import load_sb3, vecnormalize_beside
+    from embedrl.train.models import load_sb3
 
-    loaded = load_sb3(path, vecnormalize_beside(path), trust_pickle)
+    loaded = load_sb3(path, vecnormalize, trust_pickle)
 
     def act(obs):  # type: ignore[no-untyped-def]
         return loaded.predict(obs.reshape(1, -1))[0]
@@ -55,6 +60,12 @@ def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="open pickles inside or beside the model (SB3 fields, .pkl statistics): this runs code "
         "from them, so only for files you trust",
+    )
+    p.add_argument(
+        "--vecnormalize",
+        type=Path,
+        help="the model's normalisation statistics (.npz, or SB3's .pkl read without running code); "
+        "default: found beside the model, RL Zoo's <env>/vecnormalize.pkl included",
     )
 
 

@@ -9,6 +9,8 @@ from the :class:`LoadedPolicy` this module returns.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import pickle
 import zipfile
 from dataclasses import dataclass
@@ -30,17 +32,53 @@ NORMALIZATION_STEM = "vecnormalize"
 ``.pkl`` (opened only when the user trusts it)."""
 
 
-def vecnormalize_beside(model: Path) -> Path | None:
-    """``<model>_vecnormalize.npz`` (shipped policies share a folder), else ``vecnormalize.npz`` (a run);
-    the ``.pkl`` of either if there is no ``.npz``."""
-    for suffix in (".npz", ".pkl"):
+METADATA_ENTRY = "embedrl.json"
+"""An entry embedrl adds to the SB3 zips it trains: ``{"normalization": {"sha256": ...}}`` or
+``{"normalization": null}``, so a model separated from its statistics is refused instead of evaluated
+wrongly. SB3 ignores it (it reads only ``data`` and ``*.pth``)."""
+
+
+def normalization_candidates(model: Path) -> list[Path]:
+    """Where statistics for ``model`` are looked for, in order: ``<model>_vecnormalize`` (shipped policies
+    share a folder), ``vecnormalize`` beside it (an embedrl run), ``<model stem>/vecnormalize`` (RL Zoo's
+    ``logs/<algo>/<env>_<n>/<env>.zip`` with ``<env>/vecnormalize.pkl``); ``.npz`` before ``.pkl``."""
+    return [
+        candidate
+        for suffix in (".npz", ".pkl")
         for candidate in (
             model.with_name(f"{model.stem}_{NORMALIZATION_STEM}{suffix}"),
             model.parent / f"{NORMALIZATION_STEM}{suffix}",
-        ):
-            if candidate.is_file():
-                return candidate
-    return None
+            model.parent / model.stem / f"{NORMALIZATION_STEM}{suffix}",
+        )
+    ]
+
+
+def vecnormalize_beside(model: Path) -> Path | None:
+    """The first of :func:`normalization_candidates` that exists."""
+    return next((c for c in normalization_candidates(model) if c.is_file()), None)
+
+
+def stamp_model(model: Path, normalization: ObsNormalization | None) -> None:
+    """Record in ``model``'s zip whether it needs normalisation statistics, and which (their digest)."""
+    entry = {"normalization": None if normalization is None else {"sha256": normalization.digest()}}
+    with zipfile.ZipFile(model, "a") as zf:
+        if METADATA_ENTRY in zf.namelist():
+            raise ValueError(f"{model} already has {METADATA_ENTRY}")
+        zf.writestr(METADATA_ENTRY, json.dumps(entry, sort_keys=True))
+
+
+def model_metadata(model: Path) -> dict[str, Any] | None:
+    """``model``'s :data:`METADATA_ENTRY` (None for models embedrl did not train)."""
+    try:
+        with zipfile.ZipFile(model) as zf:
+            if METADATA_ENTRY not in zf.namelist():
+                return None
+            entry = json.loads(zf.read(METADATA_ENTRY))
+    except (zipfile.BadZipFile, ValueError) as exc:
+        raise InvalidModelFileError(f"{model}: unreadable {METADATA_ENTRY} ({exc})") from None
+    if not isinstance(entry, dict) or not isinstance(entry.get("normalization", {}), dict | None):
+        raise InvalidModelFileError(f"{model}: {METADATA_ENTRY} is not what embedrl writes")
+    return entry
 
 
 @dataclass(frozen=True)
@@ -57,6 +95,13 @@ class ObsNormalization:
         out = np.clip((obs - self.mean) / np.sqrt(self.var + self.epsilon), -self.clip, self.clip)
         return np.asarray(out, dtype=np.float32)
 
+    def digest(self) -> str:
+        """SHA-256 of the statistics (float64 mean, var, epsilon, clip): the same from .npz or .pkl."""
+        h = hashlib.sha256()
+        for part in (self.mean, self.var, np.float64(self.epsilon), np.float64(self.clip)):
+            h.update(np.ascontiguousarray(part, dtype="<f8").tobytes())
+        return h.hexdigest()
+
 
 @dataclass(frozen=True)
 class LoadedPolicy:
@@ -66,6 +111,7 @@ class LoadedPolicy:
     observation_space: spaces.Box
     action_space: spaces.Box
     normalization: ObsNormalization | None
+    normalization_file: Path | None = None
 
     @property
     def kind(self) -> str:
@@ -81,7 +127,10 @@ class LoadedPolicy:
 def load_sb3(path: Path, vecnormalize: Path | None = None, trust_pickle: bool = False) -> LoadedPolicy:
     """Load the policy of an SB3 ``.zip`` (any algorithm) without its algorithm or environment.
 
-    Nothing from the files is unpickled (:mod:`embedrl.train.sb3_archive`) unless ``trust_pickle``.
+    Normalisation statistics: ``vecnormalize`` if given, else the first of
+    :func:`normalization_candidates`. A model embedrl trained says whether it needs statistics and which
+    (:data:`METADATA_ENTRY`): missing or different ones are refused. Nothing from the files is unpickled
+    (:mod:`embedrl.train.sb3_archive`) unless ``trust_pickle``.
     """
     if not path.is_file():
         raise InvalidModelFileError(f"{path}: no such file")
@@ -127,8 +176,47 @@ def load_sb3(path: Path, vecnormalize: Path | None = None, trust_pickle: bool = 
     except RuntimeError as exc:
         raise InvalidModelFileError(f"{path}: policy parameters do not match the policy ({exc})") from None
     policy.set_training_mode(False)
-    normalization = load_normalization(vecnormalize, obs_space, trust_pickle) if vecnormalize else None
-    return LoadedPolicy(policy, obs_space, act_space, normalization)
+    stats_file, normalization = _matching_normalization(path, vecnormalize, obs_space, trust_pickle)
+    return LoadedPolicy(policy, obs_space, act_space, normalization, stats_file)
+
+
+def _matching_normalization(
+    path: Path, given: Path | None, obs_space: spaces.Box, trust_pickle: bool
+) -> tuple[Path | None, ObsNormalization | None]:
+    metadata = model_metadata(path)
+    found = given or vecnormalize_beside(path)
+    if metadata is not None and metadata.get("normalization") is None:
+        if given is not None:
+            raise InvalidModelFileError(f"{path} was trained without observation normalisation; drop {given}")
+        return None, None  # statistics beside it belong to another model
+    normalization = load_normalization(found, obs_space, trust_pickle) if found else None
+    if metadata is None:
+        return (found if normalization else None), normalization
+    expected = metadata["normalization"]["sha256"]
+    if normalization is None:
+        looked = ", ".join(str(c) for c in normalization_candidates(path))
+        raise InvalidModelFileError(
+            f"{path} was trained with observation normalisation but its statistics are "
+            + (f"disabled in {found}" if found else f"missing (looked for {looked})")
+            + "; give them with --vecnormalize FILE"
+        )
+    if normalization.digest() != expected:
+        raise InvalidModelFileError(
+            f"{found} are not {path}'s normalisation statistics (sha256 {normalization.digest()[:12]}..., "
+            f"the model was trained with {expected[:12]}...)"
+        )
+    return found, normalization
+
+
+def normalization_of(stats: Any) -> ObsNormalization:
+    """The observation transform of a VecNormalize (as :func:`save_normalization` writes it)."""
+    rms = stats.obs_rms
+    return ObsNormalization(
+        np.asarray(rms.mean, np.float64),
+        np.asarray(rms.var, np.float64),
+        float(stats.epsilon),
+        float(stats.clip_obs),
+    )
 
 
 def save_normalization(stats: Any, path: Path) -> None:
@@ -159,18 +247,18 @@ def load_normalization(
             raise InvalidModelFileError(
                 f"{path}: not normalisation statistics written by embedrl ({exc})"
             ) from None
-    elif not trust_pickle:
-        raise UnsupportedModelFileError(
-            f"{path} is a pickle: opening it can run code from it. Use the statistics as .npz "
-            f"(`python -m embedrl.train.models {path}` converts a file you trust), or {archive.TRUST_HINT}"
-        )
     else:
         try:
             with path.open("rb") as f:
-                stats: Any = pickle.load(f)
+                stats: Any = pickle.load(f) if trust_pickle else _StatsUnpickler(f).load()
             rms, enabled = stats.obs_rms, bool(stats.norm_obs)
             mean, var = np.asarray(rms.mean, np.float64), np.asarray(rms.var, np.float64)
             epsilon, clip = float(stats.epsilon), float(stats.clip_obs)
+        except _Refused as exc:
+            raise UnsupportedModelFileError(
+                f"{path} is a pickle that needs more than VecNormalize's statistics to open ({exc}): opening "
+                f"it could run code from it. {archive.TRUST_HINT}"
+            ) from None
         except (pickle.UnpicklingError, EOFError, AttributeError, ValueError, TypeError) as exc:
             raise InvalidModelFileError(f"{path}: not VecNormalize statistics saved by SB3 ({exc})") from None
     if not enabled:
@@ -182,6 +270,55 @@ def load_normalization(
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
         raise InvalidModelFileError(f"{path}: statistics contain non-finite or negative values")
     return ObsNormalization(mean, var, epsilon, clip)
+
+
+class _Refused(pickle.UnpicklingError):
+    """A pickle asked for something :class:`_StatsUnpickler` does not give."""
+
+
+class _Inert:
+    """Stands in for any SB3, gymnasium or NumPy random object of a VecNormalize pickle: it only keeps
+    the state it is given, so no class's own code runs."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        pass
+
+    def __setstate__(self, state: Any) -> None:
+        if isinstance(state, tuple) and len(state) == 2:  # (dict, slots)
+            state = {**(state[0] or {}), **(state[1] or {})}
+        if isinstance(state, dict):
+            self.__dict__.update(state)
+
+    def __call__(self, *args: Any, **kwargs: Any) -> _Inert:
+        return _Inert()
+
+
+class _StatsUnpickler(pickle.Unpickler):
+    """Reads SB3's ``vecnormalize.pkl`` (e.g. RL Zoo's) without running code from it: NumPy arrays and
+    dtypes are rebuilt by NumPy's own reconstructors; every SB3, gymnasium or NumPy random class becomes
+    an :class:`_Inert` holder of its state; anything else is refused."""
+
+    REAL = frozenset(
+        {
+            ("copyreg", "_reconstructor"),
+            ("builtins", "object"),
+            ("numpy", "ndarray"),
+            ("numpy", "dtype"),
+            ("numpy.core.multiarray", "_reconstruct"),
+            ("numpy._core.multiarray", "_reconstruct"),
+            ("numpy.core.multiarray", "scalar"),
+            ("numpy._core.multiarray", "scalar"),
+            ("collections", "OrderedDict"),
+        }
+    )
+    INERT_PACKAGES = ("stable_baselines3.", "gymnasium.", "gym.", "numpy.random.")
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in self.REAL:
+            return super().find_class(module, name)
+        if module.startswith(self.INERT_PACKAGES):
+            return _Inert
+        raise _Refused(f"{module}.{name}")
 
 
 def _convert(argv: list[str]) -> int:

@@ -58,7 +58,7 @@ from embedrl.train.config import (
 )
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
-from embedrl.train.models import save_normalization
+from embedrl.train.models import normalization_of, save_normalization, stamp_model
 
 STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
@@ -392,6 +392,7 @@ def train(
         model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
     monitor.checkpoint()
     model.save(out / "model.zip")
+    stamp_model(out / "model.zip", normalization_of(env) if normalize else None)
     if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
         save_normalization(env, out / "vecnormalize.npz")
         env.save(str(out / "vecnormalize.pkl"))  # type: ignore[attr-defined]
