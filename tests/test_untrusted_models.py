@@ -181,7 +181,8 @@ def _stats_pickle(npz: Path, target: Path) -> None:
         env = VecNormalize(
             DummyVecEnv([lambda: gym.make("embedrl/WarehouseRobot-v0")]), epsilon=float(f["epsilon"])
         )
-        env.obs_rms.mean, env.obs_rms.var = f["mean"].copy(), f["var"].copy()
+        rms: Any = env.obs_rms
+        rms.mean, rms.var = f["mean"].copy(), f["var"].copy()
         env.clip_obs = float(f["clip_obs"])
     target.parent.mkdir(parents=True, exist_ok=True)
     env.save(str(target))

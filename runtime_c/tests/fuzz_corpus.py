@@ -37,12 +37,21 @@ def episode(codec: Codec, rng: np.random.Generator, steps: int, first: int) -> b
 def main() -> None:
     OUT.mkdir(exist_ok=True)
     rng = np.random.default_rng(0)
+    link_down, link_up, bus_off = (
+        bytes([kind, a, 0, *bytes(8)]) for kind, a in ((LINK, 1), (LINK, 0), (BUS, 2))
+    )
     seeds = {
         "steps": episode(Codec(STATIC), rng, 8, 0),
-        "timeout-and-recover": episode(Codec(STATIC), rng, 2, 10) + clock_record(150) + episode(Codec(STATIC), rng, 5, 0),
-        "link-and-bus": episode(Codec(STATIC), rng, 2, 0) + bytes([LINK, 1, 0, *bytes(8)])
-        + bytes([LINK, 0, 0, *bytes(8)]) + bytes([BUS, 2, 0, *bytes(8)]) + episode(Codec(STATIC), rng, 4, 7),
-    }  # fmt: skip
+        # a fresh Codec: counters and steps from 0 again, as after a sender restart
+        "timeout-and-recover": episode(Codec(STATIC), rng, 2, 10)
+        + clock_record(150)
+        + episode(Codec(STATIC), rng, 5, 0),
+        "link-and-bus": episode(Codec(STATIC), rng, 2, 0)
+        + link_down
+        + link_up
+        + bus_off
+        + episode(Codec(STATIC), rng, 4, 7),
+    }
     for name, data in seeds.items():
         (OUT / name).write_bytes(data)
 
