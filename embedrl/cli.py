@@ -3,14 +3,20 @@
 ``train`` adds ``eval``, ``render``, ``train``, ``bench``, ``bench-env``; ``export`` adds ``export`` and
 ``bench-export``; ``hil`` adds ``hil run`` and ``hil doctor``. Errors a package raises on purpose (its
 ``ERRORS``) print as one line ``error: ...`` with exit status 2; ``--debug`` shows the traceback.
+SIGINT and SIGTERM stop a command in order (its temporary folders removed, its children stopped): one
+line ``interrupted``, exit status 130 (SIGINT) or 143 (SIGTERM).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 import traceback
+from types import FrameType
+from typing import NoReturn
 
 from embedrl import __version__
 from embedrl.export import cli as export_cli
@@ -21,8 +27,15 @@ PACKAGES = (train_cli, export_cli, hil_cli)
 COMMON_ERRORS: tuple[type[Exception], ...] = (OSError, ValueError, json.JSONDecodeError)
 
 
+class Parser(argparse.ArgumentParser):
+    """argparse with its usage errors as one line (``embedrl train: error: ...``), exit status 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="embedrl", description=(__doc__ or "").splitlines()[0] if __doc__ else None
     )
     parser.add_argument("--version", action="version", version=f"embedrl {__version__}")
@@ -33,9 +46,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the command is, so that its clean-up runs as for Ctrl-C."""
+
+
+def _terminate(signum: int, frame: FrameType | None) -> None:
+    raise Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     handled = COMMON_ERRORS + tuple(e for package in PACKAGES for e in package.ERRORS)
+    main_thread = threading.current_thread() is threading.main_thread()  # only it may set handlers
+    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
     try:
         return int(args.func(args))
     except handled as exc:
@@ -43,6 +66,12 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        print("interrupted", file=sys.stderr)
+        return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ def _safe_action(text: str) -> tuple[float, ...]:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from embedrl.export.onnx_import import Limits
     from embedrl.export.pipeline import ExportOptions, run_export
 
     opts = ExportOptions(
@@ -38,6 +39,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         targets=tuple(args.target or ()),
         quantize=args.quantize,
         progress=sys.stderr.isatty(),
+        limits=Limits(max_bytes=int(args.max_model_mb * 2**20), max_parameters=args.max_params),
     )
     report = run_export(opts)
     _print_summary(report)
@@ -137,6 +139,18 @@ def register(sub: Any) -> None:
         "e.g. 0,0 (default: the scenario's safe action)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument(
+        "--max-model-mb",
+        type=float,
+        default=64.0,
+        help="refuse models larger than this, external data included (default 64)",
+    )
+    p.add_argument(
+        "--max-params",
+        type=int,
+        default=4_000_000,
+        help="refuse models with more weights (default 4,000,000)",
+    )
     p.add_argument(
         "--quantize",
         choices=["int8", "q15"],

@@ -7,10 +7,12 @@ domain; float32 weights (int64 only for Reshape shapes), all finite.
 
 from __future__ import annotations
 
-from pathlib import Path
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import onnx
+import onnx.external_data_helper
 from google.protobuf.message import DecodeError
 from onnx import numpy_helper
 
@@ -23,16 +25,41 @@ MIN_OPSET = 13
 _COMMUTATIVE = frozenset({"Add", "Mul", "Max", "Min"})
 
 
-def load_onnx(path: Path) -> onnx.ModelProto:
-    """Read and check an ONNX file; any problem is an :class:`InvalidModelError` naming the file."""
+@dataclass(frozen=True)
+class Limits:
+    """How large a model the exporter accepts (a policy for a microcontroller is far smaller): checked
+    before anything large is read, so an oversized or hostile file costs neither memory nor minutes."""
+
+    max_bytes: int = 64 * 2**20
+    """The model file plus its external data."""
+    max_parameters: int = 4_000_000
+    """Weights in all initializers (16 MB as float32)."""
+
+
+LIMITS_HINT = "--max-model-mb and --max-params raise the limits"
+
+
+def load_onnx(path: Path, limits: Limits = Limits()) -> onnx.ModelProto:
+    """Read and check an ONNX file within ``limits``; any problem is an :class:`InvalidModelError` naming
+    the file. External data must lie in the model's folder (no absolute path, no ``..``)."""
     if not path.is_file():
         raise InvalidModelError(f"{path}: no such file")
+    size = path.stat().st_size
+    if size > limits.max_bytes:
+        raise InvalidModelError(
+            f"{path}: {size / 2**20:.1f} MB exceeds the {_mb(limits.max_bytes)} limit; {LIMITS_HINT}"
+        )
     try:
-        model = onnx.load(str(path))
+        model = onnx.load(str(path), load_external_data=False)
     except (DecodeError, ValueError, RuntimeError, OSError) as exc:
         raise InvalidModelError(
             f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {exc})"
         ) from None
+    _check_sizes(path, model, size, limits)
+    try:
+        onnx.external_data_helper.load_external_data_for_model(model, str(path.parent))
+    except (OSError, ValueError, RuntimeError) as exc:
+        raise InvalidModelError(f"{path}: cannot read its external data ({exc})") from None
     if not model.graph.node and not model.graph.output:
         raise InvalidModelError(f"{path}: not an ONNX model (empty graph)")
     try:
@@ -41,6 +68,37 @@ def load_onnx(path: Path) -> onnx.ModelProto:
         first = str(exc).strip().splitlines()[0]
         raise InvalidModelError(f"{path}: invalid ONNX model: {first}") from None
     return model
+
+
+def _mb(n: int) -> str:
+    return f"{n / 2**20:.0f} MB"
+
+
+def _check_sizes(path: Path, model: onnx.ModelProto, size: int, limits: Limits) -> None:
+    """Parameters and bytes as the file declares them, external data's locations and sizes."""
+    parameters, external = 0, 0
+    for tensor in model.graph.initializer:
+        count = int(np.prod(tensor.dims, dtype=np.int64)) if tensor.dims else 1
+        parameters += count
+        if tensor.data_location != onnx.TensorProto.EXTERNAL:
+            continue
+        info = {e.key: e.value for e in tensor.external_data}
+        location = PurePosixPath(info.get("location", ""))
+        if not info.get("location") or location.is_absolute() or ".." in location.parts:
+            raise InvalidModelError(
+                f"{path}: external data of '{tensor.name}' at {str(location)!r} is outside the model's folder"
+            )
+        itemsize = onnx.helper.tensor_dtype_to_np_dtype(tensor.data_type).itemsize
+        external += int(info.get("length", count * itemsize))
+    if parameters > limits.max_parameters:
+        raise InvalidModelError(
+            f"{path}: {parameters:,} parameters exceed the limit of {limits.max_parameters:,}; {LIMITS_HINT}"
+        )
+    if size + external > limits.max_bytes:
+        raise InvalidModelError(
+            f"{path}: {(size + external) / 2**20:.1f} MB with its external data exceeds the "
+            f"{_mb(limits.max_bytes)} limit; {LIMITS_HINT}"
+        )
 
 
 def _attr(attribute: onnx.AttributeProto) -> AttrValue | np.ndarray:

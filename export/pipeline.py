@@ -12,7 +12,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -30,7 +30,7 @@ from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
 from embedrl.export.fixed_point import FixedSection
 from embedrl.export.ir import Graph
-from embedrl.export.onnx_import import load_onnx, to_ir
+from embedrl.export.onnx_import import Limits, load_onnx, to_ir
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 from embedrl.train.interface import INTERFACE_FILE, Interface, InterfaceError
@@ -59,9 +59,11 @@ class ExportOptions:
     force: bool = False
     progress: bool = False
     targets: tuple[str, ...] = ()
-    quantize: str | None = None
-    """None (float32) or "int8" (see export.quantize)."""
     """Cortex-M targets to build, run under QEMU and measure (names in export.target.TARGETS)."""
+    quantize: str | None = None
+    """None (float32), "int8" or "q15" (see export.quantize, export.fixed_point)."""
+    limits: Limits = field(default_factory=Limits)
+    """How large a model is accepted (checked before it is read)."""
 
 
 def _set_metadata(model: onnx.ModelProto, key: str, value: str) -> None:
@@ -88,10 +90,16 @@ def _ort_policy(model: onnx.ModelProto) -> Callable[[np.ndarray], np.ndarray]:
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     name = session.get_inputs()[0].name
 
+    fixed_batch = session.get_inputs()[0].shape[0] == 1  # common in files from elsewhere
+
     def run(obs: np.ndarray) -> np.ndarray:
         batch = np.asarray(obs, dtype=np.float32)
         single = batch.ndim == 1
-        out = np.asarray(session.run(None, {name: batch.reshape(1, -1) if single else batch})[0])
+        rows = batch.reshape(1, -1) if single else batch
+        if fixed_batch:
+            out = np.concatenate([np.asarray(session.run(None, {name: row[None]})[0]) for row in rows])
+        else:
+            out = np.asarray(session.run(None, {name: rows})[0])
         return out.reshape(-1) if single else out
 
     return run
@@ -258,10 +266,10 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
         )
     if suffix == ".onnx":
         log(f"[1/5] loading {source}")
-        return Loaded(load_onnx(source), source, None, None, {})
+        return Loaded(load_onnx(source, opts.limits), source, None, None, {})
     log(f"[1/5] loading {source}")
     try:
-        loaded = load_sb3(source, opts.vecnormalize, opts.trust_pickle)
+        loaded = load_sb3(source, opts.vecnormalize, opts.trust_pickle, opts.limits.max_bytes)
     except UnsupportedModelFileError as exc:
         raise UnsupportedModelError(str(exc)) from None
     except InvalidModelFileError as exc:
@@ -278,7 +286,10 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
 def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     graph = to_ir(loaded.model)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
-    env = gym.make(opts.env_id)
+    try:
+        env = gym.make(opts.env_id)
+    except gym.error.Error as exc:
+        raise ExportError(f"--env {opts.env_id}: {exc}") from None
     obs_space, act_space = env.observation_space, env.action_space
     try:
         interface: Interface | None = interface_of(opts.env_id, env)

@@ -68,6 +68,10 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
         results = _build_and_run(args, guest, export_dir, onnx, work)
     except HilError as exc:
         raise HilError(f"{exc} [node build and guest console kept in {work}]") from None
+    except BaseException:  # interrupted (SIGINT, SIGTERM): nothing to diagnose, nothing left behind
+        if not args.keep_work:
+            shutil.rmtree(work, ignore_errors=True)
+        raise
     if args.keep_work:
         print(f"kept the node build and guest files in {work}")
     else:

@@ -124,7 +124,13 @@ class LoadedPolicy:
         return np.asarray(actions, dtype=np.float32)
 
 
-def load_sb3(path: Path, vecnormalize: Path | None = None, trust_pickle: bool = False) -> LoadedPolicy:
+MAX_MODEL_BYTES = 64 * 2**20
+"""The largest uncompressed archive entry read by default (a control policy is far smaller)."""
+
+
+def load_sb3(
+    path: Path, vecnormalize: Path | None = None, trust_pickle: bool = False, max_bytes: int = MAX_MODEL_BYTES
+) -> LoadedPolicy:
     """Load the policy of an SB3 ``.zip`` (any algorithm) without its algorithm or environment.
 
     Normalisation statistics: ``vecnormalize`` if given, else the first of
@@ -134,6 +140,7 @@ def load_sb3(path: Path, vecnormalize: Path | None = None, trust_pickle: bool = 
     """
     if not path.is_file():
         raise InvalidModelFileError(f"{path}: no such file")
+    _check_archive_size(path, max_bytes)
     try:
         data, params, _ = load_from_zip_file(
             path, load_data=trust_pickle, device="cpu", print_system_info=False
@@ -178,6 +185,20 @@ def load_sb3(path: Path, vecnormalize: Path | None = None, trust_pickle: bool = 
     policy.set_training_mode(False)
     stats_file, normalization = _matching_normalization(path, vecnormalize, obs_space, trust_pickle)
     return LoadedPolicy(policy, obs_space, act_space, normalization, stats_file)
+
+
+def _check_archive_size(path: Path, max_bytes: int) -> None:
+    """Refuse an archive whose entries would unpack to more than ``max_bytes`` (before reading them)."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            total = sum(info.file_size for info in zf.infolist())
+    except zipfile.BadZipFile as exc:
+        raise InvalidModelFileError(f"{path}: not a readable Stable-Baselines3 model ({exc})") from None
+    if total > max_bytes:
+        raise InvalidModelFileError(
+            f"{path}: unpacks to {total / 2**20:.1f} MB, above the {max_bytes / 2**20:.0f} MB limit "
+            "(--max-model-mb raises it)"
+        )
 
 
 def _matching_normalization(

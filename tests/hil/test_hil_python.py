@@ -7,12 +7,14 @@ the same suite runs against the compiled node over SocketCAN in ``test_hil_vcan.
 from __future__ import annotations
 
 import shutil
+import signal
 from pathlib import Path
 
 import pytest
 
 from embedrl.cli import main
 from tests.hil.contract import HilContract
+from tests.test_user_errors import run_and_interrupt
 
 
 class TestPythonNodeOnVirtualBus(HilContract):
@@ -54,3 +56,27 @@ def test_keep_work_keeps_the_temporary_folder_and_names_it(
     kept = Path(line.rsplit(" in ", 1)[1])
     assert (kept / "results.json").is_file()
     shutil.rmtree(kept)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_an_interrupted_hil_run_leaves_nothing_behind(
+    sig: signal.Signals, export_dir: Path, tmp_path: Path
+) -> None:
+    (tmp_path / "tmp").mkdir()  # TMPDIR of the command
+    report = str(tmp_path / "h.json")
+    argv = [
+        "hil",
+        "run",
+        "--export-dir",
+        str(export_dir),
+        "--json",
+        report,
+        "--node",
+        "python",
+        "--episodes",
+        "200",
+    ]
+    done = run_and_interrupt(argv, tmp_path, "running 200 episode(s)", sig)
+    assert done.returncode == 128 + sig and done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
+    assert not (tmp_path / "h.json").exists()
+    assert not [p for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")]  # no work folder

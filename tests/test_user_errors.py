@@ -1,0 +1,165 @@
+"""Every error a user can cause is one line on stderr and exit status 2, from the real command, with
+nothing written: the table of bad inputs found by a hostile review, walked row by row."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+ROOT = Path(__file__).resolve().parents[1]
+TD3 = ROOT / "policies" / "static" / "td3.zip"
+
+
+def _gemm_model(
+    weights: TensorProto, obs_dim: int, act_dim: int, batch: int | str = "batch"
+) -> onnx.ModelProto:
+    graph = helper.make_graph(
+        [helper.make_node("Gemm", ["obs", weights.name], ["act"], transB=1)],
+        "g",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [batch, obs_dim])],
+        [helper.make_tensor_value_info("act", TensorProto.FLOAT, [batch, act_dim])],
+        [weights],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+
+def _external(name: str, dims: list[int], location: str) -> TensorProto:
+    tensor = TensorProto(name=name, data_type=TensorProto.FLOAT, dims=dims)
+    tensor.data_location = TensorProto.EXTERNAL
+    entry = tensor.external_data.add()
+    entry.key, entry.value = "location", location
+    return tensor
+
+
+def traversal(tmp: Path) -> list[str]:
+    path = tmp / "traversal.onnx"
+    onnx.save(_gemm_model(_external("W", [2, 6], "../../etc/passwd"), 6, 2), path)
+    return ["export", str(path), "--out", str(tmp / "out"), "--episodes", "0"]
+
+
+def huge_declared(tmp: Path) -> list[str]:
+    path = tmp / "huge.onnx"
+    onnx.save(_gemm_model(_external("W", [50_000, 50_000], "big.bin"), 50_000, 50_000), path)
+    (tmp / "big.bin").write_bytes(b"")  # nothing needs reading: the declared size is refused
+    return ["export", str(path), "--out", str(tmp / "out"), "--episodes", "0"]
+
+
+def too_many_bytes(tmp: Path) -> list[str]:
+    path = tmp / "inline.onnx"
+    weights = np.random.default_rng(0).normal(size=(2, 300_000)).astype(np.float32)  # 2.4 MB inline
+    onnx.save(_gemm_model(numpy_helper.from_array(weights, "W"), 300_000, 2), path)
+    return ["export", str(path), "--out", str(tmp / "out"), "--episodes", "0", "--max-model-mb", "1"]
+
+
+ROWS = {
+    "external data outside the model's folder": (traversal, "is outside the model's folder"),
+    "a declared 50,000 x 50,000 Gemm": (huge_declared, "parameters exceed the limit of 4,000,000"),
+    "a model above the size limit": (too_many_bytes, "exceeds the 1 MB limit"),
+    "an unknown env": (
+        lambda tmp: ["export", str(TD3), "--env", "NoSuchEnv-v0", "--out", str(tmp / "out")],
+        "Environment `NoSuchEnv` doesn't exist",
+    ),
+    "--name int": (lambda tmp: ["export", str(TD3), "--name", "int", "--out", str(tmp / "out")], "int"),
+    "--name math": (lambda tmp: ["export", str(TD3), "--name", "math", "--out", str(tmp / "out")], "math"),
+    "--name _": (lambda tmp: ["export", str(TD3), "--name", "_", "--out", str(tmp / "out")], "_"),
+    "a missing model": (
+        lambda tmp: ["export", str(tmp / "no.zip"), "--out", str(tmp / "out")],
+        "no such file",
+    ),
+    "eval of a file that is no model": (
+        lambda tmp: ["eval", str(ROOT / "README.md")],
+        "give a Stable-Baselines3",
+    ),
+    "an unknown algorithm": (
+        lambda tmp: ["train", "--algo", "nosuch", "--out", str(tmp / "out")],
+        "invalid choice",
+    ),
+    "resume of a folder that is no run": (lambda tmp: ["train", "--resume", str(tmp)], "not a run directory"),
+    "hil run without an export": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--json", str(tmp / "out" / "h.json")],
+        "no c/policy.c",
+    ),
+    "an unknown fault": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--json", str(tmp / "h.json"), "--inject", "x"],
+        "unknown fault 'x'",
+    ),
+}
+
+
+@pytest.mark.parametrize("row", list(ROWS))
+def test_a_user_error_is_one_line_exit_2_and_writes_nothing(row: str, tmp_path: Path) -> None:
+    make_argv, said = ROWS[row]
+    argv = make_argv(tmp_path)
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    before = sorted(p.name for p in tmp_path.iterdir())
+    env = {**os.environ, "TMPDIR": str(temporary)}
+    result = subprocess.run(
+        [sys.executable, "-m", "embedrl.cli", *argv], capture_output=True, text=True, env=env, timeout=300
+    )
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert len(lines) == 1 and said in lines[0] and "Traceback" not in result.stderr, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no staging folder
+    assert not [p for p in temporary.iterdir() if p.name.startswith("embedrl")]  # no temporary folder
+
+
+def run_and_interrupt(
+    argv: list[str], tmp: Path, wait_for: str, sig: signal.Signals
+) -> subprocess.CompletedProcess[str]:
+    """Start ``embedrl ARGV``, send ``sig`` once its output shows ``wait_for``; the finished process."""
+    env = {**os.environ, "TMPDIR": str(tmp / "tmp"), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "embedrl.cli", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    assert proc.stdout is not None
+    seen = []
+    for line in proc.stdout:
+        seen.append(line)
+        if wait_for in line:
+            break
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=120)
+    return subprocess.CompletedProcess(argv, proc.returncode, "".join(seen) + out, err)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_an_interrupted_export_leaves_nothing_behind(sig: signal.Signals, tmp_path: Path) -> None:
+    (tmp_path / "tmp").mkdir()
+    out = tmp_path / "export"
+    done = run_and_interrupt(
+        ["export", str(TD3), "--out", str(out), "--episodes", "200"], tmp_path, "[4/5]", sig
+    )
+    assert done.returncode == 128 + sig and done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tmp"]  # no export, no staging folder
+    assert not [p for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")]  # no build folder
+
+
+def test_an_onnx_with_a_fixed_batch_of_one_exports_and_verifies(tmp_path: Path) -> None:
+    # Common in files from elsewhere; onnxruntime then takes one observation per call.
+    weights = np.random.default_rng(1).normal(scale=0.3, size=(2, 6)).astype(np.float32)
+    path = tmp_path / "batch1.onnx"
+    onnx.save(_gemm_model(numpy_helper.from_array(weights, "W"), 6, 2, batch=1), path)
+    out = tmp_path / "export"
+    result = subprocess.run(
+        [sys.executable, "-m", "embedrl.cli", "export", str(path), "--out", str(out), "--episodes", "0"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["verification"]["c_vs_onnxruntime_max_abs_error"] <= 1e-5
