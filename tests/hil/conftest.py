@@ -16,7 +16,6 @@ import pytest
 import embedrl.hil.sandbox as sandbox
 from embedrl.cli import main
 from embedrl.hil.sandbox import Guest
-from tests.hil.helpers import EARLY_PROVIDERS, boot_early, close_early
 
 SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
 
@@ -46,14 +45,3 @@ def guest(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Guest]:
     mode = os.environ.get("EMBEDRL_TEST_SANDBOX", "auto")
     with sandbox.opened(mode, tmp_path_factory.mktemp("sandbox")) as booted:
         yield booted
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Start the slow-booting sandboxes' boots now if a selected test needs them."""
-    for provider in sandbox.providers("auto"):
-        if provider.name in EARLY_PROVIDERS and any(f"[{provider.slug}]" in item.nodeid for item in items):
-            boot_early(provider)
-
-
-def pytest_sessionfinish() -> None:
-    close_early()
