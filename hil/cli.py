@@ -181,7 +181,11 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     def simulated(obs: np.ndarray) -> np.ndarray:
         return np.asarray(session.run(None, {"obs": obs.reshape(1, -1)})[0]).reshape(-1)
 
-    sim = evaluate(simulated, len(episodes), args.seed, "simulation (onnxruntime)")
+    interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
+    sim = evaluate(
+        simulated, len(episodes), args.seed, "simulation (onnxruntime)", False, interface.env_id,
+        interface.sample_time_s,
+    )  # fmt: skip
     differing = [h.seed for h, s in zip(episodes, sim.results, strict=True) if h.outcome != s.outcome]
     keys = (
         "steps",
@@ -207,16 +211,21 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     extra["faults"] = sum(e.outcome == "fault" for e in episodes)
     extra["simulation"] = {k: getattr(sim, k) for k in REPORT_KEYS}
     extra["outcomes_differing_from_simulation"] = differing
+    extra["max_return_abs_diff"] = max(
+        abs(h.episode_return - s.episode_return) for h, s in zip(episodes, sim.results, strict=True)
+    )
     data = report.to_json(extra)
-    for row, e in zip(data["per_episode"], results["episodes"], strict=True):
+    for row, e, s in zip(data["per_episode"], results["episodes"], sim.results, strict=True):
         row["fault"] = e["fault"]
+        row["simulation_return"] = s.episode_return  # lock-step: equal up to the CAN quantisation
         row["injected"] = e["injected"]
         row["max_action_abs_diff"] = e["max_action_abs_diff"]
     if args.plot:
         from embedrl.hil.plots import plot_latency
         from embedrl.train.plots import plot_trajectories
 
-        plot_trajectories(report, args.plot / "hil_trajectories.png")
+        if any(e.trajectory for e in episodes):  # envs with a map (the warehouse scenarios)
+            plot_trajectories(report, args.plot / "hil_trajectories.png")
         plot_latency(
             results["latencies_us"], args.plot / "hil_latency.png", results["sandbox"], args.realtime
         )

@@ -151,14 +151,22 @@ def run_episode(
     )
 
 
-def evaluate(policy: Policy, episodes: int, seed: int, name: str, progress: bool = False) -> EvalReport:
-    """Evaluate ``policy`` on ``episodes`` episodes seeded ``seed, seed + 1, ...``."""
+def evaluate(
+    policy: Policy,
+    episodes: int,
+    seed: int,
+    name: str,
+    progress: bool = False,
+    env_id: str = ENV_ID,
+    sample_time: float = SAMPLE_TIME,
+) -> EvalReport:
+    """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
-    env = gym.make(ENV_ID)
+    env = gym.make(env_id)
     try:
         results = [
-            run_episode(env, policy, seed + i)
+            run_episode(env, policy, seed + i, sample_time)
             for i in tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
         ]
     finally:
