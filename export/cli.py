@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -19,6 +20,29 @@ def _safe_action(text: str) -> tuple[float, ...]:
     if not all(abs(v) < float("inf") for v in values):
         raise argparse.ArgumentTypeError(f"safe action must be finite, got {text!r}")
     return values
+
+
+def _ranges(text: str) -> tuple[tuple[float, float], ...]:
+    """``LOW:HIGH`` (every value) or ``LOW:HIGH,LOW:HIGH,...`` (one per value)."""
+    try:
+        pairs = tuple(tuple(float(x) for x in part.split(":")) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW:HIGH[,LOW:HIGH...], got {text!r}") from None
+    if any(len(p) != 2 for p in pairs):
+        raise argparse.ArgumentTypeError(f"expected LOW:HIGH[,LOW:HIGH...], got {text!r}")
+    return tuple((p[0], p[1]) for p in pairs)
+
+
+def _names(path: Path | None) -> dict[str, Any] | None:
+    if path is None:
+        return None
+    try:
+        names = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ExportError(f"--names {path}: not a readable JSON file ({exc})") from None
+    if not isinstance(names, dict):
+        raise ExportError(f'--names {path}: expected {{"observation": [...], "action": [...]}}')
+    return names
 
 
 def cmd_export(args: argparse.Namespace) -> int:
@@ -40,6 +64,10 @@ def cmd_export(args: argparse.Namespace) -> int:
         quantize=args.quantize,
         progress=sys.stderr.isatty(),
         limits=Limits(max_bytes=int(args.max_model_mb * 2**20), max_parameters=args.max_params),
+        obs_range=args.obs_range,
+        act_range=args.act_range,
+        sample_time=args.sample_time,
+        names=_names(args.names),
     )
     report = run_export(opts)
     _print_summary(report)
@@ -137,6 +165,20 @@ def register(sub: Any) -> None:
         help="what the policy writes on non-finite input and the CAN node sends when it cannot trust "
         "its input, "
         "e.g. 0,0 (default: the scenario's safe action)",
+    )
+    p.add_argument(
+        "--obs-range",
+        type=_ranges,
+        help="a policy without an env: its observation ranges, LOW:HIGH for all or LOW:HIGH,... per value "
+        "(with --act-range and --sample-time; --env is then unused and the closed loop skipped)",
+    )
+    p.add_argument("--act-range", type=_ranges, help="a policy without an env: its action ranges")
+    p.add_argument("--sample-time", type=float, help="a policy without an env: its control period in seconds")
+    p.add_argument(
+        "--names",
+        type=Path,
+        help='JSON {"observation": [...], "action": [...]}: names for the interface\'s fields '
+        "(default obs0.., act0.. for envs without a spec)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument(

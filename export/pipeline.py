@@ -12,7 +12,7 @@ import os
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -33,7 +33,7 @@ from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import Limits, load_onnx, to_ir
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
-from embedrl.train.interface import INTERFACE_FILE, Interface, InterfaceError
+from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface, InterfaceError, from_spaces, with_names
 from embedrl.train.models import LoadedPolicy, load_sb3
 from embedrl.train.scenarios import interface_of
 
@@ -64,6 +64,13 @@ class ExportOptions:
     """None (float32), "int8" or "q15" (see export.quantize, export.fixed_point)."""
     limits: Limits = field(default_factory=Limits)
     """How large a model is accepted (checked before it is read)."""
+    obs_range: tuple[tuple[float, float], ...] | None = None
+    """Without an env: each observation's range (one pair for all, or one per value); ``env_id`` unused."""
+    act_range: tuple[tuple[float, float], ...] | None = None
+    sample_time: float | None = None
+    """Without an env: the control period in seconds (the node's timing)."""
+    names: dict[str, Any] | None = None
+    """``{"observation": [...], "action": [...]}``: names for the interface's fields."""
 
 
 def _set_metadata(model: onnx.ModelProto, key: str, value: str) -> None:
@@ -112,9 +119,15 @@ def _check_output_folder(out: Path, force: bool) -> None:
         raise ExportError(f"output folder {out} is not empty; use --force to replace it")
 
 
+OBSERVATIONS_FILE = "observations.npy"
+"""The verification observations (float32), in the export's ``test/``."""
+
+
 def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run every step; return the export report. Raises :class:`ExportError` on any failure."""
     check_name(opts.name)
+    if opts.obs_range is not None or opts.act_range is not None:
+        opts = replace(opts, env_id=NO_ENV)  # a policy without an env: its ranges are its interface
     unknown = [t for t in opts.targets if t not in target.TARGETS]
     if unknown:
         raise ExportError(f"unknown target(s) {unknown}; supported: {', '.join(target.TARGETS)}")
@@ -286,20 +299,11 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
 def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     graph = to_ir(loaded.model)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
-    try:
-        env = gym.make(opts.env_id)
-    except gym.error.Error as exc:
-        raise ExportError(f"--env {opts.env_id}: {exc}") from None
-    obs_space, act_space = env.observation_space, env.action_space
-    try:
-        interface: Interface | None = interface_of(opts.env_id, env)
-        interface_problem = None
-    except InterfaceError as exc:
-        interface, interface_problem = None, str(exc)
-    env.close()
+    obs_space, act_space, interface, interface_problem = _spaces(opts, obs_dim, act_dim)
     if not isinstance(obs_space, gym.spaces.Box) or obs_space.shape != (obs_dim,):
         raise ExportError(
-            f"the policy observes {obs_dim} values but {opts.env_id} gives {obs_space}; pass --env"
+            f"the policy observes {obs_dim} values but {opts.env_id} gives {obs_space}; pass --env, or "
+            "--obs-range, --act-range and --sample-time for a policy without an env"
         )
     if not isinstance(act_space, gym.spaces.Box) or act_space.shape != (act_dim,):
         raise ExportError(
@@ -335,6 +339,56 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     return Lowered(
         graph, obs_space, interface, interface_problem, action_clamp, reference, _ort_policy(loaded.model)
     )
+
+
+def _spaces(
+    opts: ExportOptions, obs_dim: int, act_dim: int
+) -> tuple[gym.Space[Any], gym.Space[Any], Interface | None, str | None]:
+    """The observation and action spaces, and the interface (or why there is none): from the env, or,
+    without one, from the user's ranges and the model's shapes."""
+    interface: Interface | None = None
+    problem = None
+    if opts.obs_range is not None:
+        if opts.act_range is None or opts.sample_time is None:
+            raise ExportError("without an env, give --obs-range, --act-range and --sample-time together")
+        obs_low, obs_high = _expand(opts.obs_range, obs_dim, "--obs-range", "observes")
+        act_low, act_high = _expand(opts.act_range, act_dim, "--act-range", "outputs")
+        obs_space: gym.Space[Any] = gym.spaces.Box(obs_low, obs_high, dtype=np.float32)
+        act_space: gym.Space[Any] = gym.spaces.Box(act_low, act_high, dtype=np.float32)
+        try:
+            interface = from_spaces(NO_ENV, obs_low, obs_high, act_low, act_high, opts.sample_time, 1)
+        except InterfaceError as exc:
+            raise ExportError(str(exc)) from None
+        interface = replace(interface, name=opts.source.stem)
+    else:
+        try:
+            env = gym.make(opts.env_id)
+        except gym.error.Error as exc:
+            raise ExportError(f"--env {opts.env_id}: {exc}") from None
+        obs_space, act_space = env.observation_space, env.action_space
+        try:
+            interface = interface_of(opts.env_id, env)
+        except InterfaceError as exc:
+            problem = str(exc)
+        env.close()
+    if interface is not None and opts.names is not None:
+        try:
+            interface = with_names(interface, opts.names)
+        except InterfaceError as exc:
+            raise ExportError(str(exc)) from None
+    return obs_space, act_space, interface, problem
+
+
+def _expand(
+    ranges: tuple[tuple[float, float], ...], dim: int, flag: str, verb: str
+) -> tuple[np.ndarray, np.ndarray]:
+    pairs = ranges * dim if len(ranges) == 1 else ranges
+    if len(pairs) != dim:
+        raise ExportError(f"{flag}: {len(ranges)} ranges, but the policy {verb} {dim} values")
+    low, high = (np.array([p[k] for p in pairs], dtype=np.float32) for k in (0, 1))
+    if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)):
+        raise ExportError(f"{flag}: every range must be finite with LOW < HIGH")
+    return low, high
 
 
 def _generate(
@@ -428,6 +482,8 @@ def _verify(
     vectors_path.parent.mkdir()
     vectors_path.write_text(target.test_vectors_source(vectors))
     loaded.files["test/test_vectors.c"] = vectors_path
+    np.save(staging / "test" / OBSERVATIONS_FILE, samples)  # what the HIL replays in open loop
+    loaded.files[f"test/{OBSERVATIONS_FILE}"] = staging / "test" / OBSERVATIONS_FILE
     targets = {}
     for name in opts.targets:
         log(f"[4/5] {name}: building firmware, running it on QEMU")
@@ -456,7 +512,14 @@ def _verify(
         if failure:
             raise VerificationError(failure)
     else:
-        reason = "episodes=0" if not opts.episodes else f"{opts.env_id} reports no success/collision outcomes"
+        if opts.env_id == NO_ENV:
+            reason = (
+                "no env: the C is verified against onnxruntime on observations sampled from the given ranges"
+            )
+        elif not opts.episodes:
+            reason = "episodes=0"
+        else:
+            reason = f"{opts.env_id} reports no success/collision outcomes"
         log(f"[5/5] closed loop skipped ({reason})")
         loop = {"skipped": reason}
     return Verified(checks, targets, loop)

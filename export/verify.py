@@ -16,6 +16,7 @@ import numpy as np
 from embedrl import train
 from embedrl.common import ROLLOUT_SEED_OFFSET
 from embedrl.train.evaluate import REPORT_KEYS, EvalReport, evaluate
+from embedrl.train.interface import NO_ENV
 
 TOLERANCE = 1e-5
 """Max abs action error allowed between two export steps."""
@@ -35,10 +36,14 @@ Policy = Callable[[np.ndarray], np.ndarray]
 def sample_observations(
     space: gym.spaces.Box, env_id: str, policy: Policy, seed: int
 ) -> tuple[np.ndarray, int]:
-    """At least MIN_SAMPLES float32 observations and how many of them came from rollouts."""
+    """At least MIN_SAMPLES float32 observations and how many of them came from rollouts (none without
+    an env: ``env_id`` :data:`~embedrl.train.interface.NO_ENV`, all uniform over the space)."""
     rng = np.random.default_rng(seed)
     low = np.where(np.isfinite(space.low), space.low, -UNBOUNDED_RANGE)
     high = np.where(np.isfinite(space.high), space.high, UNBOUNDED_RANGE)
+    if env_id == NO_ENV:
+        samples = rng.uniform(low, high, size=(MIN_SAMPLES, space.shape[0])).astype(np.float32)
+        return samples, 0
     recorded: list[np.ndarray] = []
     env = gym.make(env_id)
     episode = 0

@@ -16,7 +16,7 @@ from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS, parse_schedule
 from embedrl.hil.sandbox import MODES
-from embedrl.train.interface import INTERFACE_FILE
+from embedrl.train.interface import INTERFACE_FILE, NO_ENV
 
 if TYPE_CHECKING:
     from embedrl.hil.sandbox import Guest
@@ -80,10 +80,14 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
 
 
 def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **where: Any) -> SessionConfig:
+    from embedrl.export.pipeline import OBSERVATIONS_FILE
     from embedrl.hil.session import SessionConfig
 
+    observations = export_dir / "test" / OBSERVATIONS_FILE
+    open_loop = candb.load_interface(export_dir / INTERFACE_FILE).env_id == NO_ENV
     print(
-        f"running {args.episodes} episode(s) {'in real time' if args.realtime else 'in lock-step'}"
+        f"running {args.episodes} episode(s) "
+        + ("in open loop (no env)" if open_loop else "in real time" if args.realtime else "in lock-step")
         + (f", injecting {', '.join(args.inject)}" if args.inject else "")
     )
     return SessionConfig(
@@ -95,6 +99,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
         node_timeout_ms=args.timeout_ms,
         realtime=args.realtime,
         inject=tuple(args.inject),
+        observations=str(observations) if observations.is_file() else None,
         **where,
     )
 
@@ -182,11 +187,15 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         return np.asarray(session.run(None, {"obs": obs.reshape(1, -1)})[0]).reshape(-1)
 
     interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
-    sim = evaluate(
-        simulated, len(episodes), args.seed, "simulation (onnxruntime)", False, interface.env_id,
-        interface.sample_time_s,
-    )  # fmt: skip
-    differing = [h.seed for h, s in zip(episodes, sim.results, strict=True) if h.outcome != s.outcome]
+    if interface.env_id == NO_ENV:  # open loop: no plant to simulate; the actions are compared per step
+        sim = None
+    else:
+        sim = evaluate(
+            simulated, len(episodes), args.seed, "simulation (onnxruntime)", False, interface.env_id,
+            interface.sample_time_s,
+        )  # fmt: skip
+    sim_results = sim.results if sim else [None] * len(episodes)
+    differing = [h.seed for h, s in zip(episodes, sim_results, strict=True) if s and h.outcome != s.outcome]
     keys = (
         "steps",
         "max_action_abs_diff",
@@ -209,15 +218,18 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     )
     extra = {k: results.get(k) for k in keys}
     extra["faults"] = sum(e.outcome == "fault" for e in episodes)
-    extra["simulation"] = {k: getattr(sim, k) for k in REPORT_KEYS}
+    extra["simulation"] = {k: getattr(sim, k) for k in REPORT_KEYS} if sim else None
     extra["outcomes_differing_from_simulation"] = differing
-    extra["max_return_abs_diff"] = max(
-        abs(h.episode_return - s.episode_return) for h, s in zip(episodes, sim.results, strict=True)
+    extra["max_return_abs_diff"] = (
+        max(abs(h.episode_return - s.episode_return) for h, s in zip(episodes, sim.results, strict=True))
+        if sim
+        else None
     )
+    extra["open_loop"] = sim is None
     data = report.to_json(extra)
-    for row, e, s in zip(data["per_episode"], results["episodes"], sim.results, strict=True):
+    for row, e, s in zip(data["per_episode"], results["episodes"], sim_results, strict=True):
         row["fault"] = e["fault"]
-        row["simulation_return"] = s.episode_return  # lock-step: equal up to the CAN quantisation
+        row["simulation_return"] = s.episode_return if s else None  # lock-step: equal up to quantisation
         row["injected"] = e["injected"]
         row["max_action_abs_diff"] = e["max_action_abs_diff"]
     if args.plot:
@@ -257,17 +269,22 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
     data["verdict"] = verdict(data, args.allow_faults)
     lat = data["latency_us"]
     diff = data["max_action_abs_diff"]
-    rows = [
-        ("sandbox", data["sandbox_detail"]),
-        (
-            "HIL successes / collisions / timeouts / faults",
-            f"{data['successes']} / {data['collisions']} / {data['timeouts']} / {data['faults']}",
-        ),
-        (
-            "simulation successes / collisions / timeouts",
-            " / ".join(str(data["simulation"][k]) for k in ("successes", "collisions", "timeouts")),
-        ),
-        ("episodes ending differently", str(len(data["outcomes_differing_from_simulation"]))),
+    rows = [("sandbox", data["sandbox_detail"])]
+    if data["open_loop"]:
+        rows.append(("open loop (no env): episodes / faults", f"{data['episodes']} / {data['faults']}"))
+    else:
+        rows += [
+            (
+                "HIL successes / collisions / timeouts / faults",
+                f"{data['successes']} / {data['collisions']} / {data['timeouts']} / {data['faults']}",
+            ),
+            (
+                "simulation successes / collisions / timeouts",
+                " / ".join(str(data["simulation"][k]) for k in ("successes", "collisions", "timeouts")),
+            ),
+            ("episodes ending differently", str(len(data["outcomes_differing_from_simulation"]))),
+        ]
+    rows += [
         ("steps, max |node - ONNX|", f"{data['steps']}, {'-' if diff is None else f'{diff:.3g}'}"),
         ("frames tx / rx", f"{data['frames_tx']} / {data['frames_rx']}"),
         (

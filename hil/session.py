@@ -36,14 +36,16 @@ from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode
-from embedrl.train.evaluate import run_episode
-from embedrl.train.interface import Interface
+from embedrl.train.evaluate import EpisodeResult, run_episode
+from embedrl.train.interface import NO_ENV, Interface
 
 TOLERANCE = 1e-5
 NODE_BOOT_S = 1.0
 """The node is up when its first status frame arrives (or after this long)."""
 RETRY_S = 0.25
 """An unanswered step is sent again after this long (or half the node's watchdog, if shorter)."""
+OPEN_LOOP_STEPS = 100
+"""Observations per open-loop episode."""
 SNAPSHOT_S = 1.0
 """How long to wait for the node's status after an injection, if none came while the episode ran."""
 
@@ -68,6 +70,9 @@ class SessionConfig:
     realtime: bool = False
     log: str | None = None
     results: str = "hil_results.json"
+    observations: str | None = None
+    """Open loop (a policy exported without an env): the export's verification observations (.npy),
+    replayed :data:`OPEN_LOOP_STEPS` per episode."""
     inject: tuple[str, ...] = ()
     """The fault schedule: ``NAME`` or ``NAME@EPISODE:STEP`` (:func:`embedrl.hil.faults.parse_schedule`)."""
 
@@ -236,6 +241,14 @@ class BusPolicy:
         return "no action for the step although the node still sends status"
 
 
+def _replay(policy: BusPolicy, observations: Any, index: int, seed: int, sample_time: float) -> EpisodeResult:
+    """Open loop: the next :data:`OPEN_LOOP_STEPS` recorded observations over the bus, each action
+    compared with the ONNX policy's (there is no plant to apply it to)."""
+    for k in range(OPEN_LOOP_STEPS):
+        policy(observations[(index * OPEN_LOOP_STEPS + k) % len(observations)])
+    return EpisodeResult(seed, "open-loop", OPEN_LOOP_STEPS, 0.0, OPEN_LOOP_STEPS * sample_time, None, [])
+
+
 def _counters(snapshot: tuple[Status, Diag] | None) -> dict[str, Any] | None:
     return None if snapshot is None else {**asdict(snapshot[0]), **asdict(snapshot[1])}
 
@@ -283,7 +296,11 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     link = Link(bus, codec, stats, cfg.iface, cfg.log)
     node = _start_node(cfg, interface)
     policy = BusPolicy(cfg, interface, link, node)
-    env = _Tally(gym.make(interface.env_id))
+    open_loop = interface.env_id == NO_ENV
+    env = None if open_loop else _Tally(gym.make(interface.env_id))
+    replayed = np.load(cfg.observations, allow_pickle=False) if open_loop and cfg.observations else None
+    if open_loop and replayed is None:
+        raise ValueError("a policy without an env runs in open loop: give its observations")
     episodes: list[dict[str, Any]] = []
     try:
         link.wait_status(NODE_BOOT_S)
@@ -292,20 +309,22 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             seed = cfg.seed + index
             policy.begin_episode()
             try:
-                result = run_episode(env, policy, seed, interface.sample_time_s)
+                if env is None:
+                    result = _replay(policy, replayed, index, seed, interface.sample_time_s)
+                else:
+                    result = run_episode(env, policy, seed, interface.sample_time_s)
                 policy.end_episode()
                 row: dict[str, Any] = {**asdict(result), "fault": None}
             except NodeFault as fault:
                 policy.end_episode()
-                trajectory = list(getattr(env.unwrapped, "trajectory", []))
                 row = {
                     "seed": seed,
                     "outcome": "fault",
-                    "steps": env.steps,
-                    "episode_return": env.total,
-                    "time_s": env.steps * interface.sample_time_s,
+                    "steps": policy.in_episode,
+                    "episode_return": env.total if env else 0.0,
+                    "time_s": policy.in_episode * interface.sample_time_s,
                     "collided_with": None,
-                    "trajectory": trajectory,
+                    "trajectory": list(getattr(env.unwrapped, "trajectory", [])) if env else [],
                     "fault": str(fault),
                 }
             row["injected"] = [r["kind"] for r in policy.injections if r["episode"] == index]
@@ -319,7 +338,8 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
         policy.end_episode()  # nothing of an injection keeps running
         node.stop()
         link.close()
-        env.close()
+        if env is not None:
+            env.close()
     results = _results(cfg, stats, episodes, policy.injections, interface.sample_time_s)
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results

@@ -21,6 +21,9 @@ NAME = re.compile(r"[a-z][a-z0-9_]*")
 FORMAT_VERSION = 1
 INTERFACE_FILE = "interface.json"
 """An export's interface, beside its ``policy.onnx`` and ``c/``."""
+NO_ENV = ""
+"""``env_id`` of a policy exported without an environment (ranges given by the user): no closed loop,
+HIL in open loop."""
 
 
 class InterfaceError(ValueError):
@@ -171,3 +174,30 @@ def from_spaces(
     )
     safe = tuple(float((lo + hi) / 2) for lo, hi in zip(act_low, act_high, strict=True))
     return Interface(env_id.split("/")[-1], env_id, observation, action, sample_time_s, safe, max_steps)
+
+
+def with_names(interface: Interface, names: Any) -> Interface:
+    """``interface`` with its fields renamed from ``{"observation": [...], "action": [...]}`` (a names file;
+    each list as long as the fields, a name optional per list)."""
+    if not isinstance(names, dict) or not set(names) <= {"observation", "action"}:
+        raise InterfaceError('a names file is {"observation": [names...], "action": [names...]}')
+    groups = {}
+    for kind, fields in (("observation", interface.observation), ("action", interface.action)):
+        given = names.get(kind)
+        if given is None:
+            groups[kind] = fields
+            continue
+        if (
+            not isinstance(given, list)
+            or len(given) != len(fields)
+            or not all(isinstance(n, str) for n in given)
+        ):
+            raise InterfaceError(f"names file: {kind} must list {len(fields)} names, got {given!r}")
+        groups[kind] = tuple(
+            Field(n, f.description if f.description != f"{kind} {i}" else n, f.low, f.high, f.unit)
+            for i, (n, f) in enumerate(zip(given, fields, strict=True))
+        )
+    return Interface(
+        interface.name, interface.env_id, groups["observation"], groups["action"], interface.sample_time_s,
+        interface.safe_action, interface.max_steps,
+    )  # fmt: skip

@@ -1,18 +1,24 @@
 """Any exported policy goes over CAN, not only the warehouse robot's: a Pendulum-v1 policy (an SB3 TD3
 trained briefly here), its interface derived from the env's spaces, lock-step over the bus equal to the
-simulation, on the Python node (fast) and on the C node over vcan (slow)."""
+simulation; and an ONNX from elsewhere with no env, its interface from the given ranges, in open loop.
+On the Python node (fast) and on the C node over vcan (slow)."""
 
 from __future__ import annotations
 
 import json
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import onnx
 import pytest
 from stable_baselines3 import TD3
 
 from embedrl.cli import main
 from embedrl.hil.sandbox import Guest
+from embedrl.hil.session import OPEN_LOOP_STEPS
+from tests.export.helpers import mlp_model
 from tests.hil.helpers import hil
 
 PENDULUM_STEPS = 200
@@ -72,3 +78,73 @@ def test_a_pendulum_policy_in_lock_step_on_the_c_node_over_vcan(
     guest: Guest, pendulum_export: Path, tmp_path: Path
 ) -> None:
     _check_lock_step(hil(guest, pendulum_export, tmp_path, "--episodes", "2"))
+
+
+@pytest.fixture(scope="module")
+def envless_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An ONNX from elsewhere with no env: 17 observations in [-10, 10], 4 actions in [-1, 1]."""
+    work = tmp_path_factory.mktemp("envless")
+    model = mlp_model([17, 32, 4], seed=3)
+    model.graph.input[0].name, model.graph.node[0].input[0] = "obs", "obs"
+    onnx.save(model, work / "walker.onnx")
+    (work / "names.json").write_text(json.dumps({"action": ["hip_l", "knee_l", "hip_r", "knee_r"]}))
+    out = work / "export"
+    argv = ["export", str(work / "walker.onnx"), "--out", str(out), "--obs-range=-10:10", "--act-range=-1:1",
+            "--sample-time", "0.02", "--names", str(work / "names.json")]  # fmt: skip
+    assert main(argv) == 0
+    return out
+
+
+def test_an_onnx_without_an_env_exports_from_its_ranges(envless_export: Path) -> None:
+    interface = json.loads((envless_export / "interface.json").read_text())
+    assert interface["env_id"] == "" and interface["sample_time_s"] == 0.02
+    assert [(f["low"], f["high"]) for f in interface["observation"]] == [(-10.0, 10.0)] * 17
+    assert [f["name"] for f in interface["action"]] == ["hip_l", "knee_l", "hip_r", "knee_r"]
+    report = json.loads((envless_export / "export_report.json").read_text())
+    assert report["closed_loop"]["skipped"].startswith("no env: the C is verified against onnxruntime")
+    assert report["verification"]["c_vs_onnxruntime_max_abs_error"] <= 1e-5
+    observations = np.load(envless_export / "test" / "observations.npy")
+    assert observations.shape == (10_000, 17) and np.all(np.abs(observations) <= 10)
+    assert "POLICY_ACT_KNEE_R 3" in (envless_export / "c" / "policy.h").read_text()
+
+
+@pytest.mark.parametrize(
+    ("flags", "said"),
+    [
+        (["--obs-range=-10:10"], "give --obs-range, --act-range and --sample-time together"),
+        (
+            ["--obs-range=-1:1,-1:1", "--act-range=-1:1", "--sample-time", "0.1"],
+            "2 ranges, but the policy observes 17",
+        ),
+        (["--obs-range=1:-1", "--act-range=-1:1", "--sample-time", "0.1"], "finite with LOW < HIGH"),
+        (["--obs-range", "x", "--act-range=-1:1"], "expected LOW:HIGH"),
+    ],
+)
+def test_bad_ranges_are_clear_errors(
+    flags: list[str], said: str, envless_export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    source = envless_export.parent / "walker.onnx"
+    with pytest.raises(SystemExit) if said == "expected LOW:HIGH" else nullcontext():
+        assert main(["export", str(source), "--out", str(tmp_path / "x"), *flags]) == 2
+    assert said in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def _check_open_loop(report: dict[str, Any]) -> None:
+    assert report["open_loop"] is True and report["simulation"] is None
+    assert report["episodes"] == 2 and report["faults"] == 0 and report["steps"] == 2 * OPEN_LOOP_STEPS
+    assert report["max_action_abs_diff"] <= 1e-5
+    assert report["frames_tx"] == 9 * report["steps"]  # 17 fields: 9 observation frames a step
+    assert report["verdict"]["passed"]
+
+
+def test_a_policy_without_an_env_runs_in_open_loop_on_the_python_node(
+    envless_export: Path, tmp_path: Path
+) -> None:
+    _check_open_loop(hil(None, envless_export, tmp_path, "--node", "python", "--episodes", "2"))
+
+
+@pytest.mark.slow
+def test_a_policy_without_an_env_runs_in_open_loop_on_the_c_node_over_vcan(
+    guest: Guest, envless_export: Path, tmp_path: Path
+) -> None:
+    _check_open_loop(hil(guest, envless_export, tmp_path, "--episodes", "2"))
