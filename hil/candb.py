@@ -118,6 +118,15 @@ def scale_of(field: Field) -> float:
     return float(max(FINEST_SCALE, 2.0**exponent / 2 ** (VALUE_BITS - 1)))
 
 
+def rounding_errors(interface: Interface) -> dict[str, float]:
+    """The largest CAN rounding error of an observation and of an action value: half their scale."""
+    plan = layout(interface)
+    return {
+        "observation": max(s.scale for s in plan.observation_slots) / 2,
+        "action": max(s.scale for s in plan.action_slots) / 2,
+    }
+
+
 def _frames(
     prefix: str, first_id: int, fields: tuple[Field, ...]
 ) -> tuple[tuple[str, int, tuple[Slot, ...]], ...]:

@@ -226,6 +226,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         else None
     )
     extra["open_loop"] = sim is None
+    extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
     data = report.to_json(extra)
     for row, e, s in zip(data["per_episode"], results["episodes"], sim_results, strict=True):
         row["fault"] = e["fault"]
