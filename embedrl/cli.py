@@ -35,9 +35,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(
-        prog="embedrl", description=(__doc__ or "").splitlines()[0] if __doc__ else None
-    )
+    parser = Parser(prog="embedrl", description=(__doc__ or "").splitlines()[0] if __doc__ else None)
     parser.add_argument("--version", action="version", version=f"embedrl {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -134,6 +134,8 @@ def _check_open_loop(report: dict[str, Any]) -> None:
     assert report["episodes"] == 2 and report["faults"] == 0 and report["steps"] == 2 * OPEN_LOOP_STEPS
     assert report["max_action_abs_diff"] <= 1e-5
     assert report["frames_tx"] == 9 * report["steps"]  # 17 fields: 9 observation frames a step
+    # stated: [-10, 10] needs a scale of 2^-15 (half of it the rounding error), [-1, 1] the finest, 2^-18
+    assert report["can_rounding_error"] == {"observation": 2**-16, "action": 2**-19}
     assert report["verdict"]["passed"]
 
 
