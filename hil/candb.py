@@ -20,7 +20,7 @@ module generates the node's C: cantools' codec (``policy_dbc.c/h``) and the glue
 policy's observation and action vectors (``policy_io.c/h``), both never edited by hand.
 
 Run as ``python -m embedrl.hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]
-[--use-float]``.
+[--use-float] [--nodes N]``.
 """
 
 from __future__ import annotations
@@ -47,6 +47,10 @@ OBSERVATION_FIRST_ID = 0x100
 ACTION_FIRST_ID = 0x200
 STATUS_ID = 0x300
 DIAG_ID = 0x301
+MAX_NODES = 8
+"""Nodes on one bus: node ``k``'s observation and action IDs are node 0's plus ``k`` * :data:`NODE_STRIDE`,
+its NodeStatus and NodeDiag ``0x300 + 2k`` and ``0x301 + 2k``. Node 0's are the IDs above."""
+NODE_STRIDE = 0x20
 FRAME_BYTES = 8
 VALUE_BITS = 20
 VALUES_PER_FRAME = 2
@@ -144,11 +148,24 @@ def _frames(
     return tuple(frames)
 
 
-def layout(interface: Interface) -> Layout:
+def layout(interface: Interface, node_id: int = 0) -> Layout:
+    """Node ``node_id``'s messages (:data:`MAX_NODES`)."""
+    _check_node_id(node_id)
     return Layout(
-        _frames("Observation", OBSERVATION_FIRST_ID, interface.observation),
-        _frames("Action", ACTION_FIRST_ID, interface.action),
+        _frames("Observation", OBSERVATION_FIRST_ID + node_id * NODE_STRIDE, interface.observation),
+        _frames("Action", ACTION_FIRST_ID + node_id * NODE_STRIDE, interface.action),
     )
+
+
+def status_id(node_id: int = 0) -> int:
+    """NodeStatus of node ``node_id`` (its NodeDiag is the next ID)."""
+    _check_node_id(node_id)
+    return STATUS_ID + 2 * node_id
+
+
+def _check_node_id(node_id: int) -> None:
+    if not 0 <= node_id < MAX_NODES:
+        raise HilError(f"node ID {node_id} is outside 0..{MAX_NODES - 1}")
 
 
 def _header(receiver: str, step_comment: str) -> list[Signal]:
@@ -181,9 +198,15 @@ def _round(value: float) -> float:
     return float(f"{value:.9g}")
 
 
-def database(interface: Interface) -> Database:
-    """The cantools database of a node running a policy with this interface."""
-    plan = layout(interface)
+def database(interface: Interface, node_id: int = 0) -> Database:
+    """The cantools database of node ``node_id`` running a policy with this interface."""
+    messages = node_messages(interface, node_id)
+    return Database(messages, [Node(SIMULATOR, None), Node(NODE, None)], version=f"embedrl {interface.name}")
+
+
+def node_messages(interface: Interface, node_id: int = 0, ecu: str = NODE, suffix: str = "") -> list[Message]:
+    """Node ``node_id``'s messages, sent and received by ``ecu``, their names ending in ``suffix``."""
+    plan = layout(interface, node_id)
     messages = []
     for group, sender, receiver, step_comment in (
         (
@@ -192,13 +215,20 @@ def database(interface: Interface) -> Database:
             NODE,
             "Simulation step (mod 4096); every observation frame of one step carries it",
         ),
-        (plan.action, NODE, SIMULATOR, "Step of the observation this action answers"),
+        (plan.action, ecu, SIMULATOR, "Step of the observation this action answers"),
     ):
         for name, frame_id, slots in group:
             signals = _header(receiver, step_comment)
             signals += [_value(s, receiver, VALUE_START_BITS[i]) for i, s in enumerate(slots)]
             messages.append(
-                Message(frame_id, name, FRAME_BYTES, signals, senders=[sender], comment=_comment(name, slots))
+                Message(
+                    frame_id,
+                    name + suffix,
+                    FRAME_BYTES,
+                    signals,
+                    senders=[sender],
+                    comment=_comment(name, slots),
+                )
             )
     status = [
         Signal("Crc", 0, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
@@ -214,11 +244,11 @@ def database(interface: Interface) -> Database:
     ]  # fmt: skip
     messages.append(
         Message(
-            STATUS_ID,
-            "NodeStatus",
+            status_id(node_id),
+            "NodeStatus" + suffix,
             FRAME_BYTES,
             status,
-            senders=[NODE],
+            senders=[ecu],
             cycle_time=STATUS_PERIOD_MS,
             comment="Node state and error counters (saturating), sent periodically",
         )
@@ -238,16 +268,29 @@ def database(interface: Interface) -> Database:
     assert start == 8 * FRAME_BYTES, "NodeDiag fills its frame exactly"
     messages.append(
         Message(
-            DIAG_ID,
-            "NodeDiag",
+            status_id(node_id) + 1,
+            "NodeDiag" + suffix,
             FRAME_BYTES,
             diag,
-            senders=[NODE],
+            senders=[ecu],
             cycle_time=STATUS_PERIOD_MS,
             comment="Bus state and the recovery rules' counters (saturating), sent with NodeStatus",
         )
     )
-    return Database(messages, [Node(SIMULATOR, None), Node(NODE, None)], version=f"embedrl {interface.name}")
+    return messages
+
+
+def bus_database(interface: Interface, nodes: int) -> Database:
+    """The database of ``nodes`` nodes on one bus running this policy: every node's messages, their
+    names suffixed with the node ID beyond node 0 (``Action_1``), nodes ``NODE``, ``NODE_1``, ..."""
+    if not 1 <= nodes <= MAX_NODES:
+        raise HilError(f"--nodes must be within 1..{MAX_NODES}, got {nodes}")
+    messages, ecus = [], [Node(SIMULATOR, None)]
+    for k in range(nodes):
+        ecu, suffix = (NODE, "") if k == 0 else (f"{NODE}_{k}", f"_{k}")
+        ecus.append(Node(ecu, None))
+        messages += node_messages(interface, k, ecu, suffix)
+    return Database(messages, ecus, version=f"embedrl {interface.name} x{nodes}")
 
 
 def _comment(name: str, slots: tuple[Slot, ...]) -> str:
@@ -300,6 +343,9 @@ def _glue(interface: Interface, plan: Layout) -> tuple[str, str]:
 #define POLICY_IO_ACT_FIRST_ID 0x{ACTION_FIRST_ID:X}u
 #define POLICY_IO_STATUS_ID 0x{STATUS_ID:X}u
 #define POLICY_IO_DIAG_ID 0x{DIAG_ID:X}u
+#define POLICY_IO_MAX_NODES {MAX_NODES}u
+#define POLICY_IO_NODE_STRIDE 0x{NODE_STRIDE:X}u /* node k: observation and action IDs + k * stride */
+#define POLICY_IO_STATUS_STRIDE 2u /* node k: NodeStatus and NodeDiag IDs + 2k */
 #define POLICY_IO_FRAME_BYTES {FRAME_BYTES}u
 #define POLICY_IO_STEP_MODULO {STEP_MODULO}u
 #define POLICY_IO_STATUS_PERIOD_MS {STATUS_PERIOD_MS}u /* NodeStatus cycle time in the DBC */
@@ -410,10 +456,14 @@ def load_interface(path: Path) -> Interface:
         raise HilError(f"{path}: {exc}") from None
 
 
-def write(interface: Interface, out: Path, dbc_only: bool = False, use_float: bool = False) -> list[Path]:
-    """Write ``policy.dbc`` (and unless ``dbc_only`` the node's generated C) into ``out``."""
+def write(
+    interface: Interface, out: Path, dbc_only: bool = False, use_float: bool = False, nodes: int = 1
+) -> list[Path]:
+    """Write ``policy.dbc`` (``nodes`` nodes on one bus) and unless ``dbc_only`` the node's generated C
+    (the same for every node: a node offsets its IDs by its ``--node-id`` at run time) into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    files = {"policy.dbc": dbc_text(interface)} | ({} if dbc_only else c_sources(interface, use_float))
+    dbc = dbc_text(interface) if nodes == 1 else str(bus_database(interface, nodes).as_dbc_string())
+    files = {"policy.dbc": dbc} | ({} if dbc_only else c_sources(interface, use_float))
     written = []
     for name, text in files.items():
         (out / name).write_text(text)
@@ -428,13 +478,14 @@ def main(argv: list[str] | None = None) -> int:
     source.add_argument("--interface", type=Path, help="an export's interface.json")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--dbc-only", action="store_true")
+    parser.add_argument("--nodes", type=int, default=1, help=f"nodes on one bus (1..{MAX_NODES})")
     parser.add_argument(
         "--use-float", action="store_true", help="scale signals in float (cores without double-precision FPU)"
     )
     args = parser.parse_args(argv)
     try:
         interface = SCENARIOS[args.scenario] if args.scenario else load_interface(args.interface)
-        write(interface, args.out, args.dbc_only, args.use_float)
+        write(interface, args.out, args.dbc_only, args.use_float, args.nodes)
     except (HilError, InterfaceError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -58,17 +58,18 @@ def decode_fields(message: cantools.database.can.Message, data: bytes) -> dict[s
 class Codec:
     """Both directions of the simulator's side; E2E counters and checks included."""
 
-    def __init__(self, interface: Interface) -> None:
+    def __init__(self, interface: Interface, node_id: int = 0) -> None:
         self.interface = interface
-        self.db = candb.database(interface)
-        self.plan = candb.layout(interface)
+        self.db = candb.database(interface, node_id)
+        self.plan = candb.layout(interface, node_id)
         self.counters: dict[str, int] = {}
         self.receivers: dict[int, e2e.Receiver] = {}
         self.crc_errors = 0
         self.sequence_errors = 0
         self.action_parts = {frame_id: slots for _, frame_id, slots in self.plan.action}
-        self.status_id = candb.STATUS_ID
-        self.receive_ids = (*self.action_parts, candb.STATUS_ID, candb.DIAG_ID)
+        self.status_id = candb.status_id(node_id)
+        self.diag_id = self.status_id + 1
+        self.receive_ids = (*self.action_parts, self.status_id, self.diag_id)
         """Every ID the simulator listens to (its kernel filter)."""
         self._pending: dict[int, tuple[np.ndarray, set[int]]] = {}
         """Per step: the action values received so far and the frame IDs they came in."""
@@ -147,7 +148,7 @@ class Codec:
                 int(fields["Timeouts"]),
                 int(fields["InferenceUs"]),
             )
-        if msg.arbitration_id == candb.DIAG_ID:
+        if msg.arbitration_id == self.diag_id:
             counters = {name: int(fields[name]) for name, _, _ in candb.DIAG_COUNTERS}
             return Diag(
                 candb.BUS_STATES.get(int(fields["BusState"]), "UNKNOWN"),

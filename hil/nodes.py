@@ -57,8 +57,9 @@ class Node(ABC):
 class CNode(Node):
     """``policy_node --iface IFACE --timeout-ms T --recover K`` as a child process."""
 
-    def __init__(self, binary: str, iface: str, timeout_ms: int, recover: int) -> None:
-        self.argv = [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover)]
+    def __init__(self, binary: str, iface: str, timeout_ms: int, recover: int, node_id: int = 0) -> None:
+        self.argv = [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover),
+                     "--node-id", str(node_id)]  # fmt: skip
         self.process = self._start()
 
     def _start(self) -> subprocess.Popen[bytes]:

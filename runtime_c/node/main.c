@@ -1,5 +1,5 @@
 /*
- * policy_node --iface vcan0 [--timeout-ms T] [--recover K] [--status-ms P]
+ * policy_node --iface vcan0 [--timeout-ms T] [--recover K] [--status-ms P] [--node-id N]
  *
  * Runs the policy as a CAN node until SIGTERM/SIGINT (exit 0). An interface that cannot be opened at
  * start is an error (exit 1); one that fails later (link down, interface removed) puts the node in SAFE
@@ -54,14 +54,15 @@ static void reopen(node_t *node, const char *iface, const uint32_t *ids)
 static int usage(void)
 {
     fprintf(stderr, "usage: policy_node --iface NAME [--timeout-ms 1..60000] [--recover 1..1000] "
-                    "[--status-ms 10..60000]\n");
+                    "[--status-ms 10..60000] [--node-id 0..%u]\n",
+            POLICY_IO_MAX_NODES - 1u);
     return 2;
 }
 
 int main(int argc, char **argv)
 {
     const char *iface = NULL;
-    node_config config = {POLICY_IO_WATCHDOG_MS, DEFAULT_RECOVER, POLICY_IO_STATUS_PERIOD_MS};
+    node_config config = {POLICY_IO_WATCHDOG_MS, DEFAULT_RECOVER, POLICY_IO_STATUS_PERIOD_MS, 0u};
     for (int i = 1; i < argc; ++i) {
         if (i + 1 >= argc) {
             return usage();
@@ -75,6 +76,10 @@ int main(int argc, char **argv)
             }
         } else if (strcmp(argv[i - 1], "--recover") == 0) {
             if (parse_u32(value, 1u, 1000u, &config.recover_count) != 0) {
+                return usage();
+            }
+        } else if (strcmp(argv[i - 1], "--node-id") == 0) {
+            if (parse_u32(value, 0u, POLICY_IO_MAX_NODES - 1u, &config.node_id) != 0) {
                 return usage();
             }
         } else if (strcmp(argv[i - 1], "--status-ms") == 0) {
@@ -95,7 +100,7 @@ int main(int argc, char **argv)
     sigaction(SIGINT, &sa, NULL);
     uint32_t ids[POLICY_IO_OBS_FRAMES];
     for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
-        ids[k] = POLICY_IO_OBS_FIRST_ID + k;
+        ids[k] = POLICY_IO_OBS_FIRST_ID + config.node_id * POLICY_IO_NODE_STRIDE + k;
     }
     if (transport_open(iface, ids, POLICY_IO_OBS_FRAMES) != 0) {
         fprintf(stderr, "policy_node: %s\n", transport_error());

@@ -26,6 +26,9 @@ void node_init(node_t *node, const node_config *config, uint32_t now_ms)
 {
     memset(node, 0, sizeof *node);
     node->config = *config;
+    node->obs_first_id = POLICY_IO_OBS_FIRST_ID + config->node_id * POLICY_IO_NODE_STRIDE;
+    node->act_first_id = POLICY_IO_ACT_FIRST_ID + config->node_id * POLICY_IO_NODE_STRIDE;
+    node->status_id = POLICY_IO_STATUS_ID + config->node_id * POLICY_IO_STATUS_STRIDE;
     node->state = NODE_RUN;
     node->last_valid_ms = now_ms;
     node->last_safe_ms = now_ms;
@@ -42,7 +45,7 @@ static void send_frame(node_t *node, const can_frame_t *frame)
 static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t step)
 {
     for (unsigned part = 0; part < POLICY_IO_ACT_FRAMES; ++part) {
-        can_frame_t frame = {POLICY_IO_ACT_FIRST_ID + part, POLICY_IO_FRAME_BYTES, {0}};
+        can_frame_t frame = {node->act_first_id + part, POLICY_IO_FRAME_BYTES, {0}};
         node->saturations += policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
         e2e_protect(frame.id, frame.data);
         node->action_counter[part] = (uint8_t)((node->action_counter[part] + 1u) % E2E_COUNTER_MODULO);
@@ -54,7 +57,7 @@ static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t 
 static void send_status(node_t *node)
 {
     struct policy_dbc_node_status_t msg;
-    can_frame_t frame = {POLICY_DBC_NODE_STATUS_FRAME_ID, POLICY_DBC_NODE_STATUS_LENGTH, {0}};
+    can_frame_t frame = {node->status_id, POLICY_DBC_NODE_STATUS_LENGTH, {0}};
     memset(&msg, 0, sizeof msg);
     msg.counter = node->status_counter;
     msg.state = (uint8_t)node->state;
@@ -69,7 +72,7 @@ static void send_status(node_t *node)
     send_frame(node, &frame);
 
     struct policy_dbc_node_diag_t diag;
-    can_frame_t diag_frame = {POLICY_DBC_NODE_DIAG_FRAME_ID, POLICY_DBC_NODE_DIAG_LENGTH, {0}};
+    can_frame_t diag_frame = {node->status_id + 1u, POLICY_DBC_NODE_DIAG_LENGTH, {0}};
     memset(&diag, 0, sizeof diag);
     diag.counter = node->diag_counter;
     diag.bus_state = (uint8_t)node->bus_state;
@@ -133,12 +136,12 @@ static void complete_observation(node_t *node, uint32_t now_ms)
 
 void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
 {
-    if (frame->id < POLICY_IO_OBS_FIRST_ID || frame->id >= POLICY_IO_OBS_FIRST_ID + POLICY_IO_OBS_FRAMES ||
+    if (frame->id < node->obs_first_id || frame->id >= node->obs_first_id + POLICY_IO_OBS_FRAMES ||
         frame->len != POLICY_IO_FRAME_BYTES) {
-        node->rejected++;
+        node->rejected++; /* not ours: another node's frame is never applied */
         return;
     }
-    unsigned part = (unsigned)(frame->id - POLICY_IO_OBS_FIRST_ID);
+    unsigned part = (unsigned)(frame->id - node->obs_first_id);
     if (!e2e_crc_ok(frame->id, frame->data)) {
         node->crc_errors++;
         node->consecutive_valid = 0;

@@ -39,10 +39,14 @@ typedef struct {
     uint32_t timeout_ms;
     uint32_t recover_count;
     uint32_t status_period_ms;
+    uint32_t node_id; /* 0 .. POLICY_IO_MAX_NODES - 1: this node's IDs are node 0's offset by it */
 } node_config;
 
 typedef struct {
     node_config config;
+    uint32_t obs_first_id; /* this node's IDs (from config.node_id) */
+    uint32_t act_first_id;
+    uint32_t status_id; /* NodeStatus; NodeDiag is the next ID */
     node_state state;
     /* counters reported in NodeStatus (saturating) */
     uint32_t frames_ok;

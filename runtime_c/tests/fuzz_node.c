@@ -29,7 +29,7 @@
 #define TIMEOUT_MS 100u
 #define MAX_RECORDS 4096u
 
-static const node_config config = {TIMEOUT_MS, 3u, 1000u};
+static const node_config config = {TIMEOUT_MS, 3u, 1000u, 0u};
 static uint32_t arrived[POLICY_IO_STEP_MODULO]; /* per Step: bit k = a good frame of part k arrived */
 
 static void check(int ok)

@@ -27,7 +27,7 @@ static int checks;
 #define TIMEOUT_MS 100u
 #define RECOVER 3u
 
-static const node_config config = {TIMEOUT_MS, RECOVER, 1000u};
+static const node_config config = {TIMEOUT_MS, RECOVER, 1000u, 0u};
 static uint8_t counters[3];
 
 /* The three observation frames of one step, E2E protected, as the simulator sends them. */
@@ -455,6 +455,30 @@ static void test_link_loss_send_failures_and_bus_state_are_reported(void)
     }
 }
 
+static void test_a_node_answers_only_its_own_ids(void)
+{
+    const node_config second = {TIMEOUT_MS, RECOVER, 1000u, 2u};
+    node_t node;
+    fresh(&node);
+    node_init(&node, &second, 1000);
+    const float obs[6] = {0.3f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 1, obs, 1000); /* node 0's IDs: not for node 2 */
+    CHECK(fake_sent_count() == 0 && node.rejected == 3 && node.frames_ok == 0);
+    can_frame_t frames[3];
+    make_observation(frames, 2, obs);
+    for (unsigned i = 0; i < 3; ++i) { /* the same observation under node 2's IDs, CRC over them */
+        frames[i].id += 2u * POLICY_IO_NODE_STRIDE;
+        e2e_protect(frames[i].id, frames[i].data);
+        node_on_frame(&node, &frames[i], 1000);
+    }
+    CHECK(fake_sent_count() == 1);
+    const can_frame_t *action = fake_sent(0);
+    CHECK(action->id == POLICY_DBC_ACTION_FRAME_ID + 2u * POLICY_IO_NODE_STRIDE && e2e_crc_ok(action->id, action->data));
+    fake_reset();
+    node_poll(&node, 1000);
+    CHECK(fake_sent_count() == 2 && fake_sent(0)->id == POLICY_IO_STATUS_ID + 4u && fake_sent(1)->id == POLICY_IO_DIAG_ID + 4u);
+}
+
 int main(void)
 {
     test_codec_round_trips();
@@ -470,6 +494,7 @@ int main(void)
     test_counters_resynchronise_after_a_loss_burst_or_a_sender_restart();
     test_a_step_that_goes_backwards_is_never_answered();
     test_link_loss_send_failures_and_bus_state_are_reported();
+    test_a_node_answers_only_its_own_ids();
     printf("%d checks, %d failures\n", checks, failures);
     return failures == 0 ? 0 : 1;
 }

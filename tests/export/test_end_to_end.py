@@ -72,6 +72,7 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
         "c/policy.h",
         "interface.json",
         "policy.onnx",
+        "test/observations.npy",
         "test/test_vectors.c",
     ]
     assert report["compiler"]["command"].startswith("cc -std=c99 -Wall -Wextra -Werror -pedantic")
@@ -206,7 +207,13 @@ def test_onnx_source_and_name_prefix(models: dict[str, Path], tmp_path: Path) ->
         first / "policy.onnx", tmp_path / "second", "--name", "drive", "--safe-action", "0.5,-0.5"
     )
     assert report["source"]["kind"] == "onnx" and report["name"] == "drive"
-    assert sorted(report["files"]) == ["c/drive.c", "c/drive.h", "interface.json", "test/test_vectors.c"]
+    assert sorted(report["files"]) == [
+        "c/drive.c",
+        "c/drive.h",
+        "interface.json",
+        "test/observations.npy",
+        "test/test_vectors.c",
+    ]
     assert json.loads((tmp_path / "second" / "interface.json").read_text())["safe_action"] == [0.5, -0.5]
     assert report["verification"]["onnx_vs_sb3_max_abs_error"] is None
     assert report["verification"]["non_finite_observation"] == {"return_code": 1, "action": [0.5, -0.5]}
