@@ -57,6 +57,8 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
             "generated): export it again with `embedrl export`"
         )
     interface = candb.load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
+    if args.nodes > 1 and interface.env_id == NO_ENV:
+        raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
     period_ms = interface.sample_time_s * 1000
     if args.realtime and args.timeout_ms <= period_ms:
         raise HilError(
@@ -87,6 +89,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
     open_loop = candb.load_interface(export_dir / INTERFACE_FILE).env_id == NO_ENV
     print(
         f"running {args.episodes} episode(s) "
+        + (f"on each of {args.nodes} nodes " if args.nodes > 1 else "")
         + ("in open loop (no env)" if open_loop else "in real time" if args.realtime else "in lock-step")
         + (f", injecting {', '.join(args.inject)}" if args.inject else "")
     )
@@ -99,6 +102,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
         node_timeout_ms=args.timeout_ms,
         realtime=args.realtime,
         inject=tuple(args.inject),
+        nodes=args.nodes,
         observations=str(observations) if observations.is_file() else None,
         **where,
     )
@@ -189,11 +193,21 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
     if interface.env_id == NO_ENV:  # open loop: no plant to simulate; the actions are compared per step
         sim = None
-    else:
-        sim = evaluate(
-            simulated, len(episodes), args.seed, "simulation (onnxruntime)", False, interface.env_id,
-            interface.sample_time_s,
-        )  # fmt: skip
+    else:  # each node's robot on its own seeds (node_seed), in the order the HIL rows have
+        from embedrl.hil.session import NODE_SEED_STRIDE
+
+        per_episode = -(-len(episodes) // args.nodes)
+        by_seed = {
+            r.seed: r
+            for k in range(args.nodes)
+            for r in evaluate(
+                simulated, per_episode, args.seed + k * NODE_SEED_STRIDE, "simulation (onnxruntime)", False,
+                interface.env_id, interface.sample_time_s,
+            ).results
+        }  # fmt: skip
+        sim = EvalReport.from_results(
+            [by_seed[h.seed] for h in episodes], args.seed, "simulation (onnxruntime)"
+        )
     sim_results = sim.results if sim else [None] * len(episodes)
     differing = [h.seed for h, s in zip(episodes, sim_results, strict=True) if s and h.outcome != s.outcome]
     keys = (
@@ -215,6 +229,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         "retries",
         "injections",
         "fault_catalogue",
+        "nodes",
     )
     extra = {k: results.get(k) for k in keys}
     extra["faults"] = sum(e.outcome == "fault" for e in episodes)
@@ -233,6 +248,18 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         row["simulation_return"] = s.episode_return if s else None  # lock-step: equal up to quantisation
         row["injected"] = e["injected"]
         row["max_action_abs_diff"] = e["max_action_abs_diff"]
+        row["node"] = e.get("node", 0)
+    data["per_node"] = {
+        k: {
+            "episodes": sum(r["node"] == k for r in data["per_episode"]),
+            "successes": sum(r["node"] == k and r["outcome"] == "success" for r in data["per_episode"]),
+            "faults": sum(r["node"] == k and r["outcome"] == "fault" for r in data["per_episode"]),
+            "differing_from_simulation": [
+                r["seed"] for r in data["per_episode"] if r["node"] == k and r["seed"] in differing
+            ],
+        }
+        for k in range(args.nodes)
+    }
     if args.plot:
         from embedrl.hil.plots import plot_latency
         from embedrl.train.plots import plot_trajectories
@@ -256,6 +283,10 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         schedule = parse_schedule(args.inject)
     except ValueError as exc:
         raise HilError(str(exc)) from None
+    if not 1 <= args.nodes <= candb.MAX_NODES:
+        raise HilError(f"--nodes must be within 1..{candb.MAX_NODES}, got {args.nodes}")
+    if args.nodes > 1 and (schedule or args.realtime):
+        raise HilError("--nodes > 1 runs in lock-step without fault injection: drop --inject and --realtime")
     for s in schedule:
         if s.episode >= args.episodes:
             raise HilError(
@@ -271,6 +302,12 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
     lat = data["latency_us"]
     diff = data["max_action_abs_diff"]
     rows = [("sandbox", data["sandbox_detail"])]
+    if args.nodes > 1:
+        rows += [
+            (f"node {k}: episodes / successes / faults / differing", f"{n['episodes']} / {n['successes']} / "
+             f"{n['faults']} / {len(n['differing_from_simulation'])}")
+            for k, n in data["per_node"].items()
+        ]  # fmt: skip
     if data["open_loop"]:
         rows.append(("open loop (no env): episodes / faults", f"{data['episodes']} / {data['faults']}"))
     else:
@@ -405,6 +442,12 @@ def register(sub: Any) -> None:
         help="pass even if episodes end in a fault (fault-injection runs); by default a fault fails the run",
     )
     r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
+    r.add_argument(
+        "--nodes",
+        type=int,
+        default=1,
+        help="nodes on one bus, one robot each with its own seeds (policy_node --node-id 0..N-1), lock-step",
+    )
     r.add_argument(
         "--node",
         choices=("c", "python"),

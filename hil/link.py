@@ -41,16 +41,47 @@ class Stats:
     actions_by_step: dict[int, int] = field(default_factory=dict)
     """How many complete actions arrived per Step value (a duplicate answer shows as 2)."""
 
+    @staticmethod
+    def merged(parts: list[Stats]) -> Stats:
+        """The links of several nodes as one: counts added, samples joined, the earliest divergence."""
+        out = Stats()
+        for part in parts:
+            out.frames_tx += part.frames_tx
+            out.frames_rx += part.frames_rx
+            out.rx_timeouts += part.rx_timeouts
+            out.retries += part.retries
+            out.send_failures += part.send_failures
+            out.latencies_us += part.latencies_us
+            out.diffs += part.diffs
+            if part.first_divergent_step is not None:
+                first = out.first_divergent_step
+                out.first_divergent_step = min(
+                    part.first_divergent_step, first if first is not None else 1 << 30
+                )
+        out.last_status, out.last_diag = parts[0].last_status, parts[0].last_diag
+        return out
+
 
 class Link:
     """Frames out and in through ``bus``, decoded with ``codec``, counted in ``stats``, logged to ``log``."""
 
-    def __init__(self, bus: can.BusABC, codec: Codec, stats: Stats, channel: str, log: str | None) -> None:
+    def __init__(
+        self,
+        bus: can.BusABC,
+        codec: Codec,
+        stats: Stats,
+        channel: str,
+        log: str | None,
+        logger: can.Listener | None = None,
+    ) -> None:
+        """``log``: a file to log every frame to; or ``logger``, one shared with other links (not stopped
+        by :meth:`close`)."""
         self.bus = bus
         self.codec = codec
         self.stats = stats
         self.channel = channel
-        self.log = can.Logger(log) if log else None
+        self.log = logger or (can.Logger(log) if log else None)
+        self.owns_log = logger is None
 
     def send(self, frames: list[can.Message]) -> None:
         for frame in frames:
@@ -140,6 +171,6 @@ class Link:
                 return
 
     def close(self) -> None:
-        if self.log:
+        if self.log and self.owns_log:
             self.log.stop()
         self.bus.shutdown()

@@ -98,11 +98,12 @@ class PythonNode(Node):
         onnx: str,
         timeout_ms: int,
         recover: int,
+        node_id: int = 0,
     ) -> None:
         self.open_bus = open_bus
         self.interface = interface
-        self.db = candb.database(interface)
-        self.plan = candb.layout(interface)
+        self.db = candb.database(interface, node_id)
+        self.plan = candb.layout(interface, node_id)
         self.session = ort.InferenceSession(onnx, providers=["CPUExecutionProvider"])
         self.input = self.session.get_inputs()[0].name
         self.timeout_s = timeout_ms / 1000

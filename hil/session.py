@@ -36,7 +36,7 @@ from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode
-from embedrl.train.evaluate import EpisodeResult, run_episode
+from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode
 from embedrl.train.interface import NO_ENV, Interface
 
 TOLERANCE = 1e-5
@@ -44,6 +44,8 @@ NODE_BOOT_S = 1.0
 """The node is up when its first status frame arrives (or after this long)."""
 RETRY_S = 0.25
 """An unanswered step is sent again after this long (or half the node's watchdog, if shorter)."""
+NODE_SEED_STRIDE = 10_000
+"""With several nodes, robot ``k``'s episode ``i`` is seeded ``seed + i + k * NODE_SEED_STRIDE``."""
 OPEN_LOOP_STEPS = 100
 """Observations per open-loop episode."""
 SNAPSHOT_S = 1.0
@@ -70,6 +72,8 @@ class SessionConfig:
     realtime: bool = False
     log: str | None = None
     results: str = "hil_results.json"
+    nodes: int = 1
+    """Nodes on the bus, one robot each (node ``k`` with its own IDs), driven in lock-step."""
     observations: str | None = None
     """Open loop (a policy exported without an env): the export's verification observations (.npy),
     replayed :data:`OPEN_LOOP_STEPS` per episode."""
@@ -111,8 +115,10 @@ class BusPolicy:
         self.previous: list[can.Message] | None = None
         self.retry_s = min(RETRY_S, cfg.node_timeout_ms / 2000)
         self.pending: list[tuple[dict[str, Any], Callable[[], dict[str, Any]]]] = []
-        self.unresolved: list[tuple[dict[str, Any], Injector, dict[str, Any], Any, float]] = []
         """Injections still running (a flood), with the record each completes when its episode ends."""
+        self.unresolved: list[tuple[dict[str, Any], Injector, dict[str, Any], Any, float]] = []
+        """Injection records still waiting for the node's status after them."""
+        self.sent: tuple[list[can.Message], np.ndarray, int, float] = ([], np.zeros(0), 0, 0.0)
 
     def end_episode(self) -> None:
         self._resolve()
@@ -127,7 +133,6 @@ class BusPolicy:
             self.link.stats.step_starts.append([])
 
     def __call__(self, obs: np.ndarray) -> np.ndarray:
-        stats = self.link.stats
         frames, decoded = self.link.codec.encode_observation(obs, self.step)
         if self.cfg.realtime:
             self._pace()
@@ -139,6 +144,29 @@ class BusPolicy:
             action = self._answer(obs)
         else:
             action = self._inject(scheduled, frames, obs)
+        return self._accept(action, decoded, frames, start, sent_at)
+
+    def send(self, obs: np.ndarray) -> None:
+        """The first half of a step in lock-step with other nodes: the observation goes out."""
+        frames, decoded = self.link.codec.encode_observation(obs, self.step)
+        self.sent = (frames, decoded, time.perf_counter_ns(), time.monotonic())
+        self.link.send(frames)
+
+    def collect(self, obs: np.ndarray) -> np.ndarray:
+        """The second half: the node's action for the observation :meth:`send` sent (or NodeFault)."""
+        frames, decoded, start, sent_at = self.sent
+        return self._accept(self._answer(obs), decoded, frames, start, sent_at)
+
+    def _accept(
+        self,
+        action: Action | None,
+        decoded: np.ndarray,
+        frames: list[can.Message],
+        start: int,
+        sent_at: float,
+    ) -> np.ndarray:
+        """Record the node's answer to this step against the ONNX policy; an unanswered step is a fault."""
+        stats = self.link.stats
         if action is None:
             stats.rx_timeouts += 1
             raise NodeFault(self._silence_reason(sent_at))
@@ -241,6 +269,102 @@ class BusPolicy:
         return "no action for the step although the node still sends status"
 
 
+def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
+    """Several nodes on one bus, one robot each (the same scenario, each robot its own seeds), in
+    lock-step: every step all observations go out, then every action is collected. A robot whose node
+    does not answer ends its episode as a fault; the others go on."""
+    logger = can.Logger(cfg.log) if cfg.log else None
+    links: list[Link] = []
+    nodes: list[Node] = []
+    envs: list[gym.Env[np.ndarray, np.ndarray]] = []
+    policies: list[BusPolicy] = []
+    episodes: list[dict[str, Any]] = []
+    try:
+        for k in range(cfg.nodes):
+            codec = Codec(interface, k)
+            links.append(Link(_open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
+            nodes.append(_start_node(cfg, interface, k))
+            policies.append(BusPolicy(cfg, interface, links[k], nodes[k]))
+            envs.append(gym.make(interface.env_id))
+        for link in links:
+            link.wait_status(NODE_BOOT_S)
+        for index in range(cfg.episodes):
+            marks = [len(link.stats.diffs) for link in links]
+            seeds = [node_seed(cfg.seed, index, k) for k in range(cfg.nodes)]
+            rows = _together(policies, envs, seeds, interface.sample_time_s)
+            for k, row in enumerate(rows):
+                diffs = links[k].stats.diffs[marks[k] :]
+                row.update(node=k, injected=[], max_action_abs_diff=max(diffs, default=None))
+            episodes += rows
+            if not all(node.alive() for node in nodes):
+                break  # a node is gone: later episodes could only fail the same way
+        for link in links:
+            link.wait_status(0.3)
+    finally:
+        for node in nodes:
+            node.stop()
+        for link in links:
+            link.close()
+        if logger is not None:
+            logger.stop()
+        for env in envs:
+            env.close()
+    stats = Stats.merged([link.stats for link in links])
+    results = _results(cfg, stats, episodes, [], interface.sample_time_s)
+    results["nodes"] = [
+        {
+            "node_id": k,
+            "status": asdict(link.stats.last_status) if link.stats.last_status else None,
+            "diag": asdict(link.stats.last_diag) if link.stats.last_diag else None,
+        }
+        for k, link in enumerate(links)
+    ]
+    results["crc_errors"] = sum(int(n["status"]["crc_errors"]) for n in results["nodes"] if n["status"])
+    results["sequence_errors"] = sum(
+        int(n["status"]["sequence_errors"]) for n in results["nodes"] if n["status"]
+    )
+    Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
+    return results
+
+
+def _together(
+    policies: list[BusPolicy],
+    envs: list[gym.Env[np.ndarray, np.ndarray]],
+    seeds: list[int],
+    sample_time: float,
+) -> list[dict[str, Any]]:
+    """One episode of every robot at once, step by step over the bus."""
+    obs, totals, rows = {}, {}, {}
+    for k, (env, seed) in enumerate(zip(envs, seeds, strict=True)):
+        obs[k], _ = env.reset(seed=seed)
+        totals[k] = 0.0
+        policies[k].begin_episode()
+    active = list(range(len(envs)))
+    while active:
+        for k in active:
+            policies[k].send(obs[k])
+        for k in list(active):
+            policy, env = policies[k], envs[k]
+            try:
+                action = policy.collect(obs[k])
+            except NodeFault as fault:
+                steps = policy.in_episode
+                rows[k] = {
+                    "seed": seeds[k], "outcome": "fault", "steps": steps, "episode_return": totals[k],
+                    "time_s": steps * sample_time, "collided_with": None,
+                    "trajectory": list(getattr(env.unwrapped, "trajectory", [])), "fault": str(fault),
+                }  # fmt: skip
+                active.remove(k)
+                continue
+            obs[k], reward, terminated, truncated, info = env.step(action)
+            totals[k] += float(reward)
+            if terminated or truncated:
+                result = episode_result(env, seeds[k], info, policy.in_episode, totals[k], sample_time)
+                rows[k] = {**asdict(result), "fault": None}
+                active.remove(k)
+    return [rows[k] for k in range(len(envs))]
+
+
 def _replay(policy: BusPolicy, observations: Any, index: int, seed: int, sample_time: float) -> EpisodeResult:
     """Open loop: the next :data:`OPEN_LOOP_STEPS` recorded observations over the bus, each action
     compared with the ONNX policy's (there is no plant to apply it to)."""
@@ -273,27 +397,38 @@ def _detected(
     return any(new[key] > old[key] for key in injector.detects.split("|"))
 
 
-def _start_node(cfg: SessionConfig, interface: Interface) -> Node:
+def node_seed(seed: int, episode: int, node_id: int) -> int:
+    """The seed of robot ``node_id``'s episode ``episode`` (:data:`NODE_SEED_STRIDE`)."""
+    return seed + episode + node_id * NODE_SEED_STRIDE
+
+
+def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> Node:
     if cfg.node == "python":
         return PythonNode(
             lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
-            interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover,
+            interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover, node_id,
         )  # fmt: skip
     if cfg.node_binary is None:
         raise ValueError("the C node needs node_binary")
-    return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover)
+    return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
+
+
+def _open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
+    """The simulator's socket for one node: only that node's IDs pass (in the kernel on SocketCAN)."""
+    return can.Bus(
+        interface=cfg.bus, channel=cfg.iface, receive_own_messages=False,
+        can_filters=[{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in codec.receive_ids],
+    )  # fmt: skip
 
 
 def run(cfg: SessionConfig) -> dict[str, Any]:
     """Run the episodes; return the results (also written to cfg.results)."""
     interface = candb.load_interface(Path(cfg.interface))
     stats = Stats()
+    if cfg.nodes > 1:
+        return _run_nodes(cfg, interface)
     codec = Codec(interface)
-    bus = can.Bus(
-        interface=cfg.bus, channel=cfg.iface, receive_own_messages=False,
-        can_filters=[{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in codec.receive_ids],
-    )  # fmt: skip
-    link = Link(bus, codec, stats, cfg.iface, cfg.log)
+    link = Link(_open_bus(cfg, codec), codec, stats, cfg.iface, cfg.log)
     node = _start_node(cfg, interface)
     policy = BusPolicy(cfg, interface, link, node)
     open_loop = interface.env_id == NO_ENV

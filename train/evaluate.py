@@ -139,6 +139,19 @@ def run_episode(
         steps += 1
         if terminated or truncated:
             break
+    return episode_result(env, seed, info, steps, total, sample_time)
+
+
+def episode_result(
+    env: gym.Env[np.ndarray, np.ndarray],
+    seed: int,
+    info: dict[str, Any],
+    steps: int,
+    total: float,
+    sample_time: float,
+) -> EpisodeResult:
+    """The result of an episode that just ended with ``info``: its outcome from ``is_success`` and
+    ``collided`` (an env without them only times out), its trajectory if the env keeps one."""
     if info.get("is_success"):
         outcome = "success"
     elif info.get("collided"):
