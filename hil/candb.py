@@ -20,7 +20,7 @@ module generates the node's C: cantools' codec (``policy_dbc.c/h``) and the glue
 policy's observation and action vectors (``policy_io.c/h``), both never edited by hand.
 
 Run as ``python -m embedrl.hil.candb (--scenario NAME | --interface FILE) --out DIR [--dbc-only]
-[--use-float] [--nodes N]``.
+[--use-float] [--nodes N] [--fd]``.
 """
 
 from __future__ import annotations
@@ -30,12 +30,16 @@ import json
 import math
 import string
 import sys
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 from cantools.database.can import Database, Message, Node, Signal
 from cantools.database.can.c_source import camel_to_snake_case
 from cantools.database.can.c_source import generate as generate_c
+from cantools.database.can.formats.dbc.dbc_attribute import DbcAttribute
+from cantools.database.can.formats.dbc.dbc_attribute_definition import DbcAttributeDefinition
+from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
 from cantools.database.conversion import BaseConversion
 
 from embedrl.export.ops.base import c_float
@@ -52,9 +56,12 @@ MAX_NODES = 8
 its NodeStatus and NodeDiag ``0x300 + 2k`` and ``0x301 + 2k``. Node 0's are the IDs above."""
 NODE_STRIDE = 0x20
 FRAME_BYTES = 8
+FD_FRAME_BYTES = 64
+"""``fd=True``: observations and actions in CAN FD frames of 64 bytes, 24 values each (status: classic)."""
 VALUE_BITS = 20
+HEADER_BITS = 24
+"""Crc, Counter and Step before the values."""
 VALUES_PER_FRAME = 2
-VALUE_START_BITS = (24, 44)
 FINEST_SCALE = 2.0**-18
 """Quantisation step of every field unless its range needs a coarser one: the rounding error is at most
 half of it, 1.9e-6, five times below the export's verification tolerance of 1e-5."""
@@ -102,6 +109,12 @@ class Layout:
     observation: tuple[tuple[str, int, tuple[Slot, ...]], ...]
     """(message name, frame ID, slots) per observation frame."""
     action: tuple[tuple[str, int, tuple[Slot, ...]], ...]
+    fd: bool = False
+    """CAN FD frames of :data:`FD_FRAME_BYTES` (else classic, :data:`FRAME_BYTES`)."""
+
+    @property
+    def frame_bytes(self) -> int:
+        return FD_FRAME_BYTES if self.fd else FRAME_BYTES
 
     @property
     def observation_slots(self) -> tuple[Slot, ...]:
@@ -131,29 +144,36 @@ def rounding_errors(interface: Interface) -> dict[str, float]:
     }
 
 
+def values_per_frame(fd: bool) -> int:
+    return (8 * FD_FRAME_BYTES - HEADER_BITS) // VALUE_BITS if fd else VALUES_PER_FRAME
+
+
 def _frames(
-    prefix: str, first_id: int, fields: tuple[Field, ...]
+    prefix: str, first_id: int, fields: tuple[Field, ...], fd: bool
 ) -> tuple[tuple[str, int, tuple[Slot, ...]], ...]:
-    count = math.ceil(len(fields) / VALUES_PER_FRAME)
+    per_frame = values_per_frame(fd)
+    count = math.ceil(len(fields) / per_frame)
     if count > MAX_FRAMES:
+        kind = "CAN FD" if fd else "classic CAN (--fd carries 24 a frame)"
         raise HilError(
-            f"{len(fields)} {prefix.lower()} fields need {count} classic CAN frames; at most {MAX_FRAMES}"
+            f"{len(fields)} {prefix.lower()} fields need {count} {kind} frames; at most {MAX_FRAMES}"
         )
     frames = []
     for k in range(count):
         name = prefix if count == 1 and prefix == "Action" else f"{prefix}{string.ascii_uppercase[k]}"
-        chunk = range(k * VALUES_PER_FRAME, min(len(fields), (k + 1) * VALUES_PER_FRAME))
+        chunk = range(k * per_frame, min(len(fields), (k + 1) * per_frame))
         slots = tuple(Slot(i, fields[i], name, fields[i].camel, scale_of(fields[i])) for i in chunk)
         frames.append((name, first_id + k, slots))
     return tuple(frames)
 
 
-def layout(interface: Interface, node_id: int = 0) -> Layout:
-    """Node ``node_id``'s messages (:data:`MAX_NODES`)."""
+def layout(interface: Interface, node_id: int = 0, fd: bool = False) -> Layout:
+    """Node ``node_id``'s messages (:data:`MAX_NODES`), classic or CAN FD."""
     _check_node_id(node_id)
     return Layout(
-        _frames("Observation", OBSERVATION_FIRST_ID + node_id * NODE_STRIDE, interface.observation),
-        _frames("Action", ACTION_FIRST_ID + node_id * NODE_STRIDE, interface.action),
+        _frames("Observation", OBSERVATION_FIRST_ID + node_id * NODE_STRIDE, interface.observation, fd),
+        _frames("Action", ACTION_FIRST_ID + node_id * NODE_STRIDE, interface.action, fd),
+        fd,
     )
 
 
@@ -198,15 +218,29 @@ def _round(value: float) -> float:
     return float(f"{value:.9g}")
 
 
-def database(interface: Interface, node_id: int = 0) -> Database:
+def database(interface: Interface, node_id: int = 0, fd: bool = False) -> Database:
     """The cantools database of node ``node_id`` running a policy with this interface."""
-    messages = node_messages(interface, node_id)
-    return Database(messages, [Node(SIMULATOR, None), Node(NODE, None)], version=f"embedrl {interface.name}")
+    messages = node_messages(interface, node_id, fd=fd)
+    nodes = [Node(SIMULATOR, None), Node(NODE, None)]
+    return Database(
+        messages, nodes, version=f"embedrl {interface.name}", dbc_specifics=_fd_bus() if fd else None
+    )
 
 
-def node_messages(interface: Interface, node_id: int = 0, ecu: str = NODE, suffix: str = "") -> list[Message]:
+def _fd_bus() -> DbcSpecifics:
+    """The DBC attribute that marks a CAN FD bus (its messages then get VFrameFormat CAN FD)."""
+    bus_type = DbcAttributeDefinition("BusType", default_value="CAN", type_name="STRING")
+    return DbcSpecifics(
+        attributes=OrderedDict(BusType=DbcAttribute("CAN FD", bus_type)),
+        attribute_definitions=OrderedDict(BusType=bus_type),
+    )
+
+
+def node_messages(
+    interface: Interface, node_id: int = 0, ecu: str = NODE, suffix: str = "", fd: bool = False
+) -> list[Message]:
     """Node ``node_id``'s messages, sent and received by ``ecu``, their names ending in ``suffix``."""
-    plan = layout(interface, node_id)
+    plan = layout(interface, node_id, fd)
     messages = []
     for group, sender, receiver, step_comment in (
         (
@@ -219,15 +253,16 @@ def node_messages(interface: Interface, node_id: int = 0, ecu: str = NODE, suffi
     ):
         for name, frame_id, slots in group:
             signals = _header(receiver, step_comment)
-            signals += [_value(s, receiver, VALUE_START_BITS[i]) for i, s in enumerate(slots)]
+            signals += [_value(s, receiver, HEADER_BITS + VALUE_BITS * i) for i, s in enumerate(slots)]
             messages.append(
                 Message(
                     frame_id,
                     name + suffix,
-                    FRAME_BYTES,
+                    plan.frame_bytes,
                     signals,
                     senders=[sender],
                     comment=_comment(name, slots),
+                    is_fd=fd,
                 )
             )
     status = [
@@ -280,7 +315,7 @@ def node_messages(interface: Interface, node_id: int = 0, ecu: str = NODE, suffi
     return messages
 
 
-def bus_database(interface: Interface, nodes: int) -> Database:
+def bus_database(interface: Interface, nodes: int, fd: bool = False) -> Database:
     """The database of ``nodes`` nodes on one bus running this policy: every node's messages, their
     names suffixed with the node ID beyond node 0 (``Action_1``), nodes ``NODE``, ``NODE_1``, ..."""
     if not 1 <= nodes <= MAX_NODES:
@@ -289,28 +324,30 @@ def bus_database(interface: Interface, nodes: int) -> Database:
     for k in range(nodes):
         ecu, suffix = (NODE, "") if k == 0 else (f"{NODE}_{k}", f"_{k}")
         ecus.append(Node(ecu, None))
-        messages += node_messages(interface, k, ecu, suffix)
-    return Database(messages, ecus, version=f"embedrl {interface.name} x{nodes}")
+        messages += node_messages(interface, k, ecu, suffix, fd)
+    return Database(
+        messages, ecus, version=f"embedrl {interface.name} x{nodes}", dbc_specifics=_fd_bus() if fd else None
+    )
 
 
 def _comment(name: str, slots: tuple[Slot, ...]) -> str:
     return f"{name}: " + ", ".join(f"{s.field.name} (field {s.index})" for s in slots)
 
 
-def dbc_text(interface: Interface) -> str:
-    return str(database(interface).as_dbc_string())
+def dbc_text(interface: Interface, fd: bool = False) -> str:
+    return str(database(interface, fd=fd).as_dbc_string())
 
 
-def c_sources(interface: Interface, use_float: bool = False) -> dict[str, str]:
+def c_sources(interface: Interface, use_float: bool = False, fd: bool = False) -> dict[str, str]:
     """The node's generated C for this interface: cantools' codec and the frame <-> vector glue.
 
     ``use_float``: cantools' scaling in ``float`` instead of ``double`` (cores without double-precision
     hardware, e.g. a Cortex-M4F)."""
-    db = database(interface)
+    db = database(interface, fd=fd)
     header, source, _, _ = generate_c(
         db, DATABASE_NAME, f"{DATABASE_NAME}.h", f"{DATABASE_NAME}.c", "unused_fuzzer.c", use_float=use_float
     )
-    io_h, io_c = _glue(interface, layout(interface))
+    io_h, io_c = _glue(interface, layout(interface, fd=fd))
     return {
         f"{DATABASE_NAME}.h": header,
         f"{DATABASE_NAME}.c": source,
@@ -346,7 +383,8 @@ def _glue(interface: Interface, plan: Layout) -> tuple[str, str]:
 #define POLICY_IO_MAX_NODES {MAX_NODES}u
 #define POLICY_IO_NODE_STRIDE 0x{NODE_STRIDE:X}u /* node k: observation and action IDs + k * stride */
 #define POLICY_IO_STATUS_STRIDE 2u /* node k: NodeStatus and NodeDiag IDs + 2k */
-#define POLICY_IO_FRAME_BYTES {FRAME_BYTES}u
+#define POLICY_IO_FRAME_BYTES {plan.frame_bytes}u
+#define POLICY_IO_FD {int(plan.fd)} /* 1: observation and action frames are CAN FD */
 #define POLICY_IO_STEP_MODULO {STEP_MODULO}u
 #define POLICY_IO_STATUS_PERIOD_MS {STATUS_PERIOD_MS}u /* NodeStatus cycle time in the DBC */
 #define POLICY_IO_WATCHDOG_MS {WATCHDOG_MS}u /* default: no valid observation this long -> SAFE */
@@ -457,13 +495,18 @@ def load_interface(path: Path) -> Interface:
 
 
 def write(
-    interface: Interface, out: Path, dbc_only: bool = False, use_float: bool = False, nodes: int = 1
+    interface: Interface,
+    out: Path,
+    dbc_only: bool = False,
+    use_float: bool = False,
+    nodes: int = 1,
+    fd: bool = False,
 ) -> list[Path]:
     """Write ``policy.dbc`` (``nodes`` nodes on one bus) and unless ``dbc_only`` the node's generated C
     (the same for every node: a node offsets its IDs by its ``--node-id`` at run time) into ``out``."""
     out.mkdir(parents=True, exist_ok=True)
-    dbc = dbc_text(interface) if nodes == 1 else str(bus_database(interface, nodes).as_dbc_string())
-    files = {"policy.dbc": dbc} | ({} if dbc_only else c_sources(interface, use_float))
+    dbc = dbc_text(interface, fd) if nodes == 1 else str(bus_database(interface, nodes, fd).as_dbc_string())
+    files = {"policy.dbc": dbc} | ({} if dbc_only else c_sources(interface, use_float, fd))
     written = []
     for name, text in files.items():
         (out / name).write_text(text)
@@ -480,12 +523,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dbc-only", action="store_true")
     parser.add_argument("--nodes", type=int, default=1, help=f"nodes on one bus (1..{MAX_NODES})")
     parser.add_argument(
+        "--fd", action="store_true", help="observations and actions in CAN FD frames (64 bytes)"
+    )
+    parser.add_argument(
         "--use-float", action="store_true", help="scale signals in float (cores without double-precision FPU)"
     )
     args = parser.parse_args(argv)
     try:
         interface = SCENARIOS[args.scenario] if args.scenario else load_interface(args.interface)
-        write(interface, args.out, args.dbc_only, args.use_float, args.nodes)
+        write(interface, args.out, args.dbc_only, args.use_float, args.nodes, args.fd)
     except (HilError, InterfaceError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

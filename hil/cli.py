@@ -103,6 +103,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
         realtime=args.realtime,
         inject=tuple(args.inject),
         nodes=args.nodes,
+        fd=args.fd,
         observations=str(observations) if observations.is_file() else None,
         **where,
     )
@@ -135,7 +136,7 @@ def _build_and_run(
 
     print(f"building the node: make -C runtime_c node POLICY_DIR={export_dir / 'c'}")
     try:
-        build.make("node", export_dir / "c", work / "build")
+        build.make("node", export_dir / "c", work / "build", extra={"FD": "1"} if args.fd else None)
     except BuildError as exc:
         raise HilError(str(exc)) from None
     with nullcontext(guest) if guest else sandbox.opened(args.sandbox, work / "sandbox") as where:
@@ -442,6 +443,11 @@ def register(sub: Any) -> None:
         help="pass even if episodes end in a fault (fault-injection runs); by default a fault fails the run",
     )
     r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
+    r.add_argument(
+        "--fd",
+        action="store_true",
+        help="observation and action frames in CAN FD (64 bytes, 24 values each; vcan carries them)",
+    )
     r.add_argument(
         "--nodes",
         type=int,

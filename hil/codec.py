@@ -58,10 +58,10 @@ def decode_fields(message: cantools.database.can.Message, data: bytes) -> dict[s
 class Codec:
     """Both directions of the simulator's side; E2E counters and checks included."""
 
-    def __init__(self, interface: Interface, node_id: int = 0) -> None:
+    def __init__(self, interface: Interface, node_id: int = 0, fd: bool = False) -> None:
         self.interface = interface
-        self.db = candb.database(interface, node_id)
-        self.plan = candb.layout(interface, node_id)
+        self.db = candb.database(interface, node_id, fd)
+        self.plan = candb.layout(interface, node_id, fd)
         self.counters: dict[str, int] = {}
         self.receivers: dict[int, e2e.Receiver] = {}
         self.crc_errors = 0
@@ -109,7 +109,9 @@ class Codec:
             }
             payload.update({s.signal: float(values[s.index]) for s in slots})
             data = e2e.protect(frame_id, message.encode(payload, scaling=True, strict=False))
-            frames.append(can.Message(arbitration_id=frame_id, data=data, is_extended_id=False))
+            frames.append(
+                can.Message(arbitration_id=frame_id, data=data, is_extended_id=False, is_fd=self.plan.fd)
+            )
             back = decode_fields(message, data)
             for s in slots:
                 decoded[s.index] = back[s.signal]
@@ -134,7 +136,8 @@ class Codec:
         """A complete E2E-valid action (all its frames for one step), a NodeStatus or a NodeDiag, else
         None (other IDs, bad CRC, repeated or old counter, an action still missing frames)."""
         known = msg.arbitration_id in self.receive_ids
-        if msg.is_extended_id or not known or msg.dlc != candb.FRAME_BYTES:
+        length = self.plan.frame_bytes if msg.arbitration_id in self.action_parts else candb.FRAME_BYTES
+        if msg.is_extended_id or not known or msg.dlc != length:
             return None
         fields = self._checked(msg)
         if fields is None:

@@ -16,8 +16,9 @@ RESYNC_FRAMES = 2
 
 
 def crc8(data_id: int, data: bytes) -> int:
+    """CRC over the data ID and bytes 1 .. len - 1 (8 bytes classic, up to 64 CAN FD)."""
     crc = 0xFF
-    for byte in (data_id & 0xFF, (data_id >> 8) & 0xFF, *data[1:8]):
+    for byte in (data_id & 0xFF, (data_id >> 8) & 0xFF, *data[1:]):
         crc ^= byte
         for _ in range(8):
             crc = ((crc << 1) ^ CRC8_POLY) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
@@ -26,11 +27,11 @@ def crc8(data_id: int, data: bytes) -> int:
 
 def protect(data_id: int, data: bytes) -> bytes:
     """The frame with its CRC in byte 0."""
-    return bytes([crc8(data_id, data)]) + bytes(data[1:8])
+    return bytes([crc8(data_id, data)]) + bytes(data[1:])
 
 
 def crc_ok(data_id: int, data: bytes) -> bool:
-    return len(data) == 8 and data[0] == crc8(data_id, data)
+    return len(data) >= 2 and data[0] == crc8(data_id, data)
 
 
 @dataclass

@@ -58,6 +58,7 @@ class CNode(Node):
     """``policy_node --iface IFACE --timeout-ms T --recover K`` as a child process."""
 
     def __init__(self, binary: str, iface: str, timeout_ms: int, recover: int, node_id: int = 0) -> None:
+        """The binary was built for classic CAN or CAN FD (``make node FD=1``); it knows which."""
         self.argv = [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover),
                      "--node-id", str(node_id)]  # fmt: skip
         self.process = self._start()
@@ -99,11 +100,12 @@ class PythonNode(Node):
         timeout_ms: int,
         recover: int,
         node_id: int = 0,
+        fd: bool = False,
     ) -> None:
         self.open_bus = open_bus
         self.interface = interface
-        self.db = candb.database(interface, node_id)
-        self.plan = candb.layout(interface, node_id)
+        self.db = candb.database(interface, node_id, fd)
+        self.plan = candb.layout(interface, node_id, fd)
         self.session = ort.InferenceSession(onnx, providers=["CPUExecutionProvider"])
         self.input = self.session.get_inputs()[0].name
         self.timeout_s = timeout_ms / 1000
@@ -180,6 +182,7 @@ class PythonNode(Node):
                 arbitration_id=message.frame_id,
                 data=e2e.protect(message.frame_id, data),
                 is_extended_id=False,
+                is_fd=message.is_fd,
             )
         )
 
@@ -227,7 +230,7 @@ class PythonNode(Node):
         return max(0.0, min(self.next_status - now, self.timeout_s))
 
     def _on_frame(self, msg: can.Message, now: float) -> None:
-        if msg.is_extended_id or msg.arbitration_id not in self.rx or msg.dlc != candb.FRAME_BYTES:
+        if msg.is_extended_id or msg.arbitration_id not in self.rx or msg.dlc != self.plan.frame_bytes:
             return  # not an observation frame: the C node counts it as rejected
         data = bytes(msg.data)
         if not e2e.crc_ok(msg.arbitration_id, data):

@@ -72,6 +72,8 @@ class SessionConfig:
     realtime: bool = False
     log: str | None = None
     results: str = "hil_results.json"
+    fd: bool = False
+    """Observation and action frames in CAN FD (the C node built with ``FD=1``)."""
     nodes: int = 1
     """Nodes on the bus, one robot each (node ``k`` with its own IDs), driven in lock-step."""
     observations: str | None = None
@@ -281,7 +283,7 @@ def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
     episodes: list[dict[str, Any]] = []
     try:
         for k in range(cfg.nodes):
-            codec = Codec(interface, k)
+            codec = Codec(interface, k, cfg.fd)
             links.append(Link(_open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
             nodes.append(_start_node(cfg, interface, k))
             policies.append(BusPolicy(cfg, interface, links[k], nodes[k]))
@@ -405,8 +407,8 @@ def node_seed(seed: int, episode: int, node_id: int) -> int:
 def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> Node:
     if cfg.node == "python":
         return PythonNode(
-            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
-            interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover, node_id,
+            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False, fd=cfg.fd),
+            interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.fd,
         )  # fmt: skip
     if cfg.node_binary is None:
         raise ValueError("the C node needs node_binary")
@@ -416,7 +418,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
 def _open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
     """The simulator's socket for one node: only that node's IDs pass (in the kernel on SocketCAN)."""
     return can.Bus(
-        interface=cfg.bus, channel=cfg.iface, receive_own_messages=False,
+        interface=cfg.bus, channel=cfg.iface, receive_own_messages=False, fd=cfg.fd,
         can_filters=[{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in codec.receive_ids],
     )  # fmt: skip
 
@@ -427,7 +429,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     stats = Stats()
     if cfg.nodes > 1:
         return _run_nodes(cfg, interface)
-    codec = Codec(interface)
+    codec = Codec(interface, fd=cfg.fd)
     link = Link(_open_bus(cfg, codec), codec, stats, cfg.iface, cfg.log)
     node = _start_node(cfg, interface)
     policy = BusPolicy(cfg, interface, link, node)

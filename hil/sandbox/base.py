@@ -29,11 +29,13 @@ POLL_S = 0.02
 STOP_TIMEOUT_S = 30.0
 """How long a guest may take to shut down after the host asked it to."""
 VCAN_UP = f"""if ip link add dev {IFACE} type vcan || [ -e /sys/class/net/{IFACE} ]; then
+    ip link set {IFACE} mtu 72 || echo "embedrl: {IFACE} cannot carry CAN FD (mtu 72 refused)"
     ip link set up {IFACE} || echo "embedrl: no {IFACE} (ip link set up failed)"
 else
     echo "embedrl: no {IFACE} (ip link add failed)"
 fi"""
-"""Guest shell code that brings ``vcan0`` up once the CAN modules are loaded; failures go to the console."""
+"""Guest shell code that brings ``vcan0`` up, CAN FD capable (MTU 72, classic frames pass as well), once
+the CAN modules are loaded; failures go to the console."""
 OUTPUT_LINES = 6
 """Lines of a failed job's output quoted in an error."""
 

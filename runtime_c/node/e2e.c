@@ -13,25 +13,25 @@ static uint8_t crc8_update(uint8_t crc, uint8_t byte)
     return crc;
 }
 
-uint8_t e2e_crc8(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES])
+uint8_t e2e_crc8(uint32_t data_id, const uint8_t *data, unsigned len)
 {
     uint8_t crc = CRC8_INIT;
     crc = crc8_update(crc, (uint8_t)(data_id & 0xFFu));
     crc = crc8_update(crc, (uint8_t)((data_id >> 8) & 0xFFu));
-    for (unsigned i = 1; i < E2E_FRAME_BYTES; ++i) {
+    for (unsigned i = 1; i < len && i < E2E_MAX_FRAME_BYTES; ++i) {
         crc = crc8_update(crc, data[i]);
     }
     return (uint8_t)(crc ^ CRC8_XOR_OUT);
 }
 
-void e2e_protect(uint32_t data_id, uint8_t data[E2E_FRAME_BYTES])
+void e2e_protect(uint32_t data_id, uint8_t *data, unsigned len)
 {
-    data[0] = e2e_crc8(data_id, data);
+    data[0] = e2e_crc8(data_id, data, len);
 }
 
-bool e2e_crc_ok(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES])
+bool e2e_crc_ok(uint32_t data_id, const uint8_t *data, unsigned len)
 {
-    return data[0] == e2e_crc8(data_id, data);
+    return data[0] == e2e_crc8(data_id, data, len);
 }
 
 e2e_status e2e_check_counter(e2e_receiver *rx, uint8_t counter)

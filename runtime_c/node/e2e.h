@@ -10,7 +10,8 @@
 #include <stdbool.h>
 #include <stdint.h>
 
-#define E2E_FRAME_BYTES 8u
+#define E2E_FRAME_BYTES 8u   /* classic CAN; a CAN FD frame protects all of its len bytes */
+#define E2E_MAX_FRAME_BYTES 64u
 #define E2E_COUNTER_MODULO 16u
 #define E2E_MAX_FORWARD_JUMP 7u /* larger "forward" deltas are treated as old frames */
 #define E2E_RESYNC_FRAMES 2u    /* consecutive counters that re-establish a sequence the receiver lost */
@@ -33,12 +34,13 @@ typedef struct {
     uint8_t candidate_run;
 } e2e_receiver;
 
-uint8_t e2e_crc8(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES]);
+/* CRC over the data ID and bytes 1 .. len - 1 (len 8 for classic CAN, up to 64 for CAN FD). */
+uint8_t e2e_crc8(uint32_t data_id, const uint8_t *data, unsigned len);
 
 /* Write the CRC into byte 0 (the counter must already be packed). */
-void e2e_protect(uint32_t data_id, uint8_t data[E2E_FRAME_BYTES]);
+void e2e_protect(uint32_t data_id, uint8_t *data, unsigned len);
 
-bool e2e_crc_ok(uint32_t data_id, const uint8_t data[E2E_FRAME_BYTES]);
+bool e2e_crc_ok(uint32_t data_id, const uint8_t *data, unsigned len);
 
 /* Check the alive counter of a frame whose CRC is good. Accepts the first frame and every frame
  * whose counter is one more than the last accepted one; a forward jump of up to

@@ -41,7 +41,7 @@ static void reopen(node_t *node, const char *iface, const uint32_t *ids)
     fprintf(stderr, "policy_node: CAN interface %s failed; SAFE until it is back\n", iface);
     transport_close();
     node_link_lost(node, clock_ms());
-    while (!stop && transport_open(iface, ids, POLICY_IO_OBS_FRAMES) != 0) {
+    while (!stop && transport_open(iface, ids, POLICY_IO_OBS_FRAMES, POLICY_IO_FD) != 0) {
         (void)node_poll(node, clock_ms()); /* status and safe action go nowhere: counted as send failures */
         sleep_ms(REOPEN_MS);
     }
@@ -102,7 +102,7 @@ int main(int argc, char **argv)
     for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
         ids[k] = POLICY_IO_OBS_FIRST_ID + config.node_id * POLICY_IO_NODE_STRIDE + k;
     }
-    if (transport_open(iface, ids, POLICY_IO_OBS_FRAMES) != 0) {
+    if (transport_open(iface, ids, POLICY_IO_OBS_FRAMES, POLICY_IO_FD) != 0) {
         fprintf(stderr, "policy_node: %s\n", transport_error());
         return 1;
     }

@@ -47,7 +47,7 @@ static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t 
     for (unsigned part = 0; part < POLICY_IO_ACT_FRAMES; ++part) {
         can_frame_t frame = {node->act_first_id + part, POLICY_IO_FRAME_BYTES, {0}};
         node->saturations += policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
-        e2e_protect(frame.id, frame.data);
+        e2e_protect(frame.id, frame.data, frame.len);
         node->action_counter[part] = (uint8_t)((node->action_counter[part] + 1u) % E2E_COUNTER_MODULO);
         send_frame(node, &frame);
     }
@@ -67,7 +67,7 @@ static void send_status(node_t *node)
     msg.timeouts = (uint8_t)saturate(node->timeouts, U8_MAX);
     msg.inference_us = (uint16_t)saturate(node->inference_us, INFERENCE_US_MAX);
     policy_dbc_node_status_pack(frame.data, &msg, sizeof frame.data);
-    e2e_protect(frame.id, frame.data);
+    e2e_protect(frame.id, frame.data, frame.len);
     node->status_counter = (uint8_t)((node->status_counter + 1u) % E2E_COUNTER_MODULO);
     send_frame(node, &frame);
 
@@ -84,7 +84,7 @@ static void send_status(node_t *node)
     diag.send_failures = (uint8_t)saturate(node->send_failures, U8_MAX);
     diag.link_resets = (uint8_t)saturate(node->link_resets, LINK_RESETS_MAX);
     policy_dbc_node_diag_pack(diag_frame.data, &diag, sizeof diag_frame.data);
-    e2e_protect(diag_frame.id, diag_frame.data);
+    e2e_protect(diag_frame.id, diag_frame.data, diag_frame.len);
     node->diag_counter = (uint8_t)((node->diag_counter + 1u) % E2E_COUNTER_MODULO);
     send_frame(node, &diag_frame);
 }
@@ -142,7 +142,7 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
         return;
     }
     unsigned part = (unsigned)(frame->id - node->obs_first_id);
-    if (!e2e_crc_ok(frame->id, frame->data)) {
+    if (!e2e_crc_ok(frame->id, frame->data, frame->len)) {
         node->crc_errors++;
         node->consecutive_valid = 0;
         return;

@@ -7,10 +7,12 @@
 
 #include <stdint.h>
 
+#define CAN_FRAME_MAX_BYTES 64u /* CAN FD; classic frames use 8 */
+
 typedef struct {
     uint32_t id;
     uint8_t len;
-    uint8_t data[8];
+    uint8_t data[CAN_FRAME_MAX_BYTES];
 } can_frame_t;
 
 typedef enum {
@@ -22,8 +24,8 @@ typedef enum {
 
 /* Open the CAN interface, subscribed (in the kernel, CAN_RAW_FILTER) to the standard-ID data frames
  * ids[0..count-1] only, and to the controller's error frames. 0 on success (the interface exists and
- * is up); otherwise -1 and transport_error() says why. */
-int transport_open(const char *iface, const uint32_t *ids, unsigned count);
+ * is up); otherwise -1 and transport_error() says why. fd: also send and receive CAN FD frames. */
+int transport_open(const char *iface, const uint32_t *ids, unsigned count, int fd);
 /* Wait up to timeout_ms for a frame or a bus-state change. bus_state: 0 active, 1 error passive,
  * 2 bus-off (node_bus_state). */
 transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t timeout_ms);

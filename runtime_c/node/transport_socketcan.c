@@ -41,7 +41,9 @@ const char *transport_error(void)
     return error_text;
 }
 
-int transport_open(const char *iface, const uint32_t *ids, unsigned count)
+static int fd_frames;
+
+int transport_open(const char *iface, const uint32_t *ids, unsigned count, int fd)
 {
     struct ifreq ifr;
     struct sockaddr_can addr;
@@ -76,6 +78,20 @@ int transport_open(const char *iface, const uint32_t *ids, unsigned count)
         setsockopt(sock, SOL_CAN_RAW, CAN_RAW_ERR_FILTER, &err_mask, sizeof err_mask) < 0) {
         return fail("CAN_RAW_FILTER on", iface);
     }
+    fd_frames = fd != 0;
+    if (fd_frames) {
+        int on = 1;
+        if (setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FD_FRAMES, &on, sizeof on) < 0) {
+            return fail("CAN FD (CAN_RAW_FD_FRAMES) on", iface);
+        }
+        if (ioctl(sock, SIOCGIFMTU, &ifr) < 0 || ifr.ifr_mtu != (int)CANFD_MTU) {
+            errno = EPROTONOSUPPORT;
+            return fail("not a CAN FD interface (its MTU must be 72):", iface);
+        }
+        if (ioctl(sock, SIOCGIFINDEX, &ifr) < 0) {
+            return fail("no CAN interface", iface);
+        }
+    }
     memset(&addr, 0, sizeof addr);
     addr.can_family = AF_CAN;
     addr.can_ifindex = ifr.ifr_ifindex;
@@ -108,7 +124,7 @@ static int bus_state_of(const struct can_frame *raw)
 transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t timeout_ms)
 {
     struct pollfd pfd = {sock, POLLIN, 0};
-    struct can_frame raw;
+    struct canfd_frame raw; /* a classic frame arrives as CAN_MTU bytes of the same layout */
     int ready = poll(&pfd, 1, (int)timeout_ms);
     if (ready == 0 || (ready < 0 && errno == EINTR)) {
         return TRANSPORT_TIMEOUT;
@@ -116,21 +132,23 @@ transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t 
     if (ready < 0 || (pfd.revents & (POLLERR | POLLHUP | POLLNVAL))) {
         return TRANSPORT_FAILED; /* e.g. ENETDOWN after `ip link set ... down` */
     }
+    memset(&raw, 0, sizeof raw);
     ssize_t n = read(sock, &raw, sizeof raw);
-    if (n != (ssize_t)sizeof raw) {
+    if (n != (ssize_t)CAN_MTU && n != (ssize_t)CANFD_MTU) {
         return n < 0 && errno == EINTR ? TRANSPORT_TIMEOUT : TRANSPORT_FAILED;
     }
     if (raw.can_id & CAN_ERR_FLAG) {
-        int state = bus_state_of(&raw);
+        int state = bus_state_of((const struct can_frame *)(const void *)&raw);
         if (state < 0) {
             return TRANSPORT_TIMEOUT;
         }
         *bus_state = (uint8_t)state;
         return TRANSPORT_BUS_STATE;
     }
+    unsigned max = n == (ssize_t)CANFD_MTU ? CANFD_MAX_DLEN : CAN_MAX_DLEN;
     frame->id = raw.can_id & CAN_EFF_MASK;
-    frame->len = raw.can_dlc > 8u ? 8u : raw.can_dlc;
-    memcpy(frame->data, raw.data, 8);
+    frame->len = (uint8_t)(raw.len > max ? max : raw.len);
+    memcpy(frame->data, raw.data, max);
     if (raw.can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG)) {
         frame->len = 0xFFu; /* extended or remote frames are never valid here */
     }
@@ -139,15 +157,16 @@ transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t 
 
 int transport_send(const can_frame_t *frame)
 {
-    struct can_frame raw;
-    if (sock < 0) {
+    struct canfd_frame raw;
+    if (sock < 0 || frame->len > CANFD_MAX_DLEN) {
         return -1;
     }
     memset(&raw, 0, sizeof raw);
     raw.can_id = frame->id;
-    raw.can_dlc = frame->len;
+    raw.len = frame->len;
     memcpy(raw.data, frame->data, frame->len);
-    return write(sock, &raw, sizeof raw) == (ssize_t)sizeof raw ? 0 : -1;
+    size_t size = frame->len > CAN_MAX_DLEN ? CANFD_MTU : CAN_MTU; /* longer than 8 bytes: an FD frame */
+    return write(sock, &raw, size) == (ssize_t)size ? 0 : -1;
 }
 
 void transport_close(void)

@@ -8,11 +8,12 @@ static unsigned sent_count;
 static uint32_t now_us;
 static bool sends_fail;
 
-int transport_open(const char *iface, const uint32_t *ids, unsigned count)
+int transport_open(const char *iface, const uint32_t *ids, unsigned count, int fd)
 {
     (void)iface;
     (void)ids;
     (void)count;
+    (void)fd;
     return 0;
 }
 

@@ -58,7 +58,7 @@ static void check_sent(const node_t *node, int answering)
         if (f->id != POLICY_DBC_ACTION_FRAME_ID) {
             continue;
         }
-        check(e2e_crc_ok(f->id, f->data));
+        check(e2e_crc_ok(f->id, f->data, f->len));
         float act[2];
         uint16_t step;
         decode_action(f, act, &step);
@@ -93,11 +93,13 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
         switch (rec[0] % 4u) {
         case 0: {
             can_frame_t frame;
+            memset(&frame, 0, sizeof frame);
             frame.id = POLICY_IO_OBS_FIRST_ID - 1u + rec[1] % (POLICY_IO_OBS_FRAMES + 2u);
             frame.len = (uint8_t)(rec[2] % 10u);
             memcpy(frame.data, rec + 3, 8);
             unsigned part = frame.id - POLICY_IO_OBS_FIRST_ID;
-            if (part < POLICY_IO_OBS_FRAMES && frame.len == 8u && e2e_crc_ok(frame.id, frame.data)) {
+            if (part < POLICY_IO_OBS_FRAMES && frame.len == POLICY_IO_FRAME_BYTES &&
+                e2e_crc_ok(frame.id, frame.data, frame.len)) {
                 float scratch[POLICY_IO_OBS_DIM];
                 uint16_t step = 0;
                 uint8_t counter = 0;

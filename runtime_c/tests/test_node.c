@@ -58,7 +58,7 @@ static void make_observation(can_frame_t frames[3], uint16_t step, const float o
     policy_dbc_observation_b_pack(frames[1].data, &b, 8);
     policy_dbc_observation_c_pack(frames[2].data, &c, 8);
     for (unsigned i = 0; i < 3; ++i) {
-        e2e_protect(frames[i].id, frames[i].data);
+        e2e_protect(frames[i].id, frames[i].data, 8u);
     }
 }
 
@@ -78,7 +78,7 @@ static int last_action(float act[2], uint16_t *step)
         const can_frame_t *f = fake_sent(i);
         if (f->id == POLICY_DBC_ACTION_FRAME_ID) {
             struct policy_dbc_action_t m;
-            CHECK(e2e_crc_ok(f->id, f->data));
+            CHECK(e2e_crc_ok(f->id, f->data, f->len));
             policy_dbc_action_unpack(&m, f->data, 8);
             act[0] = (float)policy_dbc_action_force_left_decode(m.force_left);
             act[1] = (float)policy_dbc_action_force_right_decode(m.force_right);
@@ -172,7 +172,7 @@ static void test_crc8_reference_vector(void)
 {
     /* CRC-8 SAE J1850 of "123456789" is 0x4B; here the first two bytes go through the data ID. */
     const uint8_t data[8] = {0, '3', '4', '5', '6', '7', '8', '9'};
-    CHECK(e2e_crc8((uint32_t)'1' | ((uint32_t)'2' << 8), data) == 0x4Bu);
+    CHECK(e2e_crc8((uint32_t)'1' | ((uint32_t)'2' << 8), data, 8u) == 0x4Bu);
 }
 
 static void test_valid_observation_gives_one_action(void)
@@ -358,7 +358,7 @@ static void test_status_frame_reports_counters(void)
     CHECK(fake_sent_count() >= 1);
     const can_frame_t *f = fake_sent(0);
     struct policy_dbc_node_status_t s;
-    CHECK(f->id == POLICY_DBC_NODE_STATUS_FRAME_ID && e2e_crc_ok(f->id, f->data));
+    CHECK(f->id == POLICY_DBC_NODE_STATUS_FRAME_ID && e2e_crc_ok(f->id, f->data, f->len));
     policy_dbc_node_status_unpack(&s, f->data, 8);
     CHECK(s.state == 0 && s.frames_ok == 3 && s.crc_errors == 0);
 }
@@ -447,7 +447,7 @@ static void test_link_loss_send_failures_and_bus_state_are_reported(void)
             diag = fake_sent(i);
         }
     }
-    CHECK(diag != NULL && e2e_crc_ok(diag->id, diag->data));
+    CHECK(diag != NULL && e2e_crc_ok(diag->id, diag->data, diag->len));
     if (diag != NULL) {
         struct policy_dbc_node_diag_t d;
         policy_dbc_node_diag_unpack(&d, diag->data, 8);
@@ -468,12 +468,12 @@ static void test_a_node_answers_only_its_own_ids(void)
     make_observation(frames, 2, obs);
     for (unsigned i = 0; i < 3; ++i) { /* the same observation under node 2's IDs, CRC over them */
         frames[i].id += 2u * POLICY_IO_NODE_STRIDE;
-        e2e_protect(frames[i].id, frames[i].data);
+        e2e_protect(frames[i].id, frames[i].data, 8u);
         node_on_frame(&node, &frames[i], 1000);
     }
     CHECK(fake_sent_count() == 1);
     const can_frame_t *action = fake_sent(0);
-    CHECK(action->id == POLICY_DBC_ACTION_FRAME_ID + 2u * POLICY_IO_NODE_STRIDE && e2e_crc_ok(action->id, action->data));
+    CHECK(action->id == POLICY_DBC_ACTION_FRAME_ID + 2u * POLICY_IO_NODE_STRIDE && e2e_crc_ok(action->id, action->data, action->len));
     fake_reset();
     node_poll(&node, 1000);
     CHECK(fake_sent_count() == 2 && fake_sent(0)->id == POLICY_IO_STATUS_ID + 4u && fake_sent(1)->id == POLICY_IO_DIAG_ID + 4u);

@@ -150,3 +150,24 @@ def test_a_policy_without_an_env_runs_in_open_loop_on_the_c_node_over_vcan(
     guest: Guest, envless_export: Path, tmp_path: Path
 ) -> None:
     _check_open_loop(hil(guest, envless_export, tmp_path, "--episodes", "2"))
+
+
+def _check_fd(report: dict[str, Any]) -> None:
+    assert report["open_loop"] is True and report["faults"] == 0 and report["steps"] == OPEN_LOOP_STEPS
+    assert report["max_action_abs_diff"] <= 1e-5
+    assert report["frames_tx"] == report["steps"]  # 17 observations in one CAN FD frame a step
+    assert report["verdict"]["passed"]
+
+
+def test_can_fd_carries_the_observation_in_one_frame_on_the_python_node(
+    envless_export: Path, tmp_path: Path
+) -> None:
+    _check_fd(hil(None, envless_export, tmp_path, "--node", "python", "--episodes", "1", "--fd"))
+
+
+@pytest.mark.slow
+def test_can_fd_over_vcan_with_the_c_node(guest: Guest, envless_export: Path, tmp_path: Path) -> None:
+    log = tmp_path / "frames.log"
+    _check_fd(hil(guest, envless_export, tmp_path, "--episodes", "1", "--fd", "--log", str(log)))
+    sent = [line for line in log.read_text().splitlines() if line.endswith(" T")]
+    assert all("##" in line for line in sent)  # candump's mark of a CAN FD frame
