@@ -100,8 +100,12 @@ def candb_frame(message: object, fields: dict[str, float]) -> bytes:
 def test_too_many_fields_for_classic_can_is_a_clear_error() -> None:
     many = tuple(Field(f"o{i}", "", -1.0, 1.0) for i in range(60))
     wide = Interface("many", "Many-v0", many, (Field("a", "", -1.0, 1.0),), 0.1, (0.0,), 10)
-    with pytest.raises(HilError, match="60 observation fields need 30 classic CAN frames; at most 26"):
+    with pytest.raises(
+        HilError,
+        match=r"60 observation fields need 30 classic CAN \(--fd carries 24 a frame\) frames; at most 26",
+    ):
         candb.layout(wide)
+    assert len(candb.layout(wide, fd=True).observation) == 3  # CAN FD: 24 values a frame
 
 
 def test_the_generator_cli_writes_the_node_sources(tmp_path: Path) -> None:
