@@ -154,9 +154,11 @@ def _frames(
     per_frame = values_per_frame(fd)
     count = math.ceil(len(fields) / per_frame)
     if count > MAX_FRAMES:
-        kind = "CAN FD" if fd else "classic CAN (--fd carries 24 a frame)"
+        kind, hint = (
+            ("CAN FD", "") if fd else ("classic CAN", f" (--fd carries {values_per_frame(True)} a frame)")
+        )
         raise HilError(
-            f"{len(fields)} {prefix.lower()} fields need {count} {kind} frames; at most {MAX_FRAMES}"
+            f"{len(fields)} {prefix.lower()} fields need {count} {kind} frames; at most {MAX_FRAMES}{hint}"
         )
     frames = []
     for k in range(count):

@@ -102,7 +102,7 @@ def test_too_many_fields_for_classic_can_is_a_clear_error() -> None:
     wide = Interface("many", "Many-v0", many, (Field("a", "", -1.0, 1.0),), 0.1, (0.0,), 10)
     with pytest.raises(
         HilError,
-        match=r"60 observation fields need 30 classic CAN \(--fd carries 24 a frame\) frames; at most 26",
+        match=r"60 observation fields need 30 classic CAN frames; at most 26 \(--fd carries 24 a frame\)",
     ):
         candb.layout(wide)
     assert len(candb.layout(wide, fd=True).observation) == 3  # CAN FD: 24 values a frame
