@@ -22,6 +22,7 @@ import json
 import sys
 import time
 from collections.abc import Callable
+from contextlib import ExitStack
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -429,17 +430,22 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     stats = Stats()
     if cfg.nodes > 1:
         return _run_nodes(cfg, interface)
-    codec = Codec(interface, fd=cfg.fd)
-    link = Link(_open_bus(cfg, codec), codec, stats, cfg.iface, cfg.log)
-    node = _start_node(cfg, interface)
-    policy = BusPolicy(cfg, interface, link, node)
     open_loop = interface.env_id == NO_ENV
-    env = None if open_loop else _Tally(gym.make(interface.env_id))
     replayed = np.load(cfg.observations, allow_pickle=False) if open_loop and cfg.observations else None
     if open_loop and replayed is None:
         raise ValueError("a policy without an env runs in open loop: give its observations")
     episodes: list[dict[str, Any]] = []
-    try:
+    with ExitStack() as cleanup:  # whatever was started is stopped, even when interrupted while starting
+        codec = Codec(interface, fd=cfg.fd)
+        link = Link(_open_bus(cfg, codec), codec, stats, cfg.iface, cfg.log)
+        cleanup.callback(link.close)
+        node = _start_node(cfg, interface)
+        cleanup.callback(node.stop)
+        policy = BusPolicy(cfg, interface, link, node)
+        cleanup.callback(policy.end_episode)  # nothing of an injection keeps running
+        env = None if open_loop else _Tally(gym.make(interface.env_id))
+        if env is not None:
+            cleanup.callback(env.close)
         link.wait_status(NODE_BOOT_S)
         first_diff = 0
         for index in range(cfg.episodes):
@@ -471,12 +477,6 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             if row["fault"] and not node.alive():
                 break  # the node is gone: later episodes could only fail the same way
         link.wait_status(0.3)
-    finally:
-        policy.end_episode()  # nothing of an injection keeps running
-        node.stop()
-        link.close()
-        if env is not None:
-            env.close()
     results = _results(cfg, stats, episodes, policy.injections, interface.sample_time_s)
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
