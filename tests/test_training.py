@@ -207,6 +207,8 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
                 "3",
                 "--workers",
                 "2",
+                "--seed-offset",
+                "100",
             ]
         )
         == 0
@@ -216,10 +218,14 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
         "runs reaching the stop criterion",
         "training episodes to the criterion",
         "env steps to the criterion",
-        "average reward (3 runs)",
+        "average reward (ours: 3 evaluation runs; study: training average)",
         "successful / collisions / no result",
         "mean time (s)",
         "reliability (%)",
+        "reliability worst / median / best seed (%)",
+        "reliability per seed (%)",
+        "policy updates",
+        "(100..101)",
         "wall-clock time (s)",
         "TD3 (ours)",
         "TD3 (study)",
@@ -229,10 +235,15 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
     ):
         assert label in table
     data = json.loads((tmp_path / "bench.json").read_text())
-    assert set(data["rows"]) == {"td3", "ppo"} and len(data["runs"]) == 4
+    assert set(data["rows"]) == {"td3", "ppo"} and len(data["runs"]) == 4 and data["seeds"] == [100, 101]
     assert all(
-        (tmp_path / "runs" / f"{a}-seed{s}" / "model.zip").is_file() for a in ("td3", "ppo") for s in (0, 1)
+        (tmp_path / "runs" / f"{a}-seed{s}" / "model.zip").is_file()
+        for a in ("td3", "ppo")
+        for s in (100, 101)
     )
+    # 600 steps: TD3's 1,000 random warm-up steps are not over, so it has made no update; PPO always
+    # completes its first rollout (2,048 steps) and trains on it for 10 epochs
+    assert [(r["algo"], r["updates"]) for r in data["runs"]] == [("td3", 0)] * 2 + [("ppo", 10)] * 2
 
 
 @pytest.mark.slow

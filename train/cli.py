@@ -205,8 +205,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from embedrl.train.bench import run_bench
 
     table = run_bench(
-        args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers
-    )
+        args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers,
+        args.seed_offset,
+    )  # fmt: skip
     print(table)
     print(f"wrote {args.out}/bench.md and bench.json")
     return 0
@@ -264,6 +265,12 @@ def register(sub: Any) -> None:
     p.add_argument("--scenario", choices=["static"], default="static")
     p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     p.add_argument("--seeds", type=_positive, default=5)
+    p.add_argument(
+        "--seed-offset",
+        type=int,
+        default=0,
+        help="train seeds OFFSET .. OFFSET + SEEDS - 1 (new seeds to try)",
+    )
     p.add_argument("--preset", choices=PRESETS, default="tuned")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--max-steps", type=_positive, default=300_000)

@@ -406,6 +406,7 @@ def train(
         "first_deterministic_criterion_step": state.get("first_deterministic_criterion_step"),
         "total_steps": int(model.num_timesteps),
         "total_episodes": len(monitor.returns),
+        "updates": int(getattr(model, "_n_updates", 0)),
         "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
