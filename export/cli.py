@@ -10,6 +10,7 @@ from typing import Any
 
 from embedrl.common import table
 from embedrl.export.errors import ExportError
+from embedrl.train.cli import add_model_file_arguments
 
 
 def _safe_action(text: str) -> tuple[float, ...]:
@@ -148,17 +149,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument(
-        "--vecnormalize",
-        type=Path,
-        help="normalisation statistics, .npz (default: <model>_vecnormalize.npz or vecnormalize.npz beside)",
-    )
-    p.add_argument(
-        "--trust-pickle",
-        action="store_true",
-        help="open pickles inside or beside the model (SB3 fields, .pkl statistics): this runs code "
-        "from them, so only for files you trust",
-    )
+    add_model_file_arguments(p)
     p.add_argument(
         "--safe-action",
         type=_safe_action,

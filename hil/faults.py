@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 
-from embedrl.hil import candb
+from embedrl.hil import candb, e2e
 
 if TYPE_CHECKING:  # the command lists the injectors without loading the session's machinery
     import can
@@ -162,7 +162,7 @@ class ReplayFresh(Injector):
                 dict[str, Any], message.decode(bytes(frame.data), decode_choices=False, scaling=False)
             )
             fields["Counter"] = ctx.codec.next_counter(message.name)
-            frame.data = bytearray(_protect(frame.arbitration_id, message.encode(fields, scaling=False)))
+            frame.data = bytearray(e2e.protect(frame.arbitration_id, message.encode(fields, scaling=False)))
         fresh, _ = ctx.codec.encode_observation(obs, step)
         ctx.link.send(old)
         ctx.link.send(fresh)
@@ -478,12 +478,6 @@ def _copy(frame: can.Message) -> can.Message:
     import can
 
     return can.Message(arbitration_id=frame.arbitration_id, data=bytes(frame.data), is_extended_id=False)
-
-
-def _protect(frame_id: int, data: bytes) -> bytes:
-    from embedrl.hil import e2e
-
-    return e2e.protect(frame_id, data)
 
 
 def _ip(*argv: str) -> None:

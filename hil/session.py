@@ -427,9 +427,9 @@ def _open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
 def run(cfg: SessionConfig) -> dict[str, Any]:
     """Run the episodes; return the results (also written to cfg.results)."""
     interface = candb.load_interface(Path(cfg.interface))
-    stats = Stats()
     if cfg.nodes > 1:
         return _run_nodes(cfg, interface)
+    stats = Stats()
     open_loop = interface.env_id == NO_ENV
     replayed = np.load(cfg.observations, allow_pickle=False) if open_loop and cfg.observations else None
     if open_loop and replayed is None:

@@ -55,6 +55,12 @@ def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
     src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
+    add_model_file_arguments(p)
+
+
+def add_model_file_arguments(p: argparse.ArgumentParser) -> None:
+    """``--trust-pickle`` and ``--vecnormalize``: how an SB3 model file and its statistics are opened
+    (eval, render and export)."""
     p.add_argument(
         "--trust-pickle",
         action="store_true",
