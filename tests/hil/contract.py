@@ -63,7 +63,10 @@ class HilContract:
         assert report["verdict"] == {"passed": True, "failures": [], "faults_allowed": False}
         assert report["outcomes_differing_from_simulation"] == []
         assert report["max_action_abs_diff"] <= 1e-5 and report["first_divergent_step"] is None
-        assert report["frames_tx"] == 3 * report["steps"] and report["frames_rx"] >= report["steps"]
+        assert (
+            report["frames_tx"] == 3 * (report["steps"] + report["retries"])
+            and report["frames_rx"] >= report["steps"]
+        )
         assert report["crc_errors"] == 0 and report["sequence_errors"] == 0 and report["rx_timeouts"] == 0
         assert 0 < report["latency_us"]["p50"] <= report["latency_us"]["p99"] <= report["latency_us"]["max"]
         assert all(key in report for key in REPORT_KEYS)

@@ -26,7 +26,7 @@ def _check(report: dict[str, Any], log: Path) -> None:
     assert all(n["episodes"] == EPISODES for n in report["per_node"].values())
     assert [n["node_id"] for n in report["nodes"]] == [0, 1]
     assert all(n["status"]["frames_ok"] > 0 and n["diag"]["stale_steps"] == 0 for n in report["nodes"])
-    assert report["frames_tx"] == 3 * report["steps"]
+    assert report["frames_tx"] == 3 * (report["steps"] + report["retries"])
     assert report["verdict"]["passed"], report["verdict"]
     ids = {line.split()[2].split("#")[0] for line in log.read_text().splitlines()}
     # node 0: 0x100-0x102, 0x200, 0x300/0x301; node 1 the same + 0x20 (status + 2)
