@@ -94,6 +94,9 @@ class HilContract:
         schedule = [arg for e, k in enumerate(kinds) for arg in ("--inject", f"{k}@{e}:{INJECT_STEP}")]
         report = self.run_hil(
             where, export_dir, tmp_path, "--episodes", str(len(kinds)), "--seed", "0", "--allow-faults",
+            # the default watchdog: a 200 ms one can trip between two steps of a loaded machine and put
+            # safe actions into an episode that must equal the simulation
+            "--timeout-ms", "500",
             *schedule,
         )  # fmt: skip
         records = {r["kind"]: r for r in report["injections"]}
