@@ -123,3 +123,28 @@ OBSTACLES: tuple[Rect, ...] = SHELVES + WALLS
 
 VIEW = Rect("view", -_H - _T, GOAL_Y - 0.35, _H + _T, ARENA_TOP + _T)
 """The area drawn by the renderers, including the exit below the gap."""
+
+# -- The moving-shelf scenario: the upper shelf moves along the aisle and wraps around. ---------------
+
+MOVING_SHELF_Y_MIN = 0.5
+"""The moving shelf's lower edge is drawn uniformly from [MOVING_SHELF_Y_MIN, MOVING_SHELF_Y_MAX] [m]:
+the aisle under it is never narrower than 0.5 m (the robot turns in 0.32 m)."""
+MOVING_SHELF_Y_MAX = 0.8
+MOVING_SHELF_SPEED_MIN = 0.1
+"""The moving shelf's speed is drawn uniformly from [MOVING_SHELF_SPEED_MIN, MOVING_SHELF_SPEED_MAX] [m/s],
+towards a random side: at most a third of the robot's top speed."""
+MOVING_SHELF_SPEED_MAX = 0.25
+MOVING_SHELF_WRAP_X = ARENA_HALF_WIDTH + UPPER_SHELF_WIDTH / 2
+"""When the moving shelf's centre passes |x| = this, it has left the arena through the side wall; it
+reappears at the same height on the opposite side, entering the arena again."""
+MOVING_SHELF_START_CLEARANCE = 0.35
+"""At the start the moving shelf is at least this far from the robot's centre, horizontally or
+vertically [m] (the shelf's initial position is redrawn until it is)."""
+FIXED_OBSTACLES: tuple[Rect, ...] = SHELVES[:2] + WALLS
+"""What stays put in the moving-shelf scenario: the lower shelves and the walls."""
+
+
+def moving_shelf(center_x: float, y0: float) -> Rect:
+    """The moving shelf with its centre at ``center_x`` and its lower edge at ``y0``."""
+    half = UPPER_SHELF_WIDTH / 2
+    return Rect("moving shelf", center_x - half, y0, center_x + half, y0 + UPPER_SHELF_DEPTH)

@@ -7,43 +7,19 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import pymunk
 from gymnasium import spaces
 
-from embedrl.train import layout
-from embedrl.train.robot import (
-    ANGULAR_FRICTION,
-    LINEAR_FRICTION,
-    PHYSICS_SUBSTEPS,
-    ROBOT_LENGTH,
-    ROBOT_MASS,
-    ROBOT_WIDTH,
-    SAMPLE_TIME,
-    WHEEL_FORCE_SCALE,
-    WHEEL_HALF_TRACK,
-)
+from embedrl.train import layout, rewards
+from embedrl.train.rewards import COLLISION_PENALTY, SUCCESS_BONUS
+from embedrl.train.robot import PHYSICS_SUBSTEPS, SAMPLE_TIME
 from embedrl.train.scenarios import STATIC
+from embedrl.train.world import World, checked_pose
 
 MAX_EPISODE_STEPS = STATIC.max_steps
+reward = rewards.thesis
+"""The reference study's reward for one step (:func:`train.rewards.thesis`)."""
 
-SUCCESS_BONUS = 5.0
-COLLISION_PENALTY = 2.0
-
-_ROBOT = 1
-_OBSTACLE = 2
-
-
-def reward(x: float, y: float, w: float, action: np.ndarray, made_it: bool, collided: bool) -> float:
-    """The reference study's reward for one step, evaluated on the state after the step."""
-    return float(
-        0.06 * math.exp(-3.0 * y)
-        + 0.05 * math.exp(-8.0 * x * x)
-        - 0.14
-        - 0.001 * w * w
-        - 0.01 * float(action[0] ** 2 + action[1] ** 2)
-        + SUCCESS_BONUS * made_it
-        - COLLISION_PENALTY * collided
-    )
+__all__ = ["COLLISION_PENALTY", "MAX_EPISODE_STEPS", "SUCCESS_BONUS", "WarehouseRobotEnv", "reward"]
 
 
 class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
@@ -55,7 +31,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     (2.2 m x 0.3 m) stands 0.6 m above them; walls close the 3.6 m x 1.45 m arena except
     under the gap. The robot (0.25 m x 0.2 m, 10 kg) starts to the left or the right of the shelves
     and must pass down through the gap without touching a shelf or a wall. The map is in
-    :mod:`train.layout`. This reproduces the warehouse-robot task of the reference study.
+    :mod:`train.layout`. This adapts the warehouse-robot task of the reference study (the README says
+    where and why its dimensions differ).
 
     ## Action Space
     ``Box(-1, 1, (2,), float32)``, held for one sample time (0.3 s):
@@ -93,6 +70,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     earn most. A good successful episode (~18 steps) returns ~+3; a collision returns less
     than -2; a timeout about -25. Waiting in the gap earns at most +0.004 per step, far less
     than the +5 for passing through. Range per step: [-2.164, 5.004].
+    ``reward="potential-field"`` replaces the position terms by the study's potential field averaged
+    over the robot's four corners, with contours around every shelf and wall (:mod:`train.rewards`).
 
     ## Starting State
     Uniformly random: |x| in [1.35, 1.6] m on a random side, y in [0.1, 1.0] m, heading in
@@ -109,7 +88,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     ``info`` always carries ``is_success``, ``collided`` and ``collided_with`` (or ``None``).
 
     ## Arguments
-    ``gymnasium.make("embedrl/WarehouseRobot-v0", render_mode="rgb_array")``
+    ``gymnasium.make("embedrl/WarehouseRobot-v0", render_mode="rgb_array", reward="thesis")``
+    (``reward`` is ``"thesis"`` or ``"potential-field"``).
 
     ## Version History
     - v0: initial version (static scenario).
@@ -117,70 +97,27 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012 (gymnasium API)
 
-    def __init__(self, render_mode: str | None = None) -> None:
+    def __init__(self, render_mode: str | None = None, reward: str = "thesis") -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode {render_mode!r} is not supported; use one of {self.metadata['render_modes']}"
             )
+        if reward not in rewards.REWARDS:
+            raise ValueError(f"reward {reward!r} is not one of {', '.join(rewards.REWARDS)}")
         self.render_mode = render_mode
+        self.reward_name = reward
         self.action_space = spaces.Box(STATIC.act_low, STATIC.act_high, dtype=np.float32)
         low, high = STATIC.obs_low, STATIC.obs_high
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self._low, self._high = low, high
-        self._space: pymunk.Space | None = None
-        self._robot: pymunk.Body | None = None
-        self._hit: str | None = None
-        self._names: dict[pymunk.Shape, str] = {}
+        self._world: World | None = None
         self._steps = 0
         self.trajectory: list[tuple[float, float, float]] = []
         """(x, y, theta) after reset and after every step of the current episode."""
 
-    # -- physics -----------------------------------------------------------------------------
-
-    def _build_space(self, x: float, y: float, theta: float) -> None:
-        """Build a fresh space: rebuilding (not restoring) keeps same-seed runs bit-identical."""
-        space = pymunk.Space()
-        robot = pymunk.Body(ROBOT_MASS, pymunk.moment_for_box(ROBOT_MASS, (ROBOT_LENGTH, ROBOT_WIDTH)))
-        robot.position = (x, y)
-        robot.angle = theta
-        body_shape = pymunk.Poly.create_box(robot, (ROBOT_LENGTH, ROBOT_WIDTH))
-        body_shape.collision_type = _ROBOT
-        space.add(robot, body_shape)
-        self._names = {}
-        for rect in layout.OBSTACLES:
-            shape = pymunk.Poly(space.static_body, list(rect.corners))
-            shape.collision_type = _OBSTACLE
-            space.add(shape)
-            self._names[shape] = rect.name
-        space.on_collision(_ROBOT, _OBSTACLE, begin=self._on_contact)
-        self._space, self._robot, self._hit = space, robot, None
-
-    def _on_contact(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: Any) -> None:
-        if self._hit is None:
-            a, b = arbiter.shapes
-            self._hit = self._names.get(b, self._names.get(a, "obstacle"))
-
-    @staticmethod
-    def _checked_pose(pose: Any) -> tuple[float, float, float]:
-        try:
-            x, y, theta = (float(p) for p in pose)
-        except (TypeError, ValueError):
-            raise ValueError(f"start_pose must be three numbers (x, y, theta), got {pose!r}") from None
-        if not all(math.isfinite(p) for p in (x, y, theta)):
-            raise ValueError(f"start_pose must be finite, got {pose!r}")
-        if not (abs(x) < layout.ARENA_HALF_WIDTH and layout.GOAL_Y < y < layout.ARENA_TOP):
-            raise ValueError(
-                f"start_pose ({x}, {y}) is outside the arena: |x| < {layout.ARENA_HALF_WIDTH}, "
-                f"{layout.GOAL_Y} < y < {layout.ARENA_TOP}"
-            )
-        return x, y, theta
-
     def _observe(self) -> np.ndarray:
-        assert self._robot is not None
-        r = self._robot
-        c, s = math.cos(r.angle), math.sin(r.angle)
-        v = r.velocity.x * c + r.velocity.y * s
-        obs = np.array([r.position.x, r.position.y, s, c, v, r.angular_velocity], dtype=np.float32)
+        assert self._world is not None
+        obs = np.array(self._world.robot_state(0), dtype=np.float32)
         # A contact impulse in the last physics step can push v or w past their bounds.
         return np.clip(obs, self._low, self._high)
 
@@ -194,61 +131,51 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         if unknown:
             raise ValueError(f"unknown reset option(s) {sorted(unknown)}; supported: ['start_pose']")
         if options and options.get("start_pose") is not None:
-            x, y, theta = self._checked_pose(options["start_pose"])
+            x, y, theta = checked_pose(options["start_pose"])
         else:
             side = 1.0 if self.np_random.random() < 0.5 else -1.0
             x = side * self.np_random.uniform(layout.START_X_MIN, layout.START_X_MAX)
             y = self.np_random.uniform(layout.START_Y_MIN, layout.START_Y_MAX)
             theta = self.np_random.uniform(-math.pi, math.pi)
-        self._build_space(x, y, theta)
-        assert self._space is not None and self._robot is not None
-        overlaps = self._space.shape_query(next(iter(self._robot.shapes)))
+        world = World([(x, y, theta)])
+        overlaps = world.overlaps(0)
         if overlaps:
-            names = sorted({self._names.get(o.shape, "obstacle") for o in overlaps if o.shape is not None})
-            self._space = None
-            raise ValueError(f"start_pose ({x}, {y}, {theta}) overlaps {', '.join(names)}")
+            self._world = None
+            raise ValueError(f"start_pose ({x}, {y}, {theta}) overlaps {', '.join(overlaps)}")
+        self._world = world
         self._steps = 0
         self.trajectory = [(x, y, theta)]
         return self._observe(), {"is_success": False, "collided": False, "collided_with": None}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        if self._space is None or self._robot is None:
+        if self._world is None:
             raise RuntimeError("call reset() before step()")
         a = np.clip(np.asarray(action, dtype=np.float32).reshape(2), -1.0, 1.0)
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action must be finite, got {action!r}")
-        drive_l = 0.5 * WHEEL_FORCE_SCALE * float(a[0])
-        drive_r = 0.5 * WHEEL_FORCE_SCALE * float(a[1])
-        robot, space = self._robot, self._space
-        dt = SAMPLE_TIME / PHYSICS_SUBSTEPS
+        world = self._world
         made_it = False
         for _ in range(PHYSICS_SUBSTEPS):
-            theta = robot.angle
-            c, s = math.cos(theta), math.sin(theta)
-            vx, vy = robot.velocity
-            v = vx * c + vy * s
-            robot.velocity = (v * c, v * s)  # wheels do not slip sideways
-            # Friction acts at the wheels: the linear part splits evenly, the angular part
-            # is a force couple; together they give -LINEAR_FRICTION*v and -ANGULAR_FRICTION*w.
-            linear = 0.5 * LINEAR_FRICTION * v
-            couple = 0.5 * ANGULAR_FRICTION * robot.angular_velocity / WHEEL_HALF_TRACK
-            robot.apply_force_at_local_point((drive_l - linear + couple, 0.0), (0.0, WHEEL_HALF_TRACK))
-            robot.apply_force_at_local_point((drive_r - linear - couple, 0.0), (0.0, -WHEEL_HALF_TRACK))
-            space.step(dt)
-            if self._hit is not None:
+            world.substep([a])
+            if world.hits[0] is not None:
                 break
-            if robot.position.y < layout.GOAL_Y:
+            if world.robots[0].position.y < layout.GOAL_Y:
                 made_it = True
                 break
         self._steps += 1
-        collided = self._hit is not None
+        hit = world.hits[0]
+        collided = hit is not None
         made_it = made_it and not collided
         obs = self._observe()
-        self.trajectory.append((robot.position.x, robot.position.y, robot.angle))
-        r = reward(float(obs[0]), float(obs[1]), float(obs[5]), a, made_it, collided)
+        pose = world.pose(0)
+        self.trajectory.append(pose)
+        if self.reward_name == "thesis":
+            r = rewards.thesis(float(obs[0]), float(obs[1]), float(obs[5]), a, made_it, collided)
+        else:
+            r = rewards.potential_field(pose, float(obs[5]), a, made_it, collided, layout.OBSTACLES)
         terminated = made_it or collided
         truncated = not terminated and self._steps >= MAX_EPISODE_STEPS
-        info = {"is_success": made_it, "collided": collided, "collided_with": self._hit}
+        info = {"is_success": made_it, "collided": collided, "collided_with": hit}
         return obs, r, terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
@@ -260,5 +187,4 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         return draw_frame(self.trajectory)
 
     def close(self) -> None:
-        self._space = None
-        self._robot = None
+        self._world = None
