@@ -1,19 +1,21 @@
-"""embedrl training: the warehouse environment, its scenario specs, controllers, evaluation, RL agents.
+"""embedrl training: the warehouse environments, their scenario specs, controllers, evaluation, RL agents.
 
-Importing this package registers ``embedrl/WarehouseRobot-v0`` with gymnasium.
+Importing this package registers the scenarios' gymnasium envs: ``embedrl/WarehouseRobot-v0`` (static),
+``embedrl/WarehouseMovingShelf-v0`` and ``embedrl/WarehouseTwoRobots-v0`` (the two-robot scenario seen by
+one shared policy; :mod:`train.two_robots_env` has its PettingZoo Parallel env).
 """
 
 from gymnasium.envs.registration import register, registry
 
-from embedrl.train.scenarios import STATIC
+from embedrl.train.scenarios import MOVING_SHELF, STATIC
 
 ENV_ID = STATIC.env_id
 
-if ENV_ID not in registry:
-    register(
-        id=ENV_ID,
-        entry_point="embedrl.train.warehouse_env:WarehouseRobotEnv",
-        max_episode_steps=STATIC.max_steps,
-    )
+for _spec, _entry in (
+    (STATIC, "embedrl.train.warehouse_env:WarehouseRobotEnv"),
+    (MOVING_SHELF, "embedrl.train.moving_shelf_env:WarehouseMovingShelfEnv"),
+):
+    if _spec.env_id not in registry:
+        register(id=_spec.env_id, entry_point=_entry, max_episode_steps=_spec.max_steps)
 
 __all__ = ["ENV_ID"]

@@ -7,6 +7,16 @@ desired direction; a proportional heading loop turns the robot towards it (drivi
 reverse when the direction is behind it, so it never turns more than 90 degrees) and the
 forward force falls off with the heading error. Stateless: the action depends only on the
 observation, like an exported policy.
+
+The same controller drives every scenario; what it observes beyond the robot's own state adds terms:
+
+- **moving shelf** (observations 6-8): the shelf repels from where it will be over the next
+  ``sweep_time`` seconds (its rectangle stretched along its motion, and its wrapped-around copy), and
+  across its path it pushes vertically, away from its middle line: a robot beside the shelf's path
+  ducks under it or waits above it instead of being herded into a wall.
+- **two robots** (observations 6-11): the other robot repels like an obstacle, and the robot farther
+  from the gap yields: its goal becomes a waiting point at its own end of the aisle until the other
+  robot is through (both robots compute the same order from what they observe).
 """
 
 from __future__ import annotations
@@ -19,6 +29,8 @@ import numpy as np
 from embedrl.train import layout
 from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 
+SCENARIO_OBSERVATIONS = {"static": 6, "moving-shelf": 9, "two-robots": 12}
+"""How many values each scenario's controller reads."""
 _AISLE_END = layout.UPPER_SHELF_WIDTH / 2
 """|x| beyond which the robot is beside the shelves, not in the aisle between them [m]."""
 
@@ -55,23 +67,48 @@ class PotentialFieldGains:
     current speed, so it starts turning into the gap before it passes it [s]."""
     reverse_angle: float = math.radians(165)
     """Drive in reverse when the desired direction is further than this behind the heading."""
+    sweep_time: float = 1.5
+    """The moving shelf repels from everywhere it will be within this time [s]."""
+    shelf_repulsion: float = 0.0004
+    """Gain of the moving shelf's repulsive potential."""
+    shelf_influence: float = 0.25
+    """Range d0 [m] of the moving shelf's repulsive potential."""
+    robot_repulsion: float = 0.0004
+    """Gain of the other robot's repulsive potential."""
+    robot_influence: float = 0.3
+    """Range d0 [m] of the other robot's repulsive potential, from both robots' outlines."""
+    wait_x: float = 0.75
+    """|x| of the yielding robot's waiting point, on its own side of the gap, at the aisle height [m]."""
+    priority_margin: float = 0.1
+    """A robot yields when its way to the gap is longer than the other's by more than this [m]; when the
+    two are within it, the robot on the right (x > 0) yields."""
 
 
 class PotentialFieldController:
-    """Maps an observation ``[x, y, sin, cos, v, w]`` to wheel forces ``[F_L, F_R]`` in [-1, 1]."""
+    """Maps an observation ``[x, y, sin, cos, v, w, ...]`` to wheel forces ``[F_L, F_R]`` in [-1, 1].
 
-    def __init__(self, gains: PotentialFieldGains | None = None) -> None:
+    ``scenario`` says what the observation holds beyond the first six values (see the module).
+    """
+
+    def __init__(self, gains: PotentialFieldGains | None = None, scenario: str = "static") -> None:
+        if scenario not in SCENARIO_OBSERVATIONS:
+            raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIO_OBSERVATIONS)}")
         self.gains = gains or PotentialFieldGains()
+        self.scenario = scenario
+        self._fixed = layout.FIXED_OBSTACLES if scenario == "moving-shelf" else layout.OBSTACLES
 
-    def attraction(self, x: float, y: float) -> tuple[float, float]:
+    def attraction(self, x: float, y: float, wait: bool = False) -> tuple[float, float]:
         """Negative gradient of the attractive potential: a unit vector (or zero at the goal).
 
         Between the shelves (|x| < aisle end, y below the upper shelf) it is the cone
-        ``sqrt(x^2 + (a*(y - goal_y))^2)``; beside them, the cone around the aisle mouth.
+        ``sqrt(x^2 + (a*(y - goal_y))^2)``; beside them, the cone around the aisle mouth. A robot that
+        ``wait``s is pulled to its waiting point instead once it is in the aisle.
         """
         g = self.gains
         in_aisle = abs(x) < g.mouth_x and y < layout.AISLE_WIDTH
-        if in_aisle:
+        if in_aisle and wait:
+            dx, dy = math.copysign(g.wait_x, x) - x, g.aisle_y - y
+        elif in_aisle:
             a2 = g.anisotropy * g.anisotropy
             dx, dy = -x, -a2 * (y - g.goal_y)
         else:
@@ -79,11 +116,29 @@ class PotentialFieldController:
         n = math.hypot(dx, dy)
         return (dx / n, dy / n) if n > 0.0 else (0.0, 0.0)
 
-    def direction(self, x: float, y: float) -> tuple[float, float]:
-        """Negative gradient of the total potential at (x, y)."""
+    def direction(
+        self,
+        x: float,
+        y: float,
+        shelf: tuple[float, float, float] | None = None,
+        other: tuple[float, float] | None = None,
+        wait: bool = False,
+    ) -> tuple[float, float]:
+        """Negative gradient of the total potential at (x, y); ``shelf`` is the moving shelf's
+        ``(center_x, y0, vx)``, ``other`` the other robot's position, ``wait`` whether this robot yields."""
         g = self.gains
-        fx, fy = self.attraction(x, y)
-        for rect in layout.OBSTACLES:
+        fx, fy = self.attraction(x, y, wait)
+        if shelf is not None:
+            px, py = self._shelf_push(x, y, *shelf)
+            fx, fy = fx + px, fy + py
+        if other is not None:
+            ox, oy = x - other[0], y - other[1]
+            n = math.hypot(ox, oy)
+            d = max(n - 2 * g.clearance, g.min_distance)
+            if d < g.robot_influence and n > 0.0:
+                push = g.robot_repulsion * (1.0 / d - 1.0 / g.robot_influence) / (d * d)
+                fx, fy = fx + push * ox / n, fy + push * oy / n
+        for rect in self._fixed:
             d, ux, uy = rect.distance(x, y)
             d = max(d - g.clearance, g.min_distance)
             if d < g.influence:
@@ -92,10 +147,53 @@ class PotentialFieldController:
                 fy += push * uy
         return fx, fy
 
+    def _shelf_push(self, x: float, y: float, center_x: float, y0: float, vx: float) -> tuple[float, float]:
+        """Repulsion of the moving shelf over its next ``sweep_time`` seconds (and of its copy that
+        will come in at the other side)."""
+        g = self.gains
+        half = layout.UPPER_SHELF_WIDTH / 2
+        reach = vx * g.sweep_time
+        middle = y0 + layout.UPPER_SHELF_DEPTH / 2
+        fx = fy = 0.0
+        for cx in (center_x, center_x - math.copysign(2 * layout.MOVING_SHELF_WRAP_X, center_x)):
+            swept = layout.Rect(
+                "swept shelf",
+                cx - half + min(reach, 0.0),
+                y0,
+                cx + half + max(reach, 0.0),
+                y0 + layout.UPPER_SHELF_DEPTH,
+            )
+            d, ux, uy = swept.distance(x, y)
+            if swept.x0 - g.clearance <= x <= swept.x1 + g.clearance:  # across its path: duck or wait
+                ux, uy = 0.0, (-1.0 if y < middle else 1.0)
+                d = max(abs(y - middle) - layout.UPPER_SHELF_DEPTH / 2, 0.0)
+            d = max(d - g.clearance, g.min_distance)
+            if d < g.shelf_influence:
+                push = g.shelf_repulsion * (1.0 / d - 1.0 / g.shelf_influence) / (d * d)
+                fx += push * ux
+                fy += push * uy
+        return fx, fy
+
+    def yields(self, x: float, y: float, other_x: float, other_y: float) -> bool:
+        """Whether the robot at (x, y) lets the one at (other_x, other_y) through the gap first."""
+        g = self.gains
+        mine = abs(x) + abs(y - g.aisle_y)
+        theirs = abs(other_x) + abs(other_y - g.aisle_y)
+        if abs(mine - theirs) <= g.priority_margin:
+            return x > 0.0
+        return mine > theirs
+
     def __call__(self, obs: np.ndarray) -> np.ndarray:
         g = self.gains
         x, y, s, c, v, w = (float(o) for o in obs[:6])
-        fx, fy = self.direction(x + g.lookahead * v * c, y + g.lookahead * v * s)
+        shelf = other = None
+        wait = False
+        if self.scenario == "moving-shelf":
+            shelf = (x + float(obs[6]), y + float(obs[7]), float(obs[8]))
+        elif self.scenario == "two-robots" and float(obs[11]) > 0.5:
+            other = (x + float(obs[6]), y + float(obs[7]))
+            wait = self.yields(x, y, *other)
+        fx, fy = self.direction(x + g.lookahead * v * c, y + g.lookahead * v * s, shelf, other, wait)
         error = math.atan2(fy, fx) - math.atan2(s, c)
         error = math.atan2(math.sin(error), math.cos(error))
         forward = 1.0

@@ -11,7 +11,8 @@ from PIL import Image, ImageDraw
 
 from embedrl.common import atomic_write
 from embedrl.train import layout
-from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
+from embedrl.train.robot import ROBOT_LENGTH
+from embedrl.train.world import robot_corners
 
 PIXELS_PER_METRE = 160
 """Frame resolution: the 3.8 m x 1.9 m view becomes 608 x 304 pixels."""
@@ -24,6 +25,8 @@ _WALL = (90, 90, 90)
 _GOAL = (40, 160, 70)
 _ROBOT = (40, 90, 200)
 _TRACE = (120, 150, 220)
+_OTHER = (200, 90, 40)
+_OTHER_TRACE = (230, 160, 120)
 
 Pose = tuple[float, float, float]
 
@@ -33,14 +36,27 @@ def _to_pixel(x: float, y: float) -> tuple[float, float]:
     return (x - v.x0) * PIXELS_PER_METRE, (v.y1 - y) * PIXELS_PER_METRE
 
 
-def draw_frame(trajectory: Sequence[Pose]) -> np.ndarray:
-    """An RGB frame (uint8, H x W x 3) of the map, the path so far and the robot at its last pose."""
+def draw_frame(
+    trajectory: Sequence[Pose],
+    moving: Sequence[layout.Rect] = (),
+    obstacles: Sequence[layout.Rect] | None = None,
+    others: Sequence[Sequence[Pose]] = (),
+) -> np.ndarray:
+    """An RGB frame (uint8, H x W x 3) of the map, the path so far and the robot at its last pose.
+
+    ``moving`` are obstacles where they are now (the moving shelf), drawn over ``obstacles`` (default: the
+    static map, or its fixed part when something moves); ``others`` are further robots' paths.
+    """
+    if obstacles is None:
+        obstacles = layout.FIXED_OBSTACLES if moving else layout.OBSTACLES
     v = layout.VIEW
     size = (round((v.x1 - v.x0) * PIXELS_PER_METRE), round((v.y1 - v.y0) * PIXELS_PER_METRE))
     image = Image.new("RGB", size, _BACKGROUND)
     draw = ImageDraw.Draw(image)
-    for rect in layout.OBSTACLES:
-        colour = _SHELF if rect in layout.SHELVES else _WALL
+    # Walls last: a moving shelf that is leaving the arena disappears behind them.
+    walls = [r for r in obstacles if r in layout.WALLS]
+    for rect in (*(r for r in obstacles if r not in layout.WALLS), *moving, *walls):
+        colour = _WALL if rect in layout.WALLS else _SHELF
         draw.polygon([_to_pixel(*c) for c in rect.corners], fill=colour)
     gy = _to_pixel(0.0, layout.GOAL_Y)[1]
     draw.line(
@@ -53,18 +69,15 @@ def draw_frame(trajectory: Sequence[Pose]) -> np.ndarray:
         fill=_GOAL,
         width=3,
     )
-    if len(trajectory) > 1:
-        draw.line([_to_pixel(x, y) for x, y, _ in trajectory], fill=_TRACE, width=2)
-    if trajectory:
-        x, y, theta = trajectory[-1]
-        c, s = math.cos(theta), math.sin(theta)
-        hl, hw = ROBOT_LENGTH / 2, ROBOT_WIDTH / 2
-        body = [
-            (x + c * px - s * py, y + s * px + c * py)
-            for px, py in ((-hl, -hw), (hl, -hw), (hl, hw), (-hl, hw))
-        ]
-        draw.polygon([_to_pixel(*p) for p in body], fill=_ROBOT)
-        draw.line([_to_pixel(x, y), _to_pixel(x + c * hl, y + s * hl)], fill=(255, 255, 255), width=3)
+    for path, colour, trace in ((trajectory, _ROBOT, _TRACE), *((o, _OTHER, _OTHER_TRACE) for o in others)):
+        if len(path) > 1:
+            draw.line([_to_pixel(x, y) for x, y, _ in path], fill=trace, width=2)
+        if path:
+            x, y, theta = path[-1]
+            c, s = math.cos(theta), math.sin(theta)
+            hl = ROBOT_LENGTH / 2
+            draw.polygon([_to_pixel(*p) for p in robot_corners(x, y, theta)], fill=colour)
+            draw.line([_to_pixel(x, y), _to_pixel(x + c * hl, y + s * hl)], fill=(255, 255, 255), width=3)
     return np.asarray(image)
 
 

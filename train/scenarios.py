@@ -39,7 +39,63 @@ STATIC = Interface(
 )
 """The study's static scenario: one robot, three fixed shelves (``embedrl/WarehouseRobot-v0``)."""
 
-SCENARIOS = {STATIC.name: STATIC}
+MOVING_SHELF_ENV_ID = "embedrl/WarehouseMovingShelf-v0"
+_SHELF_DX = layout.ARENA_HALF_WIDTH + layout.MOVING_SHELF_WRAP_X
+_SHELF_FIELDS = (
+    Field("shelf_dx", "moving shelf centre x minus robot x", -_SHELF_DX, _SHELF_DX, "m"),
+    Field(
+        "shelf_dy",
+        "moving shelf lower edge y minus robot y",
+        layout.MOVING_SHELF_Y_MIN - layout.ARENA_TOP,
+        layout.MOVING_SHELF_Y_MAX - layout.GOAL_Y,
+        "m",
+    ),
+    Field(
+        "shelf_vx",
+        "moving shelf velocity along x",
+        -layout.MOVING_SHELF_SPEED_MAX,
+        layout.MOVING_SHELF_SPEED_MAX,
+        "m/s",
+    ),
+)
+
+MOVING_SHELF = Interface(
+    name="moving-shelf",
+    env_id=MOVING_SHELF_ENV_ID,
+    observation=STATIC.observation + _SHELF_FIELDS,
+    action=STATIC.action,
+    sample_time_s=SAMPLE_TIME,
+    safe_action=STATIC.safe_action,
+    max_steps=STATIC.max_steps,
+)
+"""The study's changing environment: the upper shelf moves along the aisle (``embedrl/WarehouseMovingShelf-v0``);
+the robot also observes where the shelf is and how fast it moves."""
+
+TWO_ROBOTS_ENV_ID = "embedrl/WarehouseTwoRobots-v0"
+_SPAN_X = 2 * layout.ARENA_HALF_WIDTH
+_SPAN_Y = layout.ARENA_TOP - layout.GOAL_Y
+_OTHER_FIELDS = (
+    Field("other_dx", "other robot x minus own x", -_SPAN_X, _SPAN_X, "m"),
+    Field("other_dy", "other robot y minus own y", -_SPAN_Y, _SPAN_Y, "m"),
+    Field("other_sin_theta", "other robot sin(theta)", -1.0, 1.0),
+    Field("other_cos_theta", "other robot cos(theta)", -1.0, 1.0),
+    Field("other_speed", "other robot forward speed", -MAX_SPEED, MAX_SPEED, "m/s"),
+    Field("other_present", "1 while the other robot is in the arena, else 0", 0.0, 1.0),
+)
+
+TWO_ROBOTS = Interface(
+    name="two-robots",
+    env_id=TWO_ROBOTS_ENV_ID,
+    observation=STATIC.observation + _OTHER_FIELDS,
+    action=STATIC.action,
+    sample_time_s=SAMPLE_TIME,
+    safe_action=STATIC.safe_action,
+    max_steps=STATIC.max_steps,
+)
+"""The study's two robots through one gap; this is one robot's interface (each robot runs its own copy of
+the policy, on its own node)."""
+
+SCENARIOS = {spec.name: spec for spec in (STATIC, MOVING_SHELF, TWO_ROBOTS)}
 BY_ENV_ID = {spec.env_id: spec for spec in SCENARIOS.values()}
 
 

@@ -13,7 +13,7 @@ from embedrl.train import layout, rewards
 from embedrl.train.rewards import COLLISION_PENALTY, SUCCESS_BONUS
 from embedrl.train.robot import PHYSICS_SUBSTEPS, SAMPLE_TIME
 from embedrl.train.scenarios import STATIC
-from embedrl.train.world import World, checked_pose
+from embedrl.train.world import Pose, World, checked_pose
 
 MAX_EPISODE_STEPS = STATIC.max_steps
 reward = rewards.thesis
@@ -95,6 +95,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     - v0: initial version (static scenario).
     """
 
+    SPEC = STATIC
+    """The scenario spec: spaces, step limit."""
     metadata = {"render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012 (gymnasium API)
 
     def __init__(self, render_mode: str | None = None, reward: str = "thesis") -> None:
@@ -106,14 +108,16 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"reward {reward!r} is not one of {', '.join(rewards.REWARDS)}")
         self.render_mode = render_mode
         self.reward_name = reward
-        self.action_space = spaces.Box(STATIC.act_low, STATIC.act_high, dtype=np.float32)
-        low, high = STATIC.obs_low, STATIC.obs_high
+        self.action_space = spaces.Box(self.SPEC.act_low, self.SPEC.act_high, dtype=np.float32)
+        low, high = self.SPEC.obs_low, self.SPEC.obs_high
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self._low, self._high = low, high
         self._world: World | None = None
         self._steps = 0
         self.trajectory: list[tuple[float, float, float]] = []
         """(x, y, theta) after reset and after every step of the current episode."""
+        self.obstacle_history: list[tuple[layout.Rect, ...]] = []
+        """The moving obstacles after reset and after every step (empty tuples in the static scenario)."""
 
     def _observe(self) -> np.ndarray:
         assert self._world is not None
@@ -127,17 +131,20 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
-        unknown = set(options or {}) - {"start_pose"}
+        unknown = set(options or {}) - set(self._RESET_OPTIONS)
         if unknown:
-            raise ValueError(f"unknown reset option(s) {sorted(unknown)}; supported: ['start_pose']")
-        if options and options.get("start_pose") is not None:
+            raise ValueError(
+                f"unknown reset option(s) {sorted(unknown)}; supported: {sorted(self._RESET_OPTIONS)}"
+            )
+        options = options or {}
+        if options.get("start_pose") is not None:
             x, y, theta = checked_pose(options["start_pose"])
         else:
             side = 1.0 if self.np_random.random() < 0.5 else -1.0
             x = side * self.np_random.uniform(layout.START_X_MIN, layout.START_X_MAX)
             y = self.np_random.uniform(layout.START_Y_MIN, layout.START_Y_MAX)
             theta = self.np_random.uniform(-math.pi, math.pi)
-        world = World([(x, y, theta)])
+        world = self._make_world((x, y, theta), options)
         overlaps = world.overlaps(0)
         if overlaps:
             self._world = None
@@ -145,7 +152,24 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._world = world
         self._steps = 0
         self.trajectory = [(x, y, theta)]
+        self.obstacle_history = [self._moving_obstacles()]
         return self._observe(), {"is_success": False, "collided": False, "collided_with": None}
+
+    # -- what a scenario changes -----------------------------------------------------------------
+
+    _RESET_OPTIONS: tuple[str, ...] = ("start_pose",)
+
+    def _make_world(self, pose: Pose, options: dict[str, Any]) -> World:
+        """The world of a new episode with the robot at ``pose``."""
+        return World([pose])
+
+    def _obstacles(self) -> tuple[layout.Rect, ...]:
+        """Every obstacle where it is now (the potential-field reward's contours)."""
+        return layout.OBSTACLES
+
+    def _moving_obstacles(self) -> tuple[layout.Rect, ...]:
+        """Obstacles that move, where they are now (drawn by the renderers)."""
+        return ()
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._world is None:
@@ -169,12 +193,13 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         obs = self._observe()
         pose = world.pose(0)
         self.trajectory.append(pose)
+        self.obstacle_history.append(self._moving_obstacles())
         if self.reward_name == "thesis":
             r = rewards.thesis(float(obs[0]), float(obs[1]), float(obs[5]), a, made_it, collided)
         else:
-            r = rewards.potential_field(pose, float(obs[5]), a, made_it, collided, layout.OBSTACLES)
+            r = rewards.potential_field(pose, float(obs[5]), a, made_it, collided, self._obstacles())
         terminated = made_it or collided
-        truncated = not terminated and self._steps >= MAX_EPISODE_STEPS
+        truncated = not terminated and self._steps >= self.SPEC.max_steps
         info = {"is_success": made_it, "collided": collided, "collided_with": hit}
         return obs, r, terminated, truncated, info
 
@@ -184,7 +209,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             return None
         from embedrl.train.rendering import draw_frame
 
-        return draw_frame(self.trajectory)
+        return draw_frame(self.trajectory, self.obstacle_history[-1] if self.obstacle_history else ())
 
     def close(self) -> None:
         self._world = None
