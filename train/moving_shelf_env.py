@@ -95,7 +95,10 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
         vx = speed if rng.random() < 0.5 else -speed
         for _ in range(MAX_SHELF_DRAWS):
             x = rng.uniform(-layout.MOVING_SHELF_WRAP_X, layout.MOVING_SHELF_WRAP_X)
-            if layout.moving_shelf(x, y0).distance(pose[0], pose[1])[0] >= layout.MOVING_SHELF_START_CLEARANCE:
+            if (
+                layout.moving_shelf(x, y0).distance(pose[0], pose[1])[0]
+                >= layout.MOVING_SHELF_START_CLEARANCE
+            ):
                 return ShelfMotion(x, y0, vx)
         raise ValueError(f"no room for the moving shelf at height {y0:.3f} m around the start pose {pose}")
 

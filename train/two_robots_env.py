@@ -90,7 +90,10 @@ class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
     SPEC = TWO_ROBOTS
 
     def __init__(
-        self, render_mode: str | None = None, reward: str = "thesis", success_bonus: float = rewards.SUCCESS_BONUS
+        self,
+        render_mode: str | None = None,
+        reward: str = "thesis",
+        success_bonus: float = rewards.SUCCESS_BONUS,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -146,7 +149,9 @@ class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
 
     # -- PettingZoo API --------------------------------------------------------------------------
 
-    def reset(self, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[Obs, dict[str, Any]]:
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Obs, dict[str, Any]]:
         if seed is not None:
             self._np_random, _ = seeding.np_random(seed)
         # Other option keys are ignored (PettingZoo's API test passes arbitrary ones).
@@ -173,7 +178,9 @@ class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
         self.agents = list(AGENTS)
         self.trajectories = [[poses[0]], [poses[1]]]
         self.outcomes = [None, None]
-        return {a: self._observe(i) for i, a in enumerate(AGENTS)}, {a: self._info(i) for i, a in enumerate(AGENTS)}
+        return {a: self._observe(i) for i, a in enumerate(AGENTS)}, {
+            a: self._info(i) for i, a in enumerate(AGENTS)
+        }
 
     def step(
         self, actions: dict[str, np.ndarray]
