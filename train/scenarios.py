@@ -68,8 +68,8 @@ MOVING_SHELF = Interface(
     safe_action=STATIC.safe_action,
     max_steps=STATIC.max_steps,
 )
-"""The study's changing environment: the upper shelf moves along the aisle (``embedrl/WarehouseMovingShelf-v0``);
-the robot also observes where the shelf is and how fast it moves."""
+"""The study's changing environment: the upper shelf moves along the aisle
+(``embedrl/WarehouseMovingShelf-v0``); the robot also observes where the shelf is and how fast it moves."""
 
 TWO_ROBOTS_ENV_ID = "embedrl/WarehouseTwoRobots-v0"
 _SPAN_X = 2 * layout.ARENA_HALF_WIDTH
