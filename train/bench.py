@@ -50,19 +50,44 @@ STUDY = {
         "reliability": 51.0,
     },
 }
-"""The reference study's table (MATLAB, 200 evaluation runs each). Its "average reward" is the training
-average at the stop, not an evaluation."""
+"""The reference study's table for the static scenario (MATLAB, 200 evaluation runs each). Its "average
+reward" is the training average at the stop, not an evaluation."""
+
+STUDY_BY_SCENARIO: dict[str, dict[str, dict[str, Any]]] = {
+    "static": STUDY,
+    "moving-shelf": {
+        "ddpg": {
+            "episodes": "80,000+ (never)",
+            "outcomes": "184 / 16 / 0",
+            "mean_time_s": 7.92,
+            "reliability": 92.0,
+        },
+    },
+    "two-robots": {
+        "ddpg": {
+            "episodes": "never (+20: peaks of 96 and 83 successes, then 0; +5: never learned)",
+            "outcomes": "unstable, then collapse",
+        },
+    },
+}
+"""The study's results per scenario: only DDPG was run on the moving shelf and the two robots, and the
+study reports the two-robot runs as curves, not as a 200-run evaluation."""
 
 
-def _one_run(job: tuple[str, str, int, str, int, int]) -> dict[str, Any]:
-    algo, preset, seed, out, max_steps, eval_episodes = job
+def _one_run(job: tuple[str, str, int, str, int, int, str]) -> dict[str, Any]:
+    algo, preset, seed, out, max_steps, eval_episodes, scenario = job
     from embedrl.train.cli import load_model_policy
+    from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.trainer import train
 
     run = Path(out)
-    summary = train(algo, preset, seed, run, Budget(max_steps=max_steps))
+    summary = train(algo, preset, seed, run, Budget(max_steps=max_steps), scenario=scenario)
     report = evaluate(
-        load_model_policy(run / "model.zip"), eval_episodes, BENCH_TEST_SEED, f"{algo} seed {seed}"
+        load_model_policy(run / "model.zip"),
+        eval_episodes,
+        BENCH_TEST_SEED,
+        f"{algo} seed {seed}",
+        env_id=SCENARIOS[scenario].env_id,
     )
     return {
         **summary,
@@ -94,11 +119,16 @@ def run_bench(
     eval_episodes: int,
     workers: int,
     seed_offset: int = 0,
+    scenario: str = "static",
 ) -> str:
-    """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm; the table, also written."""
+    """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm on ``scenario``; the table,
+    also written."""
+    from embedrl.train.scenarios import SCENARIOS
+
+    study = STUDY_BY_SCENARIO[scenario]
     seed_list = list(range(seed_offset, seed_offset + seeds))
     jobs = [
-        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes)
+        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes, scenario)
         for a in algos
         for s in seed_list
     ]
@@ -106,7 +136,13 @@ def run_bench(
         runs = list(pool.map(_one_run, jobs))
     from embedrl.train.potential_field import PotentialFieldController
 
-    pf = evaluate(PotentialFieldController(), eval_episodes, BENCH_TEST_SEED, "potential-field")
+    pf = evaluate(
+        PotentialFieldController(scenario=scenario),
+        eval_episodes,
+        BENCH_TEST_SEED,
+        "potential-field",
+        env_id=SCENARIOS[scenario].env_id,
+    )
     rows: dict[str, dict[str, str]] = {}
     for algo in algos:
         mine = [r for r in runs if r["algo"] == algo]
@@ -150,7 +186,7 @@ def run_bench(
     for key, label in labels:
         cells = []
         for a in algos:
-            study = STUDY[a].get({"episodes": "episodes"}.get(key, key), "")
+            study = study.get(a, {}).get(key, "-" if a not in study else "")
             cells += [rows[a][key], str(study)]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     pf_line = (
@@ -158,19 +194,20 @@ def run_bench(
         f"{pf.timeouts}, average reward {pf.mean_return:.3f}, reliability {100 * pf.success_rate:.1f}%."
     )
     note = (
-        f"Median [95% bootstrap interval] over {seeds} seed(s) ({seed_list[0]}..{seed_list[-1]}), preset "
-        f"`{preset}`, budget {max_steps} steps."
+        f"Scenario `{scenario}`. Median [95% bootstrap interval] over {seeds} seed(s) "
+        f"({seed_list[0]}..{seed_list[-1]}), preset `{preset}`, budget {max_steps} steps."
     )
     table = "\n".join(lines) + "\n\n" + pf_line + "\n\n" + note + "\n"
     (out / "bench.md").write_text(table)
     write_json(
         {
             "algos": algos,
+            "scenario": scenario,
             "seeds": seed_list,
             "preset": preset,
             "max_steps": max_steps,
             "rows": rows,
-            "study": STUDY,
+            "study": study,
             "runs": runs,
             "potential_field": {
                 k: getattr(pf, k)

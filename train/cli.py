@@ -16,20 +16,22 @@ CONTROLLERS = ("potential-field",)
 """Built-in scripted controllers, usable wherever a policy is expected."""
 
 
-def _controller(name: str):  # type: ignore[no-untyped-def]
+def _controller(name: str, scenario: str = "static"):  # type: ignore[no-untyped-def]
     from embedrl.train.potential_field import PotentialFieldController
 
     if name == "potential-field":
-        return PotentialFieldController()
+        return PotentialFieldController(scenario=scenario)
     raise UsageError(f"unknown controller {name!r}; available: {', '.join(CONTROLLERS)}")
 
 
 def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     if args.model is not None:
-        return load_model_policy(args.model, args.trust_pickle, args.vecnormalize)
+        policy = load_model_policy(args.model, args.trust_pickle, args.vecnormalize)
+        _check_model_scenario(args)
+        return policy
     if args.vecnormalize is not None:
         raise UsageError("--vecnormalize goes with a model, not with --controller")
-    return _controller(args.controller)
+    return _controller(args.controller, args.scenario)
 
 
 def load_model_policy(  # type: ignore[no-untyped-def]
@@ -51,7 +53,43 @@ def load_model_policy(  # type: ignore[no-untyped-def]
     return act
 
 
+SCENARIO_HELP = "static (default), moving-shelf or two-robots (one policy drives both robots)"
+
+
+def add_scenario_argument(p: argparse.ArgumentParser) -> None:
+    """``--scenario``: which of the study's scenarios (train, eval, render, bench, export's closed loop)."""
+    from embedrl.train.config import SCENARIO_NAMES
+
+    p.add_argument("--scenario", choices=SCENARIO_NAMES, default="static", help=SCENARIO_HELP)
+
+
+def _env_id(args: argparse.Namespace) -> str:
+    from embedrl.train.scenarios import SCENARIOS
+
+    return SCENARIOS[args.scenario].env_id
+
+
+def _check_model_scenario(args: argparse.Namespace) -> None:
+    """A model trained on one scenario's observation cannot run in another's: one clear line."""
+    if args.model is None:
+        return
+    from embedrl.train.models import model_metadata
+    from embedrl.train.scenarios import SCENARIOS
+
+    meta = model_metadata(args.model) or {}
+    trained = meta.get("scenario")
+    if trained is not None and trained != args.scenario:
+        raise UsageError(f"{args.model} was trained on scenario {trained}; pass --scenario {trained}")
+    spec = SCENARIOS[args.scenario]
+    shape = meta.get("observation_size")
+    if shape is not None and shape != len(spec.observation):
+        raise UsageError(
+            f"{args.model} observes {shape} values but scenario {args.scenario} gives {len(spec.observation)}"
+        )
+
+
 def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
+    add_scenario_argument(p)
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
     src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
@@ -88,7 +126,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     policy = _policy(args)
     name = args.controller or str(args.model)
-    report = evaluate(policy, args.episodes, args.seed, name, progress=True)
+    report = evaluate(policy, args.episodes, args.seed, name, progress=True, env_id=_env_id(args))
     print(report.table())
     if args.json:
         write_json(report.to_json(), args.json)
@@ -105,14 +143,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     import gymnasium as gym
     import numpy as np
 
-    from embedrl.train import ENV_ID
     from embedrl.train.rendering import save_episode
     from embedrl.train.robot import SAMPLE_TIME
 
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
     policy = _policy(args)
-    env = gym.make(ENV_ID, render_mode="rgb_array")
+    extra = {"partner": policy} if args.scenario == "two-robots" else {}  # one policy drives both robots
+    env = gym.make(_env_id(args), render_mode="rgb_array", **extra)
     obs, info = env.reset(seed=args.seed)
     frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]
     while True:
@@ -137,6 +175,7 @@ def cmd_bench_env(args: argparse.Namespace) -> int:
 
 TRAIN_DEFAULTS: dict[str, Any] = {
     "algo": "td3",
+    "scenario": "static",
     "preset": "tuned",
     "seed": 0,
     "max_steps": 300_000,
@@ -166,6 +205,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         saved = read_run_config(args.resume)
         own = {
             "algo": saved["algo"],
+            "scenario": saved.get("scenario", "static"),
             "preset": saved["preset"],
             "seed": saved["seed"],
             **{
@@ -200,6 +240,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         resume=args.resume is not None,
         progress=True,
         overrides=args.set,
+        scenario=values["scenario"],
     )
     for key, value in summary.items():
         print(f"{key:<36}  {value}")
@@ -212,7 +253,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     table = run_bench(
         args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers,
-        args.seed_offset,
+        args.seed_offset, args.scenario,
     )  # fmt: skip
     print(table)
     print(f"wrote {args.out}/bench.md and bench.json")
@@ -234,11 +275,11 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
 
-    from embedrl.train.config import ALGOS, PRESETS
+    from embedrl.train.config import ALGOS, PRESETS, SCENARIO_NAMES
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
     p.add_argument("--algo", choices=ALGOS, help=f"default {TRAIN_DEFAULTS['algo']}")
-    p.add_argument("--scenario", choices=["static"], default="static")
+    p.add_argument("--scenario", choices=SCENARIO_NAMES, help=SCENARIO_HELP)
     p.add_argument("--preset", choices=PRESETS, help=f"default {TRAIN_DEFAULTS['preset']}")
     p.add_argument(
         "--set",
@@ -268,7 +309,7 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")
-    p.add_argument("--scenario", choices=["static"], default="static")
+    add_scenario_argument(p)
     p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     p.add_argument("--seeds", type=_positive, default=5)
     p.add_argument(

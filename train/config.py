@@ -63,6 +63,11 @@ class OffPolicyConfig:
     before learning: they show the way through the gap, which random exploration almost never finds."""
     demonstration_noise: float = 0.2
     """Gaussian noise on the demonstrations' actions (they then cover more than one path)."""
+    reward: str = "thesis"
+    """The env's reward: ``thesis`` (the study's eq. 19) or ``potential-field`` (its contours at the four
+    corners); see :mod:`train.rewards`."""
+    success_bonus: float = 5.0
+    """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
 
 
 @dataclass(frozen=True)
@@ -127,6 +132,11 @@ class PPOConfig:
     agents' demonstrations: PPO alone learns to crash, as in the study)."""
     warm_start_epochs: int = 40
     """Passes of behaviour cloning over the demonstrations."""
+    reward: str = "thesis"
+    """The env's reward: ``thesis`` (the study's eq. 19) or ``potential-field`` (its contours at the four
+    corners); see :mod:`train.rewards`."""
+    success_bonus: float = 5.0
+    """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
 
 
 AlgoConfig = DDPGConfig | TD3Config | SACConfig | PPOConfig
@@ -146,8 +156,25 @@ class RunConfig:
     """``--set NAME=VALUE`` assignments applied to the preset (already in ``hyperparameters``)."""
 
 
-def preset(algo: str, name: str) -> AlgoConfig:
-    """The named preset of an algorithm."""
+SCENARIO_NAMES = ("static", "moving-shelf", "two-robots")
+
+
+def preset(algo: str, name: str, scenario: str = "static") -> AlgoConfig:
+    """The named preset of an algorithm in a scenario.
+
+    In the moving-shelf and two-robot scenarios ``thesis`` trains on the study's potential-field reward
+    (the reward of its changing and multi-agent experiments); ``tuned`` keeps the static scenario's
+    tuning, demonstrations from the scenario's potential-field controller included.
+    """
+    if scenario not in SCENARIO_NAMES:
+        raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIO_NAMES)}")
+    config = _preset(algo, name)
+    if name == "thesis" and scenario != "static":
+        config = replace(config, reward="potential-field")
+    return config
+
+
+def _preset(algo: str, name: str) -> AlgoConfig:
     if algo not in ALGOS:
         raise ValueError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
     if name not in PRESETS:

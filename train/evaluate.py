@@ -3,6 +3,9 @@
 Episode ``i`` of an evaluation with seed ``S`` is reset with seed ``S + i``, so any two
 policies evaluated with the same seed meet the same start poses episode by episode
 (the exported C policy and the HIL run are compared with the Python policy this way).
+
+In the two-robot scenario the policy drives both robots (a shared policy, one copy per robot); an
+episode succeeds when both are through without a contact, and its return is the robots' mean return.
 """
 
 from __future__ import annotations
@@ -18,6 +21,8 @@ from tqdm import tqdm
 from embedrl.common import provenance, table
 from embedrl.train import ENV_ID
 from embedrl.train.robot import SAMPLE_TIME
+from embedrl.train.scenarios import TWO_ROBOTS
+from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (float32[6]) in, action (float32[2]) out."""
@@ -51,6 +56,11 @@ class EpisodeResult:
     collided_with: str | None
     trajectory: list[Pose] = field(repr=False, default_factory=list)
     """(x, y, theta) after reset and after every step."""
+    robots: tuple[str, ...] = ()
+    """Two robots: each robot's outcome (``success``, ``collision``, ``timeout`` or ``stopped``: its
+    episode ended because the other crashed)."""
+    other_trajectories: list[list[Pose]] = field(repr=False, default_factory=list)
+    """Two robots: the other robots' paths."""
 
 
 @dataclass(frozen=True)
@@ -70,9 +80,12 @@ class EvalReport:
     seed: int
     policy: str
     results: list[EpisodeResult]
+    env_id: str = ENV_ID
 
     @classmethod
-    def from_results(cls, results: list[EpisodeResult], seed: int, policy: str) -> EvalReport:
+    def from_results(
+        cls, results: list[EpisodeResult], seed: int, policy: str, env_id: str = ENV_ID
+    ) -> EvalReport:
         if not results:
             raise ValueError("an evaluation needs at least one episode")
         returns = np.array([r.episode_return for r in results])
@@ -90,6 +103,7 @@ class EvalReport:
             seed=seed,
             policy=policy,
             results=results,
+            env_id=env_id,
         )
 
     def to_json(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -100,12 +114,15 @@ class EvalReport:
             mean_steps=self.mean_steps,
             seed=self.seed,
             policy=self.policy,
-            env_id=ENV_ID,
+            env_id=self.env_id,
             sample_time_s=SAMPLE_TIME,
             provenance=provenance(),
         )
         out.update(extra or {})
-        out["per_episode"] = [{k: v for k, v in asdict(r).items() if k != "trajectory"} for r in self.results]
+        out["per_episode"] = [
+            {k: v for k, v in asdict(r).items() if k not in ("trajectory", "other_trajectories")}
+            for r in self.results
+        ]
         return out
 
     def table(self) -> str:
@@ -164,6 +181,38 @@ def episode_result(
     )
 
 
+def run_two_robot_episode(env: WarehouseTwoRobotsEnv, policy: Policy, seed: int) -> EpisodeResult:
+    """One two-robot episode with ``policy`` driving both robots."""
+    obs, _ = env.reset(seed=seed)
+    totals = dict.fromkeys(env.possible_agents, 0.0)
+    steps = 0
+    while env.agents:
+        obs, rewards, _, _, _ = env.step({a: policy(obs[a]) for a in env.agents})
+        for agent, r in rewards.items():
+            totals[agent] += float(r)
+        steps += 1
+    outcomes = tuple(str(o) for o in env.outcomes)
+    if env.succeeded:
+        outcome = "success"
+    elif "collision" in outcomes:
+        outcome = "collision"
+    else:
+        outcome = "timeout"
+    world = env._world
+    hit = next((h for h in world.hits if h), None) if world is not None else None
+    return EpisodeResult(
+        seed,
+        outcome,
+        steps,
+        sum(totals.values()) / len(totals),
+        steps * SAMPLE_TIME,
+        hit,
+        list(env.trajectories[0]),
+        outcomes,
+        [list(t) for t in env.trajectories[1:]],
+    )
+
+
 def evaluate(
     policy: Policy,
     episodes: int,
@@ -172,16 +221,23 @@ def evaluate(
     progress: bool = False,
     env_id: str = ENV_ID,
     sample_time: float = SAMPLE_TIME,
+    env_kwargs: dict[str, Any] | None = None,
 ) -> EvalReport:
-    """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``."""
+    """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``
+    (``embedrl/WarehouseTwoRobots-v0``: the policy drives both robots)."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
-    env = gym.make(env_id)
+    bar = tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
+    if env_id == TWO_ROBOTS.env_id:
+        pair = WarehouseTwoRobotsEnv(**(env_kwargs or {}))
+        try:
+            results = [run_two_robot_episode(pair, policy, seed + i) for i in bar]
+        finally:
+            pair.close()
+        return EvalReport.from_results(results, seed, name, env_id)
+    env = gym.make(env_id, **(env_kwargs or {}))
     try:
-        results = [
-            run_episode(env, policy, seed + i, sample_time)
-            for i in tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
-        ]
+        results = [run_episode(env, policy, seed + i, sample_time) for i in bar]
     finally:
         env.close()
-    return EvalReport.from_results(results, seed, name)
+    return EvalReport.from_results(results, seed, name, env_id)

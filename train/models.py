@@ -58,9 +58,19 @@ def vecnormalize_beside(model: Path) -> Path | None:
     return next((c for c in normalization_candidates(model) if c.is_file()), None)
 
 
-def stamp_model(model: Path, normalization: ObsNormalization | None) -> None:
-    """Record in ``model``'s zip whether it needs normalisation statistics, and which (their digest)."""
-    entry = {"normalization": None if normalization is None else {"sha256": normalization.digest()}}
+def stamp_model(
+    model: Path,
+    normalization: ObsNormalization | None,
+    scenario: str | None = None,
+    observation_size: int = 0,
+) -> None:
+    """Record in ``model``'s zip whether it needs normalisation statistics, and which (their digest), and
+    the scenario it was trained on with its observation size (when given)."""
+    entry: dict[str, Any] = {
+        "normalization": None if normalization is None else {"sha256": normalization.digest()}
+    }
+    if scenario is not None:
+        entry.update(scenario=scenario, observation_size=observation_size)
     with zipfile.ZipFile(model, "a") as zf:
         if METADATA_ENTRY in zf.namelist():
             raise ValueError(f"{model} already has {METADATA_ENTRY}")

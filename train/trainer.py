@@ -26,7 +26,7 @@ import pickle
 import random
 import shutil
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +43,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm import tqdm
 
 from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, provenance
-from embedrl.train import ENV_ID
 from embedrl.train.config import (
     ALGOS,
     Budget,
@@ -59,23 +58,47 @@ from embedrl.train.config import (
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
+from embedrl.train.rewards import SUCCESS_BONUS
+from embedrl.train.scenarios import SCENARIOS
 
 STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
 STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
 CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
-CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0")
+CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0", "success", "robot")
+"""curve.csv's columns; ``robot`` is the robot's index (two robots share one policy and one curve)."""
 CHECKPOINT_FILES = ("model.zip", "env.pkl", "random.pkl", "state.json")
 """What every checkpoint holds (plus replay_buffer.pkl for DDPG, TD3 and SAC); state.json is written last."""
 
 
-def make_env(normalize: bool, seed: int) -> VecEnv:
-    env: VecEnv = DummyVecEnv([lambda: Monitor(gym.make(ENV_ID))])
+def make_env(normalize: bool, seed: int, scenario: str = "static", cfg: Any = None) -> VecEnv:
+    """The training env of a scenario: one Monitor-ed env, or one slot per robot for two robots."""
+    kwargs = env_kwargs(cfg)
+    env: VecEnv
+    if scenario == "two-robots":
+        from embedrl.train.shared_policy import SharedPolicyVecEnv
+        from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
+
+        env = SharedPolicyVecEnv(WarehouseTwoRobotsEnv(**kwargs))
+    else:
+        env_id = SCENARIOS[scenario].env_id
+        env = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kwargs))])
     env.seed(seed)
     if normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=False)
     return env
+
+
+def env_kwargs(cfg: Any) -> dict[str, Any]:
+    """The env arguments a run's hyperparameters set (the reward, and the success bonus where it is not
+    the default, so envs without that argument keep working)."""
+    if cfg is None or (cfg.reward == "thesis" and cfg.success_bonus == SUCCESS_BONUS):
+        return {}
+    out: dict[str, Any] = {"reward": cfg.reward}
+    if cfg.success_bonus != SUCCESS_BONUS:
+        out["success_bonus"] = cfg.success_bonus
+    return out
 
 
 def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) -> BaseAlgorithm:
@@ -134,61 +157,92 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
     return SAC("MlpPolicy", env, ent_coef=cfg.ent_coef, **off, **common)
 
 
-def seed_replay_buffer(model: OffPolicyAlgorithm, episodes: int, noise: float, seed: int) -> int:
-    """Put potential-field episodes (noisy actions) into the replay buffer; return the transitions added."""
+def _demonstration_steps(
+    episodes: int, noise: float, seed: int, scenario: str, cfg: Any
+) -> Iterator[
+    tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]
+]:
+    """The scenario's potential-field controller with Gaussian noise on its actions, ``episodes`` episodes,
+    as vector-env steps ``(obs, clean actions, actions, next obs, rewards, dones, infos)``: one row per
+    robot, ``next obs`` the terminal observation where a row is done.
+
+    One env per scenario with one robot, reset with seed ``DEMONSTRATION_SEED + 1000 * seed + episode``;
+    for two robots, the training vector env itself (absorbing rows included), seeded once."""
     from embedrl.train.potential_field import PotentialFieldController
 
-    controller = PotentialFieldController()
+    controller = PotentialFieldController(scenario=scenario)
     rng = np.random.default_rng(seed)
-    env = gym.make(ENV_ID)
-    added = 0
-    assert model.replay_buffer is not None
+    first = DEMONSTRATION_SEED + 1000 * seed
+    if scenario == "two-robots":
+        venv = make_env(False, first, scenario, cfg)
+        obs = np.asarray(venv.reset())
+        finished = 0
+        while finished < episodes:
+            clean = np.stack([controller(o) for o in obs])
+            actions = np.clip(clean + rng.normal(0.0, noise, clean.shape), -1.0, 1.0).astype(np.float32)
+            stepped, rewards, dones, infos = venv.step(actions)
+            next_obs = np.asarray(stepped)
+            stored = next_obs.copy()
+            for i in np.flatnonzero(dones):
+                stored[i] = infos[i]["terminal_observation"]
+            yield obs, clean, actions, stored, rewards, dones, infos
+            obs = next_obs
+            finished += bool(np.all(dones))  # the episode is over when every row is done
+        venv.close()
+        return
+    env = gym.make(SCENARIOS[scenario].env_id, **env_kwargs(cfg))
     for episode in range(episodes):
-        obs, _ = env.reset(seed=DEMONSTRATION_SEED + 1000 * seed + episode)
+        o, _ = env.reset(seed=first + episode)
         done = False
         while not done:
-            action = np.clip(controller(obs) + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
-            next_obs, reward, terminated, truncated, _ = env.step(action)
+            c = controller(o)
+            action = np.clip(c + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
+            next_o, reward, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
-            model.replay_buffer.add(
-                obs[None],
-                next_obs[None],
-                action[None],
-                np.array([reward]),
-                np.array([done]),
-                [{"TimeLimit.truncated": truncated and not terminated}],
-            )
-            obs = next_obs
-            added += 1
+            info = {"TimeLimit.truncated": truncated and not terminated}
+            yield o[None], c[None], action[None], next_o[None], np.array([reward]), np.array([done]), [info]
+            o = next_o
     env.close()
+
+
+def seed_replay_buffer(
+    model: OffPolicyAlgorithm,
+    episodes: int,
+    noise: float,
+    seed: int,
+    scenario: str = "static",
+    cfg: Any = None,
+) -> int:
+    """Put the scenario's potential-field episodes (noisy actions) into the replay buffer; return the
+    transitions added."""
+    assert model.replay_buffer is not None
+    added = 0
+    for obs, _, actions, next_obs, rewards, dones, infos in _demonstration_steps(
+        episodes, noise, seed, scenario, cfg
+    ):
+        model.replay_buffer.add(obs, next_obs, actions, rewards, dones, infos)
+        added += len(obs)
     return added
 
 
-def _demonstrations(episodes: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def _demonstrations(
+    episodes: int, noise: float, seed: int, scenario: str = "static", cfg: Any = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Observations visited with noisy potential-field actions, labelled with its clean actions."""
-    from embedrl.train.potential_field import PotentialFieldController
-
-    controller = PotentialFieldController()
-    rng = np.random.default_rng(seed)
-    env = gym.make(ENV_ID)
-    observations, labels = [], []
-    for episode in range(episodes):
-        obs, _ = env.reset(seed=DEMONSTRATION_SEED + 1000 * seed + episode)
-        done = False
-        while not done:
-            clean = controller(obs)
-            observations.append(obs)
-            labels.append(clean)
-            action = np.clip(clean + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
-            obs, _, terminated, truncated, _ = env.step(action)
-            done = terminated or truncated
-    env.close()
+    observations: list[np.ndarray] = []
+    labels: list[np.ndarray] = []
+    for obs, clean, *_ in _demonstration_steps(episodes, noise, seed, scenario, cfg):
+        live = np.any(obs != 0.0, axis=1)  # not the absorbing rows of robots already through
+        observations.extend(obs[live])
+        labels.extend(clean[live])
     return np.array(observations, dtype=np.float32), np.array(labels, dtype=np.float32)
 
 
-def warm_start(model: PPO, env: VecEnv, episodes: int, epochs: int, seed: int) -> float:
+def warm_start(
+    model: PPO, env: VecEnv, episodes: int, epochs: int, seed: int, scenario: str = "static", cfg: Any = None
+) -> float:
     """Behaviour-clone the potential-field controller into PPO's policy mean; return the final loss."""
-    obs, labels = _demonstrations(episodes, 0.2, seed)
+    obs, labels = _demonstrations(episodes, 0.2, seed, scenario, cfg)
     if isinstance(env, VecNormalize):
         rms: Any = env.obs_rms
         rms.mean, rms.var, rms.count = (
@@ -279,11 +333,13 @@ class RunMonitor(BaseCallback):
     def _on_step(self) -> bool:
         steps = self.num_timesteps
         self.bar.update(steps - self.bar.n)
-        for done, info, obs in zip(
-            self.locals["dones"], self.locals["infos"], self.locals["new_obs"], strict=True
+        for robot, (done, info, obs) in enumerate(
+            zip(self.locals["dones"], self.locals["infos"], self.locals["new_obs"], strict=True)
         ):
             if done and "episode" in info:
-                self._episode(float(info["episode"]["r"]), int(info["episode"]["l"]), steps)
+                episode = info["episode"]
+                success = bool(info.get("is_success"))
+                self._episode(float(episode["r"]), int(episode["l"]), steps, success, robot)
                 self.pending_q0 = q0(self.model, obs)
         if steps >= self.next_eval:
             self.next_eval += self.budget.eval_every
@@ -296,13 +352,22 @@ class RunMonitor(BaseCallback):
         stop = self.budget.stop_at_criterion and self.state.get("criterion_step") is not None
         return not stop and len(self.returns) < self.budget.max_episodes
 
-    def _episode(self, ret: float, length: int, steps: int) -> None:
+    def _episode(self, ret: float, length: int, steps: int, success: bool = False, robot: int = 0) -> None:
         self.returns.append(ret)
         window = self.returns[-STOP_WINDOW:]
         average = float(np.mean(window))
         with (self.run / "curve.csv").open("a", newline="") as f:
             csv.writer(f).writerow(
-                [len(self.returns), steps, f"{ret:.6f}", length, f"{average:.6f}", f"{self.pending_q0:.6f}"]
+                [
+                    len(self.returns),
+                    steps,
+                    f"{ret:.6f}",
+                    length,
+                    f"{average:.6f}",
+                    f"{self.pending_q0:.6f}",
+                    int(success),
+                    robot,
+                ]
             )
         if (
             len(window) == STOP_WINDOW
@@ -325,8 +390,9 @@ def train(
     resume: bool = False,
     progress: bool = False,
     overrides: Sequence[str] = (),
+    scenario: str = "static",
 ) -> dict[str, Any]:
-    """Train one agent into ``out`` (or continue the run there); return its summary.
+    """Train one agent into ``out`` (or continue the run there) on a scenario; return its summary.
 
     ``overrides``: ``NAME=VALUE`` changes to the preset's hyperparameters (recorded in config.json and
     applied again on resume)."""
@@ -338,10 +404,11 @@ def train(
         saved = read_run_config(out)
         algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
         overrides = saved.get("overrides", [])
+        scenario = saved.get("scenario", "static")
     elif out.exists() and any(out.iterdir()):
         raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
     try:
-        cfg = with_overrides(preset(algo, preset_name), overrides)
+        cfg = with_overrides(preset(algo, preset_name, scenario), overrides)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations
@@ -352,11 +419,12 @@ def train(
         model, env, state, generators = _load_checkpoint(_complete_checkpoint(out), algo, out / "tb")
         _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
     else:
-        env = make_env(normalize, seed)
+        env = make_env(normalize, seed, scenario, cfg)
         run_config = RunConfig(
             algo,
             preset_name,
             seed,
+            scenario=scenario,
             hyperparameters=to_dict(cfg),
             budget=vars(budget),
             overrides=list(overrides),
@@ -368,9 +436,9 @@ def train(
             csv.writer(f).writerow(CURVE_FIELDS)
         model = build_model(algo, cfg, env, seed, out / "tb")
         if isinstance(model, OffPolicyAlgorithm) and not isinstance(cfg, PPOConfig) and cfg.demonstrations:
-            seed_replay_buffer(model, cfg.demonstrations, cfg.demonstration_noise, seed)
+            seed_replay_buffer(model, cfg.demonstrations, cfg.demonstration_noise, seed, scenario, cfg)
         if isinstance(model, PPO) and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
-            warm_start(model, env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed)
+            warm_start(model, env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed, scenario, cfg)
     state.setdefault("wall_clock_s", 0.0)
     started = time.monotonic()
 
@@ -381,7 +449,12 @@ def train(
 
     def deterministic_return() -> float:
         return evaluate(
-            _policy_of(model, env), budget.eval_episodes, VALIDATION_SEED, "deterministic"
+            _policy_of(model, env),
+            budget.eval_episodes,
+            VALIDATION_SEED,
+            "deterministic",
+            env_id=SCENARIOS[scenario].env_id,
+            env_kwargs=env_kwargs(cfg),
         ).mean_return
 
     monitor = RunMonitor(out, budget, state, save, deterministic_return, progress)
@@ -392,12 +465,18 @@ def train(
         model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
     monitor.checkpoint()
     model.save(out / "model.zip")
-    stamp_model(out / "model.zip", normalization_of(env) if normalize else None)
+    stamp_model(
+        out / "model.zip",
+        normalization_of(env) if normalize else None,
+        scenario,
+        len(SCENARIOS[scenario].observation),
+    )
     if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
         save_normalization(env, out / "vecnormalize.npz")
         env.save(str(out / "vecnormalize.pkl"))  # type: ignore[attr-defined]
     summary = {
         "algo": algo,
+        "scenario": scenario,
         "preset": preset_name,
         "seed": seed,
         "criterion_reached": state.get("criterion_step") is not None,
@@ -412,7 +491,9 @@ def train(
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     from embedrl.train.plots import plot_progress
 
-    plot_progress(out / "curve.csv", out / "progress.png", f"{algo.upper()} ({preset_name}, seed {seed})")
+    plot_progress(
+        out / "curve.csv", out / "progress.png", f"{algo.upper()} ({scenario}, {preset_name}, seed {seed})"
+    )
     env.close()
     return summary
 

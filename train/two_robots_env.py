@@ -22,7 +22,7 @@ NAME = "warehouse_two_robots_v0"
 Obs = dict[str, np.ndarray]
 
 
-class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
+class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
     """Two robots start at opposite ends of the shelves and must both pass down through the one gap.
 
     ## Description
@@ -85,7 +85,11 @@ class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
     - v0: initial version.
     """
 
-    metadata = {"name": NAME, "render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012
+    metadata: dict[str, Any] = {  # noqa: RUF012 (PettingZoo API)
+        "name": NAME,
+        "render_modes": ["rgb_array"],
+        "render_fps": 1 / SAMPLE_TIME,
+    }
 
     SPEC = TWO_ROBOTS
 
@@ -228,16 +232,16 @@ class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
                 self.outcomes[i] = "timeout"
             self.trajectories[i].append(poses[i])
             obs[agent] = self._observe(i)
-            a = forces[i]
-            assert a is not None
+            force = forces[i]
+            assert force is not None
             w = float(obs[agent][5])
             if self.reward_name == "thesis":
                 x, y = float(obs[agent][0]), float(obs[agent][1])
-                rew[agent] = rewards.thesis(x, y, w, a, made_it, collided, self.success_bonus)
+                rew[agent] = rewards.thesis(x, y, w, force, made_it, collided, self.success_bonus)
             else:
                 others = [poses[1 - i]] if world.active[1 - i] else []
                 rew[agent] = rewards.potential_field(
-                    poses[i], w, a, made_it, collided, layout.OBSTACLES, others, self.success_bonus
+                    poses[i], w, force, made_it, collided, layout.OBSTACLES, others, self.success_bonus
                 )
             term[agent] = collided or made_it
             trunc[agent] = not term[agent] and (crashed or timeout)
@@ -265,3 +269,68 @@ class WarehouseTwoRobotsEnv(ParallelEnv[str, np.ndarray, np.ndarray]):
 def parallel_env(**kwargs: Any) -> WarehouseTwoRobotsEnv:
     """PettingZoo's conventional constructor."""
     return WarehouseTwoRobotsEnv(**kwargs)
+
+
+class TwoRobotsPartnerView(gym.Env[np.ndarray, np.ndarray]):
+    """``embedrl/WarehouseTwoRobots-v0``: the two-robot scenario as a single-agent gymnasium env.
+
+    The agent drives ``robot_0``; ``robot_1`` is driven by ``partner`` (an observation-to-action
+    callable; default the potential-field controller). Spaces, rewards and ends are ``robot_0``'s in
+    :class:`WarehouseTwoRobotsEnv`, except that the episode goes on until both robots are done: once
+    ``robot_0`` is through, steps pass (its actions ignored, reward 0) until the partner finishes, and
+    ``is_success`` means both robots are through. Shared-policy training does not use this view (it uses
+    :class:`~train.shared_policy.SharedPolicyVecEnv`); evaluation of a shared policy drives both robots
+    with it (:func:`train.evaluate.evaluate`).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        reward: str = "thesis",
+        success_bonus: float = rewards.SUCCESS_BONUS,
+        partner: Any = None,
+    ) -> None:
+        self.parallel = WarehouseTwoRobotsEnv(render_mode, reward, success_bonus)
+        self.render_mode = render_mode
+        if partner is None:
+            from embedrl.train.potential_field import PotentialFieldController
+
+            partner = PotentialFieldController(scenario="two-robots")
+        self.partner = partner
+        self.observation_space = self.parallel.observation_space(AGENTS[0])
+        self.action_space = self.parallel.action_space(AGENTS[0])
+        self._obs: Obs = {}
+
+    @property
+    def trajectory(self) -> list[Pose]:
+        return self.parallel.trajectories[0]
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self._obs, infos = self.parallel.reset(seed=seed, options=options)
+        return self._obs[AGENTS[0]], infos[AGENTS[0]]
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        env = self.parallel
+        actions = {AGENTS[0]: action, AGENTS[1]: self.partner(self._obs[AGENTS[1]])}
+        obs, rew, _, _, _ = env.step({a: actions[a] for a in env.agents})
+        self._obs.update(obs)
+        mine = AGENTS[0]
+        done = not env.agents
+        info = {
+            "is_success": done and env.succeeded,
+            "collided": "collision" in env.outcomes,
+            "collided_with": next((h for h in env._world.hits if h), None) if env._world else None,
+        }
+        terminated = done and all(o in ("success", "collision") for o in env.outcomes)
+        return self._obs[mine], float(rew.get(mine, 0.0)), terminated, done and not terminated, info
+
+    def render(self) -> np.ndarray | None:
+        return self.parallel.render()
+
+    def close(self) -> None:
+        self.parallel.close()

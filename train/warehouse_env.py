@@ -88,8 +88,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     ``info`` always carries ``is_success``, ``collided`` and ``collided_with`` (or ``None``).
 
     ## Arguments
-    ``gymnasium.make("embedrl/WarehouseRobot-v0", render_mode="rgb_array", reward="thesis")``
-    (``reward`` is ``"thesis"`` or ``"potential-field"``).
+    ``gymnasium.make("embedrl/WarehouseRobot-v0", render_mode="rgb_array", reward="thesis",
+    success_bonus=5.0)`` (``reward`` is ``"thesis"`` or ``"potential-field"``).
 
     ## Version History
     - v0: initial version (static scenario).
@@ -99,7 +99,9 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     """The scenario spec: spaces, step limit."""
     metadata = {"render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012 (gymnasium API)
 
-    def __init__(self, render_mode: str | None = None, reward: str = "thesis") -> None:
+    def __init__(
+        self, render_mode: str | None = None, reward: str = "thesis", success_bonus: float = SUCCESS_BONUS
+    ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode {render_mode!r} is not supported; use one of {self.metadata['render_modes']}"
@@ -108,6 +110,9 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"reward {reward!r} is not one of {', '.join(rewards.REWARDS)}")
         self.render_mode = render_mode
         self.reward_name = reward
+        if not (math.isfinite(success_bonus) and success_bonus >= 0):
+            raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus}")
+        self.success_bonus = success_bonus
         self.action_space = spaces.Box(self.SPEC.act_low, self.SPEC.act_high, dtype=np.float32)
         low, high = self.SPEC.obs_low, self.SPEC.obs_high
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -195,9 +200,12 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self.trajectory.append(pose)
         self.obstacle_history.append(self._moving_obstacles())
         if self.reward_name == "thesis":
-            r = rewards.thesis(float(obs[0]), float(obs[1]), float(obs[5]), a, made_it, collided)
+            x, y, w = float(obs[0]), float(obs[1]), float(obs[5])
+            r = rewards.thesis(x, y, w, a, made_it, collided, self.success_bonus)
         else:
-            r = rewards.potential_field(pose, float(obs[5]), a, made_it, collided, self._obstacles())
+            r = rewards.potential_field(
+                pose, float(obs[5]), a, made_it, collided, self._obstacles(), bonus=self.success_bonus
+            )
         terminated = made_it or collided
         truncated = not terminated and self._steps >= self.SPEC.max_steps
         info = {"is_success": made_it, "collided": collided, "collided_with": hit}
