@@ -11,6 +11,7 @@ from typing import Any
 from embedrl.common import table
 from embedrl.export.errors import ExportError
 from embedrl.train.cli import add_model_file_arguments
+from embedrl.train.config import SCENARIO_NAMES
 
 
 def _safe_action(text: str) -> tuple[float, ...]:
@@ -46,6 +47,14 @@ def _names(path: Path | None) -> dict[str, Any] | None:
     return names
 
 
+def _env_id(args: argparse.Namespace) -> str:
+    from embedrl.train.scenarios import SCENARIOS
+
+    if args.env is not None and args.scenario is not None:
+        raise ExportError("give --env or --scenario, not both")
+    return args.env or SCENARIOS[args.scenario or "static"].env_id
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     from embedrl.export.onnx_import import Limits
     from embedrl.export.pipeline import ExportOptions, run_export
@@ -54,7 +63,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         source=args.source,
         out=args.out,
         name=args.name,
-        env_id=args.env,
+        env_id=_env_id(args),
         episodes=args.episodes,
         seed=args.seed,
         vecnormalize=args.vecnormalize,
@@ -145,7 +154,14 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="output folder (written atomically)")
     p.add_argument("--name", default="policy", help="symbol prefix and file name of the generated C")
     p.add_argument(
-        "--env", default="embedrl/WarehouseRobot-v0", help="environment for samples and closed loop"
+        "--env",
+        help="gymnasium environment for samples and closed loop (default: the --scenario's env)",
+    )
+    p.add_argument(
+        "--scenario",
+        choices=SCENARIO_NAMES,
+        help="a warehouse scenario for samples and closed loop: static (default), moving-shelf, two-robots "
+        "(the policy drives both robots)",
     )
     p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
     p.add_argument("--seed", type=int, default=0)

@@ -504,7 +504,7 @@ def _verify(
     if opts.episodes and verify.supports_closed_loop(opts.env_id):
         log(f"[5/5] closed loop: {opts.episodes} episodes, reference and generated C")
         loop: dict[str, Any] = verify.closed_loop(
-            lowered.reference, compiled, opts.episodes, opts.seed, opts.progress
+            lowered.reference, compiled, opts.episodes, opts.seed, opts.progress, opts.env_id
         )
         failure = (
             verify.quantized_closed_loop_failure(loop) if opts.quantize else verify.closed_loop_failure(loop)

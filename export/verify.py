@@ -17,6 +17,7 @@ from embedrl import train
 from embedrl.common import ROLLOUT_SEED_OFFSET
 from embedrl.train.evaluate import REPORT_KEYS, EvalReport, evaluate
 from embedrl.train.interface import NO_ENV
+from embedrl.train.scenarios import BY_ENV_ID
 
 TOLERANCE = 1e-5
 """Max abs action error allowed between two export steps."""
@@ -71,12 +72,17 @@ def max_abs_error(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def supports_closed_loop(env_id: str) -> bool:
-    """Closed-loop outcomes need the warehouse env's success/collision info."""
-    return env_id == train.ENV_ID
+    """Closed-loop outcomes need a warehouse scenario's success/collision info."""
+    return env_id in BY_ENV_ID
 
 
 def closed_loop(
-    reference: Policy, compiled: Policy, episodes: int, seed: int, progress: bool
+    reference: Policy,
+    compiled: Policy,
+    episodes: int,
+    seed: int,
+    progress: bool,
+    env_id: str = train.ENV_ID,
 ) -> dict[str, Any]:
     """Both policies on the same seeded episodes: outcome counts and episodes whose outcome differs.
 
@@ -91,10 +97,11 @@ def closed_loop(
         shadow[0] = max(shadow[0], max_abs_error(action, np.asarray(reference(obs), dtype=np.float32)))
         return action
 
-    ref = evaluate(reference, episodes, seed, "reference", progress=progress)
-    c = evaluate(compiled_with_shadow, episodes, seed, "generated C", progress=progress)
+    ref = evaluate(reference, episodes, seed, "reference", progress=progress, env_id=env_id)
+    c = evaluate(compiled_with_shadow, episodes, seed, "generated C", progress=progress, env_id=env_id)
     differing = [r.seed for r, q in zip(ref.results, c.results, strict=True) if r.outcome != q.outcome]
     return {
+        "env_id": env_id,
         "episodes": episodes,
         "seed": seed,
         "reference": _summary(ref),

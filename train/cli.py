@@ -165,6 +165,16 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_reward_field(args: argparse.Namespace) -> int:
+    from embedrl.train.plots import plot_reward_field
+
+    if args.out.suffix.lower() != ".png":
+        raise UsageError(f"cannot write {args.out}: use a .png file name")
+    plot_reward_field(args.scenario, args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
 def cmd_bench_env(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
     from embedrl.train.bench_env import run
@@ -324,6 +334,11 @@ def register(sub: Any) -> None:
     p.add_argument("--eval-episodes", type=_positive, default=200)
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")
+    add_scenario_argument(p)
+    p.add_argument("--out", type=Path, required=True, help="file.png")
+    p.set_defaults(func=cmd_reward_field)
 
     p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
     p.add_argument("--steps", type=_positive, default=50_000)

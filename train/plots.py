@@ -71,3 +71,74 @@ def plot_progress(curve_csv: Path, path: Path, title: str) -> None:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
     finally:
         plt.close(fig)
+
+
+REWARD_FIELD_GRID = 0.01
+"""Grid spacing of the reward-field plot [m]."""
+EXAMPLE_SHELF = (0.4, 0.6, 0.2)
+"""Where the reward-field plot of the moving-shelf scenario shows the shelf: centre x, lower edge, vx."""
+EXAMPLE_OTHER_ROBOT = (-0.9, 0.3, 0.0)
+"""Where the reward-field plot of the two-robot scenario shows the other robot: x, y, theta."""
+
+
+def plot_reward_field(scenario: str, path: Path) -> None:
+    """The potential-field reward's position term over the map (:func:`train.rewards.field`): the study's
+    attraction towards the gap minus the contours of every obstacle; for the moving shelf at one example
+    position (it moves with the shelf), for two robots around one example position of the other robot."""
+    import numpy as np
+
+    from embedrl.train import rewards
+    from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
+
+    obstacles: tuple[layout.Rect, ...] = layout.OBSTACLES
+    others: list[tuple[float, float, float]] = []
+    note = "static map"
+    if scenario == "moving-shelf":
+        cx, y0, vx = EXAMPLE_SHELF
+        obstacles = (*layout.FIXED_OBSTACLES, layout.moving_shelf(cx, y0))
+        note = f"moving shelf at x = {cx} m, moving at {vx} m/s (the contours move with it)"
+    elif scenario == "two-robots":
+        others = [EXAMPLE_OTHER_ROBOT]
+        note = f"other robot at ({EXAMPLE_OTHER_ROBOT[0]}, {EXAMPLE_OTHER_ROBOT[1]}) m"
+    v = layout.VIEW
+    xs = np.arange(v.x0, v.x1 + 1e-9, REWARD_FIELD_GRID)
+    ys = np.arange(v.y0, v.y1 + 1e-9, REWARD_FIELD_GRID)
+    values = np.array([[rewards.field(float(x), float(y), obstacles, others) for x in xs] for y in ys])
+    # The colour scale spans the arena (below the goal line the attraction keeps growing).
+    inside = values[ys >= layout.GOAL_Y]
+    fig, ax = plt.subplots(figsize=(10, 5.2))
+    mesh = ax.pcolormesh(
+        xs, ys, values, cmap="viridis", shading="auto", vmin=float(inside.min()), vmax=float(inside.max())
+    )
+    fig.colorbar(mesh, ax=ax, label="reward at a point (before the per-step costs) [-]")
+    ax.contour(xs, ys, values, levels=12, colors="white", linewidths=0.4, alpha=0.6)
+    for rect in obstacles:
+        ax.add_patch(
+            Rectangle((rect.x0, rect.y0), rect.x1 - rect.x0, rect.y1 - rect.y0, fill=False, ec="white", lw=1)
+        )
+    if scenario == "moving-shelf":
+        cx, y0, vx = EXAMPLE_SHELF
+        ax.annotate(
+            "",
+            xy=(cx + 0.6, y0 + 0.15),
+            xytext=(cx, y0 + 0.15),
+            arrowprops={"arrowstyle": "->", "color": "white", "lw": 2},
+        )
+    for x, y, _ in others:
+        ax.add_patch(
+            Rectangle(
+                (x - ROBOT_LENGTH / 2, y - ROBOT_WIDTH / 2), ROBOT_LENGTH, ROBOT_WIDTH, fill=False, ec="red"
+            )
+        )
+    ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3)
+    ax.set(xlim=(v.x0, v.x1), ylim=(v.y0, v.y1), aspect="equal", xlabel="x [m]", ylabel="y [m]")
+    ax.set_title(
+        f"Potential-field reward, {scenario} ({note})\n"
+        "0.06 e^(-3y) + 0.05 e^(-8x^2) - 0.05 sum_obstacles e^(-d / 0.05 m); a step averages it over the "
+        "robot's 4 corners",
+        fontsize="small",
+    )
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
+    finally:
+        plt.close(fig)
