@@ -12,7 +12,9 @@ import pytest
 
 from embedrl import train
 from embedrl.train.interface import Field, Interface, InterfaceError, from_spaces
-from embedrl.train.scenarios import BY_ENV_ID, SCENARIOS, STATIC
+from embedrl.train.moving_shelf_env import WarehouseMovingShelfEnv
+from embedrl.train.scenarios import BY_ENV_ID, MOVING_SHELF, SCENARIOS, STATIC, TWO_ROBOTS
+from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 from embedrl.train.warehouse_env import WarehouseRobotEnv
 
 ROW = re.compile(r"^\s*\|\s*(\d+)\s*\|(.*)\|\s*$")
@@ -40,19 +42,28 @@ def test_the_env_spaces_come_from_the_spec() -> None:
     assert BY_ENV_ID[train.ENV_ID] is STATIC and SCENARIOS["static"] is STATIC
 
 
-def test_the_docstring_tables_match_the_spec() -> None:
-    doc = WarehouseRobotEnv.__doc__ or ""
+@pytest.mark.parametrize(
+    ("doc", "spec"),
+    [
+        (WarehouseRobotEnv.__doc__, STATIC),
+        (WarehouseMovingShelfEnv.__doc__, MOVING_SHELF),
+        (WarehouseTwoRobotsEnv.__doc__, TWO_ROBOTS),
+    ],
+    ids=["static", "moving-shelf", "two-robots"],
+)
+def test_the_docstring_tables_match_the_spec(doc: str | None, spec: Interface) -> None:
+    doc = doc or ""
     observations = _table(doc, "Observation Space")
-    assert len(observations) == len(STATIC.observation)
-    for (num, description, low, high, unit), field in zip(observations, STATIC.observation, strict=True):
+    assert len(observations) == len(spec.observation)
+    for (num, description, low, high, unit), field in zip(observations, spec.observation, strict=True):
         assert description == field.description, f"row {num}"
         assert float(low) == pytest.approx(field.low, abs=1e-9) and float(high) == pytest.approx(field.high)
         assert unit == field.unit
     actions = _table(doc, "Action Space")
-    assert len(actions) == len(STATIC.action)
-    for (_, description, low, high), field in zip(actions, STATIC.action, strict=True):
+    assert len(actions) == len(spec.action)
+    for (_, description, low, high), field in zip(actions, spec.action, strict=True):
         assert (description, float(low), float(high)) == (field.description, field.low, field.high)
-    assert f"Truncated: {STATIC.max_steps} steps" in doc and f"({STATIC.sample_time_s} s)" in doc
+    assert f"{spec.max_steps} steps" in doc and f"({spec.sample_time_s} s)" in doc
 
 
 def test_json_round_trip_is_exact_and_canonical() -> None:

@@ -186,8 +186,8 @@ def run_bench(
     for key, label in labels:
         cells = []
         for a in algos:
-            study = study.get(a, {}).get(key, "-" if a not in study else "")
-            cells += [rows[a][key], str(study)]
+            value = study.get(a, {}).get(key, "-" if a not in study else "")
+            cells += [rows[a][key], str(value)]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     pf_line = (
         f"Potential-field controller on the same {eval_episodes} seeds: {pf.successes} / {pf.collisions} / "
