@@ -17,6 +17,7 @@ from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS, parse_schedule
 from embedrl.hil.sandbox import MODES
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV
+from embedrl.train.scenarios import TWO_ROBOTS
 
 if TYPE_CHECKING:
     from embedrl.hil.sandbox import Guest
@@ -26,6 +27,8 @@ REPO = Path(__file__).resolve().parents[1]
 SESSION_TIMEOUT_S = 3600.0
 """A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
 DEFAULT_TIMEOUT_MS = candb.WATCHDOG_MS
+TWO_ROBOT_NODES = 2
+"""The two-robot scenario runs one node per robot."""
 
 
 def _onnx_of(export_dir: Path) -> Path:
@@ -59,6 +62,19 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
     interface = candb.load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
     if args.nodes > 1 and interface.env_id == NO_ENV:
         raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
+    if interface.env_id == TWO_ROBOTS.env_id:  # one node per robot
+        if args.nodes not in (1, TWO_ROBOT_NODES):
+            raise HilError(f"the two-robot scenario runs one node per robot: drop --nodes {args.nodes}")
+        args.nodes = TWO_ROBOT_NODES
+        if args.inject or args.realtime:
+            raise HilError(
+                "the two-robot scenario runs its two nodes in lock-step: drop --inject and --realtime "
+                "(--kill-node takes a node down)"
+            )
+    if args.kill_node is not None and args.nodes < 2:
+        raise HilError("--kill-node takes one of several nodes down; with one node use --inject kill")
+    if args.kill_node is not None and args.kill_node[0] >= args.nodes:
+        raise HilError(f"--kill-node {args.kill_node[0]}: the run has nodes 0..{args.nodes - 1}")
     period_ms = interface.sample_time_s * 1000
     if args.realtime and args.timeout_ms <= period_ms:
         raise HilError(
@@ -103,6 +119,7 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
         realtime=args.realtime,
         inject=tuple(args.inject),
         nodes=args.nodes,
+        kill_node=args.kill_node,
         fd=args.fd,
         observations=str(observations) if observations.is_file() else None,
         **where,
@@ -174,7 +191,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
     episodes = [
         EpisodeResult(
             e["seed"],
-            e["outcome"],
+            _robot_outcome(e["outcome"]),
             e["steps"],
             e["episode_return"],
             e["time_s"],
@@ -192,8 +209,34 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         return np.asarray(session.run(None, {"obs": obs.reshape(1, -1)})[0]).reshape(-1)
 
     interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
+    pairs = None
     if interface.env_id == NO_ENV:  # open loop: no plant to simulate; the actions are compared per step
         sim = None
+    elif interface.env_id == TWO_ROBOTS.env_id:  # one row per robot; the simulation drives both robots
+        simulated_pairs = evaluate(
+            simulated, args.episodes, args.seed, "simulation (onnxruntime)", False, interface.env_id
+        ).results
+        by_seed_pair = {r.seed: r for r in simulated_pairs}
+        robot_rows = [
+            EpisodeResult(
+                h.seed,
+                _robot_outcome(by_seed_pair[h.seed].robots[k]),
+                h.steps,
+                by_seed_pair[h.seed].robot_returns[k],
+                h.time_s,
+                None,
+            )
+            for h, k in zip(episodes, (e["node"] for e in results["episodes"]), strict=True)
+        ]
+        sim = EvalReport.from_results(robot_rows, args.seed, "simulation (onnxruntime)")
+        hil_pairs: dict[int, list[str]] = {}
+        for e in results["episodes"]:
+            hil_pairs.setdefault(e["seed"], []).append(e["outcome"])
+        pairs = {
+            "episodes": len(hil_pairs),
+            "hil_both_through": sum(o == ["success", "success"] for o in hil_pairs.values()),
+            "simulation_both_through": sum(r.outcome == "success" for r in simulated_pairs),
+        }
     else:  # each node's robot on its own seeds (node_seed), in the order the HIL rows have
         from embedrl.hil.session import NODE_SEED_STRIDE
 
@@ -242,6 +285,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         else None
     )
     extra["open_loop"] = sim is None
+    extra["two_robots"] = pairs
     extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
     data = report.to_json(extra)
     for row, e, s in zip(data["per_episode"], results["episodes"], sim_results, strict=True):
@@ -288,6 +332,11 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         raise HilError(f"--nodes must be within 1..{candb.MAX_NODES}, got {args.nodes}")
     if args.nodes > 1 and (schedule or args.realtime):
         raise HilError("--nodes > 1 runs in lock-step without fault injection: drop --inject and --realtime")
+    if args.kill_node is not None and args.kill_node[1] >= args.episodes:
+        raise HilError(
+            f"--kill-node {args.kill_node[0]}@{args.kill_node[1]}:{args.kill_node[2]}: the run has "
+            f"{args.episodes} episode(s)"
+        )
     for s in schedule:
         if s.episode >= args.episodes:
             raise HilError(
@@ -309,6 +358,14 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
              f"{n['faults']} / {len(n['differing_from_simulation'])}")
             for k, n in data["per_node"].items()
         ]  # fmt: skip
+    if data["two_robots"]:
+        pairs = data["two_robots"]
+        rows.append(
+            (
+                "two robots: episodes / both through (HIL) / (simulation)",
+                f"{pairs['episodes']} / {pairs['hil_both_through']} / {pairs['simulation_both_through']}",
+            )
+        )
     if data["open_loop"]:
         rows.append(("open loop (no env): episodes / faults", f"{data['episodes']} / {data['faults']}"))
     else:
@@ -392,6 +449,23 @@ def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
     return {"passed": not failures, "failures": failures, "faults_allowed": allow_faults}
 
 
+def _robot_outcome(outcome: str) -> str:
+    """A robot's outcome in the report's terms: ``stopped`` (the other robot crashed) counts as a timeout."""
+    return "timeout" if outcome == "stopped" else outcome
+
+
+def _kill_spec(text: str) -> tuple[int, int, int]:
+    node, at, rest = text.partition("@")
+    episode, colon, step = rest.partition(":")
+    try:
+        values = (int(node), int(episode), int(step))
+    except ValueError:
+        values = (-1, -1, -1)
+    if not at or not colon or min(values) < 0:
+        raise argparse.ArgumentTypeError(f"expected NODE@EPISODE:STEP (numbers >= 0), got {text!r}")
+    return values
+
+
 def cmd_doctor(args: argparse.Namespace) -> int:
     from embedrl.common import write_json
     from embedrl.hil.doctor import doctor, print_table
@@ -452,7 +526,14 @@ def register(sub: Any) -> None:
         "--nodes",
         type=int,
         default=1,
-        help="nodes on one bus, one robot each with its own seeds (policy_node --node-id 0..N-1), lock-step",
+        help="nodes on one bus, one robot each with its own seeds (policy_node --node-id 0..N-1), lock-step; "
+        "a two-robot export always runs one node per robot in the same episode",
+    )
+    r.add_argument(
+        "--kill-node",
+        type=_kill_spec,
+        metavar="NODE@EPISODE:STEP",
+        help="several nodes: kill that node's process before that step (its robot stops; the others go on)",
     )
     r.add_argument(
         "--node",

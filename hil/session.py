@@ -39,6 +39,7 @@ from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode
 from embedrl.train.interface import NO_ENV, Interface
+from embedrl.train.scenarios import TWO_ROBOTS
 
 TOLERANCE = 1e-5
 NODE_BOOT_S = 1.0
@@ -82,6 +83,9 @@ class SessionConfig:
     replayed :data:`OPEN_LOOP_STEPS` per episode."""
     inject: tuple[str, ...] = ()
     """The fault schedule: ``NAME`` or ``NAME@EPISODE:STEP`` (:func:`embedrl.hil.faults.parse_schedule`)."""
+    kill_node: tuple[int, int, int] | None = None
+    """Several nodes: ``(node, episode, step)`` at which that node's process is killed (its robot then
+    stops, the safe action; the other nodes go on)."""
 
 
 class NodeFault(Exception):
@@ -312,22 +316,7 @@ def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
             logger.stop()
         for env in envs:
             env.close()
-    stats = Stats.merged([link.stats for link in links])
-    results = _results(cfg, stats, episodes, [], interface.sample_time_s)
-    results["nodes"] = [
-        {
-            "node_id": k,
-            "status": asdict(link.stats.last_status) if link.stats.last_status else None,
-            "diag": asdict(link.stats.last_diag) if link.stats.last_diag else None,
-        }
-        for k, link in enumerate(links)
-    ]
-    results["crc_errors"] = sum(int(n["status"]["crc_errors"]) for n in results["nodes"] if n["status"])
-    results["sequence_errors"] = sum(
-        int(n["status"]["sequence_errors"]) for n in results["nodes"] if n["status"]
-    )
-    Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
-    return results
+    return _write_nodes_results(cfg, links, episodes, interface.sample_time_s)
 
 
 def _together(
@@ -424,9 +413,108 @@ def _open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
     )  # fmt: skip
 
 
+def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
+    """The two-robot scenario: one node per robot on one bus, both robots in one episode, in lock-step.
+
+    Every step each robot's observation goes to its own node, then both actions are collected and the
+    two-robot env steps. A robot whose node does not answer is in the fault path: it stops (the safe
+    action) and its row ends as a fault, while the other robot's node keeps driving it. One row per robot
+    and episode (``node`` = robot index, ``seed`` = the episode's seed)."""
+    from embedrl.train.two_robots_env import AGENTS, WarehouseTwoRobotsEnv
+
+    logger = can.Logger(cfg.log) if cfg.log else None
+    links: list[Link] = []
+    nodes: list[Node] = []
+    policies: list[BusPolicy] = []
+    episodes: list[dict[str, Any]] = []
+    env = WarehouseTwoRobotsEnv()
+    safe = np.asarray(interface.safe_action, dtype=np.float32)
+    try:
+        for k in range(len(AGENTS)):
+            codec = Codec(interface, k, cfg.fd)
+            links.append(Link(_open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
+            nodes.append(_start_node(cfg, interface, k))
+            policies.append(BusPolicy(cfg, interface, links[k], nodes[k]))
+        for link in links:
+            link.wait_status(NODE_BOOT_S)
+        for index in range(cfg.episodes):
+            seed = cfg.seed + index
+            marks = [len(link.stats.diffs) for link in links]
+            obs, _ = env.reset(seed=seed)
+            totals = [0.0, 0.0]
+            faults: list[str | None] = [None, None]
+            for policy in policies:
+                policy.begin_episode()
+            while env.agents:
+                live = [k for k, a in enumerate(AGENTS) if a in env.agents and faults[k] is None]
+                for k in live:
+                    if cfg.kill_node == (k, index, policies[k].in_episode):
+                        nodes[k].stop()
+                    policies[k].send(obs[AGENTS[k]])
+                actions = {a: safe for a in env.agents}
+                for k in live:
+                    try:
+                        actions[AGENTS[k]] = policies[k].collect(obs[AGENTS[k]])
+                    except NodeFault as fault:
+                        faults[k] = str(fault)
+                stepped, rewards, _, _, _ = env.step(actions)
+                obs.update(stepped)
+                for agent, r in rewards.items():
+                    totals[AGENTS.index(agent)] += float(r)
+            for k in range(len(AGENTS)):
+                steps = len(env.trajectories[k]) - 1
+                hit = env._world.hits[k] if env._world is not None else None
+                diffs = links[k].stats.diffs[marks[k] :]
+                killed = cfg.kill_node is not None and cfg.kill_node[:2] == (k, index)
+                episodes.append({
+                    "seed": seed, "outcome": "fault" if faults[k] else env.outcomes[k], "steps": steps,
+                    "episode_return": totals[k], "time_s": steps * interface.sample_time_s,
+                    "collided_with": hit, "trajectory": list(env.trajectories[k]), "fault": faults[k],
+                    "node": k, "injected": ["kill"] if killed else [],
+                    "max_action_abs_diff": max(diffs, default=None), "robots": list(env.outcomes),
+                })  # fmt: skip
+            if not all(node.alive() for node in nodes):
+                break  # a node is gone: its robot could only fault in later episodes
+        for link in links:
+            link.wait_status(0.3)
+    finally:
+        for node in nodes:
+            node.stop()
+        for link in links:
+            link.close()
+        if logger is not None:
+            logger.stop()
+        env.close()
+    return _write_nodes_results(cfg, links, episodes, interface.sample_time_s)
+
+
+def _write_nodes_results(
+    cfg: SessionConfig, links: list[Link], episodes: list[dict[str, Any]], sample_time: float
+) -> dict[str, Any]:
+    """Several nodes' results: merged statistics, every node's last status and diagnostics."""
+    stats = Stats.merged([link.stats for link in links])
+    results = _results(cfg, stats, episodes, [], sample_time)
+    results["nodes"] = [
+        {
+            "node_id": k,
+            "status": asdict(link.stats.last_status) if link.stats.last_status else None,
+            "diag": asdict(link.stats.last_diag) if link.stats.last_diag else None,
+        }
+        for k, link in enumerate(links)
+    ]
+    results["crc_errors"] = sum(int(n["status"]["crc_errors"]) for n in results["nodes"] if n["status"])
+    results["sequence_errors"] = sum(
+        int(n["status"]["sequence_errors"]) for n in results["nodes"] if n["status"]
+    )
+    Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
+    return results
+
+
 def run(cfg: SessionConfig) -> dict[str, Any]:
     """Run the episodes; return the results (also written to cfg.results)."""
     interface = candb.load_interface(Path(cfg.interface))
+    if interface.env_id == TWO_ROBOTS.env_id:
+        return _run_robots(cfg, interface)
     if cfg.nodes > 1:
         return _run_nodes(cfg, interface)
     stats = Stats()
@@ -553,5 +641,8 @@ def link_errors(status: Status | None, key: str) -> int | None:
 
 if __name__ == "__main__":
     fields = json.loads(Path(sys.argv[1]).read_text())
-    config = SessionConfig(**{**fields, "inject": tuple(fields.get("inject", ()))})
+    kill = fields.get("kill_node")
+    config = SessionConfig(
+        **{**fields, "inject": tuple(fields.get("inject", ())), "kill_node": tuple(kill) if kill else None}
+    )
     run(config)

@@ -31,10 +31,53 @@ def _curve(run: Path) -> list[dict[str, str]]:
 class _FakeMonitor(RunMonitor):
     """RunMonitor fed by hand: no model, no environment."""
 
-    def __init__(self, run: Path) -> None:
+    def __init__(
+        self,
+        run: Path,
+        budget: Budget | None = None,
+        validations: list[tuple[float, float]] | None = None,
+    ) -> None:
         (run / "curve.csv").write_text(",".join(CURVE_FIELDS) + "\n")
-        super().__init__(run, Budget(), {}, lambda: None, lambda: 0.0, progress=False)
+        scripted = iter(validations or [])
+        self.saved_best: list[int] = []
+        super().__init__(
+            run, budget or Budget(), {}, lambda: None, lambda: next(scripted), progress=False,
+            save_best=lambda: self.saved_best.append(self.state["best"]["step"]),
+        )  # fmt: skip
         self.pending_q0 = 0.0
+
+
+@pytest.mark.parametrize("stop", ["validation", "budget"])
+def test_validation_keeps_the_best_checkpoint_and_stops_at_the_target(tmp_path: Path, stop: str) -> None:
+    # Success rates over training: rising, a collapse, the target, then more.
+    script = [(0.40, -1.0), (0.90, 1.0), (0.90, 1.5), (0.20, -3.0), (0.97, 2.5), (0.99, 2.6)]
+    monitor = _FakeMonitor(tmp_path, Budget(target_success=0.97, stop=stop), script)
+    stopped_at = None
+    for k in range(len(script)):
+        monitor.evaluation(1000 * (k + 1))
+        if monitor.stop_now():
+            stopped_at = 1000 * (k + 1)
+            break
+    # A better one replaces the best; an equal success with a higher return too; a collapse never does.
+    if stop == "validation":
+        assert stopped_at == 5000 and monitor.saved_best == [1000, 2000, 3000, 5000]
+    else:
+        assert stopped_at is None and monitor.saved_best == [1000, 2000, 3000, 5000, 6000]
+    assert monitor.state["target_step"] == 5000
+    assert monitor.state["first_deterministic_criterion_step"] == 5000  # mean return >= 2
+    with (tmp_path / "evaluations.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["steps"]) for r in rows] == [1000 * (k + 1) for k in range(len(rows))]
+    assert float(rows[3]["success_rate"]) == pytest.approx(0.2)
+
+
+def test_the_study_stop_rule_waits_for_the_study_criterion(tmp_path: Path) -> None:
+    monitor = _FakeMonitor(tmp_path, Budget(stop="study"), [(1.0, 3.0)])
+    monitor.evaluation(1000)
+    assert monitor.state["target_step"] == 1000 and not monitor.stop_now()
+    for i in range(STOP_WINDOW):
+        monitor._episode(3.0, 10, 2000 + i)
+    assert monitor.stop_now()
 
 
 def test_stop_criterion_fires_exactly_when_the_window_mean_reaches_two(tmp_path: Path) -> None:
@@ -128,7 +171,8 @@ def test_resume_refuses_flags_that_contradict_the_run(
         (["--max-steps", "999"], "--max-steps 999 (the run has 400)"),
         (["--algo", "sac"], "--algo sac (the run has td3)"),
         (["--seed", "5"], "--seed 5 (the run has 0)"),
-        (["--keep-training"], "--keep-training True (the run has False)"),
+        (["--keep-training"], "--stop budget (the run has validation)"),
+        (["--scenario", "moving-shelf"], "--scenario moving-shelf (the run has static)"),
         (["--set", "gamma=0.5"], "a resumed run keeps its own"),
         (["--out", str(tmp_path / "x")], "not both"),
     ):
@@ -337,3 +381,18 @@ def test_set_is_recorded_in_the_runs_config_and_bad_names_exit_2(
     assert main([*argv, "--set", "gama=0.9", "--out", str(tmp_path / "bad")]) == 2
     assert "expected NAME=VALUE with NAME one of" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
+
+
+@pytest.mark.slow
+def test_a_run_ships_its_best_validated_checkpoint(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    budget = Budget(max_steps=1200, eval_every=300, eval_episodes=5, stop="budget", checkpoint_every=600)
+    summary = train("td3", "tuned", 0, run, budget, overrides=["learning_starts=300", "demonstrations=2"])
+    assert summary["selected"] == "best validation" and summary["best_validation"]["step"] % 300 == 0
+    assert (run / "model.zip").read_bytes() == (run / "best_model.zip").read_bytes()
+    assert (run / "last_model.zip").is_file() and summary["total_steps"] == 1200
+    with (run / "evaluations.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["steps"]) for r in rows] == [300, 600, 900, 1200]
+    best = max(rows, key=lambda r: (float(r["success_rate"]), float(r["mean_return"])))
+    assert int(best["steps"]) == summary["best_validation"]["step"]

@@ -81,7 +81,9 @@ def _one_run(job: tuple[str, str, int, str, int, int, str]) -> dict[str, Any]:
     from embedrl.train.trainer import train
 
     run = Path(out)
-    summary = train(algo, preset, seed, run, Budget(max_steps=max_steps), scenario=scenario)
+    # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
+    budget = Budget(max_steps=max_steps, stop="study" if preset == "thesis" else "validation")
+    summary = train(algo, preset, seed, run, budget, scenario=scenario)
     report = evaluate(
         load_model_policy(run / "model.zip"),
         eval_episodes,

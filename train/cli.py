@@ -192,7 +192,7 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "max_episodes": 100_000,
     "checkpoint_every": 10_000,
     "eval_every": 5_000,
-    "keep_training": False,
+    "stop": "validation",
 }
 """A new run's defaults. Unset on the command line (None), so that ``--resume`` can tell a flag that was
 given from one that was not: a resumed run takes everything from its own config.json."""
@@ -204,11 +204,11 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if (args.resume is None) == (args.out is None):
         raise UsageError("give --out DIR for a new run or --resume DIR to continue one (not both)")
-    given = {
-        k: getattr(args, k)
-        for k in TRAIN_DEFAULTS
-        if getattr(args, k) is not None and getattr(args, k) is not False
-    }
+    if args.keep_training:
+        if args.stop not in (None, "budget"):
+            raise UsageError(f"--keep-training means --stop budget, not --stop {args.stop}")
+        args.stop = "budget"
+    given = {k: getattr(args, k) for k in TRAIN_DEFAULTS if getattr(args, k) is not None}
     if args.resume is not None:
         if args.set:
             raise UsageError("--set changes a new run's hyperparameters; a resumed run keeps its own")
@@ -221,7 +221,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             **{
                 k: saved["budget"][k] for k in ("max_steps", "max_episodes", "checkpoint_every", "eval_every")
             },
-            "keep_training": not saved["budget"]["stop_at_criterion"],
+            "stop": saved["budget"].get("stop", "validation"),
         }
         conflicts = [
             f"--{k.replace('_', '-')} {v} (the run has {own[k]})" for k, v in given.items() if own[k] != v
@@ -238,7 +238,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         max_episodes=values["max_episodes"],
         checkpoint_every=values["checkpoint_every"],
         eval_every=values["eval_every"],
-        stop_at_criterion=not values["keep_training"],
+        stop=values["stop"],
     )
     out = args.resume or args.out
     summary = train(
@@ -285,7 +285,7 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
 
-    from embedrl.train.config import ALGOS, PRESETS, SCENARIO_NAMES
+    from embedrl.train.config import ALGOS, PRESETS, SCENARIO_NAMES, STOP_RULES
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
     p.add_argument("--algo", choices=ALGOS, help=f"default {TRAIN_DEFAULTS['algo']}")
@@ -311,11 +311,12 @@ def register(sub: Any) -> None:
     p.add_argument("--checkpoint-every", type=_positive, help="default 10000")
     p.add_argument("--eval-every", type=_positive, help="default 5000")
     p.add_argument(
-        "--keep-training",
-        action="store_true",
-        default=None,
-        help="record the stop criterion but train on to --max-steps (for policies to ship)",
+        "--stop",
+        choices=STOP_RULES,
+        help="what ends the run before --max-steps: validation (default: a validation evaluation reaches "
+        "the target success), study (the study's criterion: 50-episode average >= 2) or budget",
     )
+    p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")

@@ -29,11 +29,20 @@ class Budget:
     checkpoint_every: int = 10_000
     """Env steps between checkpoints (model, replay buffer, normalisation, episode count)."""
     eval_every: int = 5_000
-    """Env steps between deterministic evaluations (no exploration noise)."""
-    eval_episodes: int = 20
-    """Episodes per deterministic evaluation."""
-    stop_at_criterion: bool = True
-    """Stop when the criterion is met (the study's protocol); False trains on to max_steps (recording it)."""
+    """Env steps between validation evaluations (deterministic, no exploration noise)."""
+    eval_episodes: int = 100
+    """Episodes per validation evaluation, seeded from ``VALIDATION_SEED`` (disjoint from every test seed)."""
+    target_success: float = 0.97
+    """The deployable criterion: a validation evaluation succeeds in at least this share of episodes."""
+    stop: str = "validation"
+    """What ends a run before its budget: ``validation`` (the deployable criterion), ``study`` (the
+    study's criterion, its protocol) or ``budget`` (train on to max_steps; both are still recorded)."""
+    select_best: bool = True
+    """The run's model.zip is the checkpoint with the best validation evaluation (as SB3's EvalCallback
+    keeps it); the last one is kept as last_model.zip."""
+
+
+STOP_RULES = ("validation", "study", "budget")
 
 
 @dataclass(frozen=True)

@@ -61,6 +61,8 @@ class EpisodeResult:
     episode ended because the other crashed)."""
     other_trajectories: list[list[Pose]] = field(repr=False, default_factory=list)
     """Two robots: the other robots' paths."""
+    robot_returns: tuple[float, ...] = ()
+    """Two robots: each robot's return."""
 
 
 @dataclass(frozen=True)
@@ -210,6 +212,7 @@ def run_two_robot_episode(env: WarehouseTwoRobotsEnv, policy: Policy, seed: int)
         list(env.trajectories[0]),
         outcomes,
         [list(t) for t in env.trajectories[1:]],
+        tuple(totals[a] for a in env.possible_agents),
     )
 
 

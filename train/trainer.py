@@ -61,11 +61,18 @@ from embedrl.train.models import normalization_of, save_normalization, stamp_mod
 from embedrl.train.rewards import SUCCESS_BONUS
 from embedrl.train.scenarios import SCENARIOS
 
+BEST_MODEL = "best_model"
+"""The checkpoint with the best validation evaluation so far (``best_model.zip``)."""
+LAST_MODEL = "last_model"
+"""The model when training ended (``last_model.zip``)."""
 STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
 STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
 CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
+EVALUATIONS_FILE = "evaluations.csv"
+EVALUATION_FIELDS = ("steps", "success_rate", "mean_return")
+"""evaluations.csv: one row per validation evaluation."""
 CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0", "success", "robot")
 """curve.csv's columns; ``robot`` is the robot's index (two robots share one policy and one curve)."""
 CHECKPOINT_FILES = ("model.zip", "env.pkl", "random.pkl", "state.json")
@@ -288,12 +295,13 @@ class RunMonitor(BaseCallback):
         budget: Budget,
         state: dict[str, Any],
         save: Callable[[], None],
-        deterministic_return: Callable[[], float],
+        validate: Callable[[], tuple[float, float]],
         progress: bool,
+        save_best: Callable[[], None] = lambda: None,
     ) -> None:
         super().__init__()
         self.run, self.budget, self.state = run, budget, state
-        self.save, self.deterministic_return = save, deterministic_return
+        self.save, self.validate, self.save_best = save, validate, save_best
         self.returns: list[float] = list(state.get("returns", []))
         self.pending_q0: float | None = None
         self.bar = tqdm(
@@ -343,14 +351,37 @@ class RunMonitor(BaseCallback):
                 self.pending_q0 = q0(self.model, obs)
         if steps >= self.next_eval:
             self.next_eval += self.budget.eval_every
-            first = self.state.get("first_deterministic_criterion_step") is None
-            if first and self.deterministic_return() >= STOP_THRESHOLD:
-                self.state["first_deterministic_criterion_step"] = steps
+            self.evaluation(steps)
         if steps >= self.next_checkpoint:
             self.next_checkpoint += self.budget.checkpoint_every
             self.checkpoint_due = True  # taken when SB3 next starts collecting
-        stop = self.budget.stop_at_criterion and self.state.get("criterion_step") is not None
-        return not stop and len(self.returns) < self.budget.max_episodes
+        return not self.stop_now() and len(self.returns) < self.budget.max_episodes
+
+    def stop_now(self) -> bool:
+        """Whether the run's stop rule has fired."""
+        rule = self.budget.stop
+        return (rule == "study" and self.state.get("criterion_step") is not None) or (
+            rule == "validation" and self.state.get("target_step") is not None
+        )
+
+    def evaluation(self, steps: int) -> None:
+        """A validation evaluation: logged, the best one kept, the deployable criterion recorded."""
+        success, mean_return = self.validate()
+        self.state["evaluations"] = self.state.get("evaluations", 0) + 1
+        new_file = not (self.run / EVALUATIONS_FILE).exists()
+        with (self.run / EVALUATIONS_FILE).open("a", newline="") as f:
+            writer = csv.writer(f)
+            if new_file:
+                writer.writerow(EVALUATION_FIELDS)
+            writer.writerow([steps, f"{success:.6f}", f"{mean_return:.6f}"])
+        if self.state.get("first_deterministic_criterion_step") is None and mean_return >= STOP_THRESHOLD:
+            self.state["first_deterministic_criterion_step"] = steps
+        best = self.state.get("best")
+        if best is None or (success, mean_return) > (best["success"], best["mean_return"]):
+            self.state["best"] = {"step": steps, "success": success, "mean_return": mean_return}
+            self.save_best()
+        if success >= self.budget.target_success and self.state.get("target_step") is None:
+            self.state["target_step"] = steps
 
     def _episode(self, ret: float, length: int, steps: int, success: bool = False, robot: int = 0) -> None:
         self.returns.append(ret)
@@ -418,6 +449,8 @@ def train(
     if resume:
         model, env, state, generators = _load_checkpoint(_complete_checkpoint(out), algo, out / "tb")
         _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
+        if (out / EVALUATIONS_FILE).exists():
+            _truncate_curve(out / EVALUATIONS_FILE, state.get("evaluations", 0))
     else:
         env = make_env(normalize, seed, scenario, cfg)
         run_config = RunConfig(
@@ -447,33 +480,44 @@ def train(
             out, model, env, {**state, "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started}
         )
 
-    def deterministic_return() -> float:
-        return evaluate(
+    def validate() -> tuple[float, float]:
+        report = evaluate(
             _policy_of(model, env),
             budget.eval_episodes,
             VALIDATION_SEED,
-            "deterministic",
+            "validation",
             env_id=SCENARIOS[scenario].env_id,
             env_kwargs=env_kwargs(cfg),
-        ).mean_return
+        )
+        return report.success_rate, report.mean_return
 
-    monitor = RunMonitor(out, budget, state, save, deterministic_return, progress)
+    def save_model(name: str) -> None:
+        """The model as ``name``.zip, stamped, with its normalisation statistics as ``name``_vecnormalize."""
+        model.save(out / f"{name}.zip")
+        stamp_model(
+            out / f"{name}.zip",
+            normalization_of(env) if normalize else None,
+            scenario,
+            len(SCENARIOS[scenario].observation),
+        )
+        if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
+            save_normalization(env, out / f"{name}_vecnormalize.npz")
+            env.save(str(out / f"{name}_vecnormalize.pkl"))  # type: ignore[attr-defined]
+
+    monitor = RunMonitor(out, budget, state, save, validate, progress, lambda: save_model(BEST_MODEL))
     remaining = budget.max_steps - int(state.get("steps", 0))
     if resume:
         _restore_random(generators, model)  # last: loading the model drew from them
     if remaining > 0:
         model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
     monitor.checkpoint()
-    model.save(out / "model.zip")
-    stamp_model(
-        out / "model.zip",
-        normalization_of(env) if normalize else None,
-        scenario,
-        len(SCENARIOS[scenario].observation),
-    )
-    if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
-        save_normalization(env, out / "vecnormalize.npz")
-        env.save(str(out / "vecnormalize.pkl"))  # type: ignore[attr-defined]
+    save_model(LAST_MODEL)
+    best = state.get("best")
+    selected = BEST_MODEL if budget.select_best and best is not None else LAST_MODEL
+    shutil.copyfile(out / f"{selected}.zip", out / "model.zip")
+    for suffix in (".npz", ".pkl"):
+        if normalize:
+            shutil.copyfile(out / f"{selected}_vecnormalize{suffix}", out / f"vecnormalize{suffix}")
     summary = {
         "algo": algo,
         "scenario": scenario,
@@ -483,6 +527,10 @@ def train(
         "episodes_to_criterion": state.get("criterion_episode"),
         "steps_to_criterion": state.get("criterion_step"),
         "first_deterministic_criterion_step": state.get("first_deterministic_criterion_step"),
+        "validation_target": budget.target_success,
+        "validation_target_step": state.get("target_step"),
+        "selected": "best validation" if selected == BEST_MODEL else "last",
+        "best_validation": best,
         "total_steps": int(model.num_timesteps),
         "total_episodes": len(monitor.returns),
         "updates": int(getattr(model, "_n_updates", 0)),
@@ -595,6 +643,6 @@ def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.n
 
 
 def _truncate_curve(path: Path, episodes: int) -> None:
-    """Drop rows logged after the checkpoint: the resumed run repeats those episodes."""
+    """Drop rows logged after the checkpoint: the resumed run repeats those episodes (or evaluations)."""
     rows = path.read_text().splitlines()
     path.write_text("\n".join(rows[: episodes + 1]) + "\n")
