@@ -18,11 +18,20 @@ OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "t
 
 
 def plot_trajectories(report: EvalReport, path: Path) -> None:
-    """Draw every episode's path over the map, coloured by outcome; write a PNG atomically."""
+    """Draw every episode's path over the map, coloured by outcome; write a PNG atomically.
+
+    The moving-shelf scenario draws the fixed map and the band the moving shelf sweeps; two robots draw
+    the second robot's path dashed."""
+    from embedrl.train.scenarios import MOVING_SHELF
+
     fig, ax = plt.subplots(figsize=(9, 4.8))
-    for rect in layout.OBSTACLES:
+    moving = report.env_id == MOVING_SHELF.env_id
+    for rect in layout.FIXED_OBSTACLES if moving else layout.OBSTACLES:
         colour = "saddlebrown" if rect in layout.SHELVES else "dimgray"
         ax.add_patch(Rectangle((rect.x0, rect.y0), rect.x1 - rect.x0, rect.y1 - rect.y0, color=colour))
+    if moving:
+        band = (layout.MOVING_SHELF_Y_MIN, layout.MOVING_SHELF_Y_MAX + layout.UPPER_SHELF_DEPTH)
+        ax.axhspan(*band, color="saddlebrown", alpha=0.12, label="moving shelf's band")
     ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3)
     for r in report.results:
         xs = [p[0] for p in r.trajectory]
@@ -30,6 +39,9 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
         colour = OUTCOME_COLOURS[r.outcome]
         ax.plot(xs, ys, "-", color=colour, lw=1, alpha=0.7)
         ax.plot(xs[:1], ys[:1], "o", color=colour, ms=3)
+        for other in r.other_trajectories:
+            ax.plot([p[0] for p in other], [p[1] for p in other], "--", color=colour, lw=1, alpha=0.7)
+            ax.plot([p[0] for p in other][:1], [p[1] for p in other][:1], "s", color=colour, ms=3)
     for outcome, colour in OUTCOME_COLOURS.items():
         ax.plot([], [], color=colour, label=outcome)
     v = layout.VIEW
@@ -66,6 +78,47 @@ def plot_progress(curve_csv: Path, path: Path, title: str) -> None:
     ax.plot(episodes, [float(r["q0"]) for r in rows], color="tab:orange", lw=1.0, ls="--", label="Episode Q0")
     ax.axhline(2.0, color="gray", ls=":", lw=1, label="stop criterion (2)")
     ax.set(xlabel="episode", ylabel="return", title=title)
+    ax.legend(loc="lower right", fontsize="small")
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
+    finally:
+        plt.close(fig)
+
+
+SUCCESS_WINDOW = 100
+"""Training episodes per point of the success plot (per robot)."""
+
+
+def plot_successes(curve_csv: Path, evaluations_csv: Path | None, path: Path, title: str) -> None:
+    """Successes over training, per robot (the study's two-robot figures): the share of each robot's last
+    100 training episodes that got through, and the validation evaluations' success rate."""
+    import csv
+
+    import numpy as np
+
+    with curve_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    robots = sorted({int(r["robot"]) for r in rows})
+    for robot in robots:
+        mine = [r for r in rows if int(r["robot"]) == robot]
+        if len(mine) < SUCCESS_WINDOW:
+            continue
+        success = np.array([float(r["success"]) for r in mine])
+        rate = np.convolve(success, np.ones(SUCCESS_WINDOW) / SUCCESS_WINDOW, mode="valid")
+        steps = [int(r["steps"]) for r in mine][SUCCESS_WINDOW - 1 :]
+        ax.plot(steps, 100 * rate, lw=1.2, label=f"robot {robot}: last {SUCCESS_WINDOW} training episodes")
+    if evaluations_csv is not None and evaluations_csv.is_file():
+        with evaluations_csv.open() as f:
+            evals = list(csv.DictReader(f))
+        ax.plot(
+            [int(r["steps"]) for r in evals],
+            [100 * float(r["success_rate"]) for r in evals],
+            "k.-",
+            lw=1,
+            label="validation (deterministic, every robot through)",
+        )
+    ax.set(xlabel="env steps (all robots)", ylabel="successes [%]", ylim=(-2, 102), title=title)
     ax.legend(loc="lower right", fontsize="small")
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))

@@ -6,7 +6,11 @@ A run directory is self-describing::
     curve.csv          one row per training episode: steps, return, 50-episode average, Episode Q0
     summary.json       criterion reached?, episodes and env steps to it, first deterministic success, time
     progress.png       MATLAB-style: episode return, 50-episode average, Episode Q0
-    model.zip          the final policy (plus vecnormalize.npz and .pkl when observations are normalised)
+    successes.png      successes over training, per robot, and the validation evaluations
+    evaluations.csv    one row per validation evaluation: steps, success rate, mean return
+    best_model.zip     the checkpoint with the best validation evaluation; last_model.zip the last one
+    model.zip          the selected policy: best_model.zip (or last_model.zip without validations), plus
+                       vecnormalize.npz and .pkl when observations are normalised
     checkpoint/        the last checkpoint: model, replay buffer, the training env itself (mid-episode),
                        every random generator's state and the counters (written as checkpoint.partial,
                        then swapped in: a complete checkpoint exists at every moment)
@@ -537,11 +541,11 @@ def train(
         "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started,
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    from embedrl.train.plots import plot_progress
+    from embedrl.train.plots import plot_progress, plot_successes
 
-    plot_progress(
-        out / "curve.csv", out / "progress.png", f"{algo.upper()} ({scenario}, {preset_name}, seed {seed})"
-    )
+    title = f"{algo.upper()} ({scenario}, {preset_name}, seed {seed})"
+    plot_progress(out / "curve.csv", out / "progress.png", title)
+    plot_successes(out / "curve.csv", out / EVALUATIONS_FILE, out / "successes.png", title)
     env.close()
     return summary
 
