@@ -102,10 +102,17 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
     from embedrl.hil.session import SessionConfig
 
     observations = export_dir / "test" / OBSERVATIONS_FILE
-    open_loop = candb.load_interface(export_dir / INTERFACE_FILE).env_id == NO_ENV
+    env_id = candb.load_interface(export_dir / INTERFACE_FILE).env_id
+    open_loop = env_id == NO_ENV
+    if env_id == TWO_ROBOTS.env_id:
+        nodes = "of two robots, one node each, "
+    elif args.nodes > 1:
+        nodes = f"on each of {args.nodes} nodes "
+    else:
+        nodes = ""
     print(
         f"running {args.episodes} episode(s) "
-        + (f"on each of {args.nodes} nodes " if args.nodes > 1 else "")
+        + nodes
         + ("in open loop (no env)" if open_loop else "in real time" if args.realtime else "in lock-step")
         + (f", injecting {', '.join(args.inject)}" if args.inject else "")
     )
