@@ -130,16 +130,18 @@ MOVING_SHELF_Y_MIN = 0.5
 """The moving shelf's lower edge is drawn uniformly from [MOVING_SHELF_Y_MIN, MOVING_SHELF_Y_MAX] [m]:
 the aisle under it is never narrower than 0.5 m (the robot turns in 0.32 m)."""
 MOVING_SHELF_Y_MAX = 0.8
-MOVING_SHELF_SPEED_MIN = 0.1
+MOVING_SHELF_SPEED_MIN = 0.2
 """The moving shelf's speed is drawn uniformly from [MOVING_SHELF_SPEED_MIN, MOVING_SHELF_SPEED_MAX] [m/s],
-towards a random side: at most a third of the robot's top speed."""
-MOVING_SHELF_SPEED_MAX = 0.25
+towards a random side: up to two thirds of the robot's top speed."""
+MOVING_SHELF_SPEED_MAX = 0.45
 MOVING_SHELF_WRAP_X = ARENA_HALF_WIDTH + UPPER_SHELF_WIDTH / 2
 """When the moving shelf's centre passes |x| = this, it has left the arena through the side wall; it
 reappears at the same height on the opposite side, entering the arena again."""
-MOVING_SHELF_START_CLEARANCE = 0.35
-"""At the start the moving shelf is at least this far from the robot's centre, horizontally or
-vertically [m] (the shelf's initial position is redrawn until it is)."""
+MOVING_SHELF_START_CLEARANCE = 0.25
+"""At the start the moving shelf is at least this far from the robot's centre [m]..."""
+MOVING_SHELF_START_LEAD = 2.5
+"""... and, when the robot stands in the shelf's path, at least this many seconds away from reaching it
+(wrap-around included): every start leaves time to get out of the way [s]."""
 FIXED_OBSTACLES: tuple[Rect, ...] = SHELVES[:2] + WALLS
 """What stays put in the moving-shelf scenario: the lower shelves and the walls."""
 

@@ -8,10 +8,13 @@ from typing import Any
 import numpy as np
 
 from embedrl.train import layout
+from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 from embedrl.train.scenarios import MOVING_SHELF
 from embedrl.train.warehouse_env import WarehouseRobotEnv
 from embedrl.train.world import Pose, ShelfMotion, World
 
+ROBOT_REACH = math.hypot(ROBOT_LENGTH, ROBOT_WIDTH) / 2
+"""The robot's outline lies within this distance of its centre [m]."""
 MAX_SHELF_DRAWS = 1000
 """Draws of the shelf's start position before giving up on a start pose (never reached from the
 documented start region: the shelf covers at most 2.5 m of its 5.8 m track at the robot's height)."""
@@ -23,7 +26,7 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
     ## Description
     The map, robot, physics, sample time and goal of ``embedrl/WarehouseRobot-v0``, except that the upper
     shelf (2.2 m x 0.3 m) moves: at reset its lower edge is placed at a random height in [0.5, 0.8] m and
-    it moves along x at a constant random speed in [0.1, 0.25] m/s towards a random side. When it has left
+    it moves along x at a constant random speed in [0.2, 0.45] m/s towards a random side. When it has left
     the arena through a side wall (its centre at |x| > 2.9 m) it reappears at the opposite side at the
     same height and keeps going. It pushes nothing aside: touching it is a collision like any other.
 
@@ -52,7 +55,7 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
     | 5   | w, turn rate (counter-clockwise)       | -2.0  | 2.0  | rad/s |
     | 6   | moving shelf centre x minus robot x    | -4.7  | 4.7  | m     |
     | 7   | moving shelf lower edge y minus robot y | -0.8  | 0.95 | m     |
-    | 8   | moving shelf velocity along x          | -0.25 | 0.25 | m/s   |
+    | 8   | moving shelf velocity along x          | -0.45 | 0.45 | m/s   |
 
     ## Rewards
     As the static env: ``reward="thesis"`` (default) is the study's eq. 19, ``reward="potential-field"``
@@ -61,7 +64,9 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
 
     ## Starting State
     The robot as in the static env. The shelf's height, speed and direction are drawn first, then its
-    centre uniformly in [-2.9, 2.9] m, redrawn until the shelf is at least 0.35 m from the robot's centre.
+    centre uniformly in [-2.9, 2.9] m, redrawn until the start is fair: the shelf at least 0.25 m from the
+    robot's centre and, if the robot stands in its path, at least 2.5 s from reaching it (around the
+    wrap-around included).
     ``reset(options={"start_pose": (x, y, theta), "shelf": (center_x, y0, vx)})`` fixes either.
 
     ## Episode End
@@ -95,10 +100,7 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
         vx = speed if rng.random() < 0.5 else -speed
         for _ in range(MAX_SHELF_DRAWS):
             x = rng.uniform(-layout.MOVING_SHELF_WRAP_X, layout.MOVING_SHELF_WRAP_X)
-            if (
-                layout.moving_shelf(x, y0).distance(pose[0], pose[1])[0]
-                >= layout.MOVING_SHELF_START_CLEARANCE
-            ):
+            if _fair_start(x, y0, vx, pose):
                 return ShelfMotion(x, y0, vx)
         raise ValueError(f"no room for the moving shelf at height {y0:.3f} m around the start pose {pose}")
 
@@ -116,6 +118,21 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
         x, y, *rest = world.robot_state(0)
         state = (x, y, *rest, world.shelf.position.x - x, world.shelf_y0 - y, world.shelf.velocity.x)
         return np.clip(np.array(state, dtype=np.float32), self._low, self._high)
+
+
+def _fair_start(x: float, y0: float, vx: float, pose: Pose) -> bool:
+    """Whether a shelf at ``x`` leaves the robot at ``pose`` room and time (see :mod:`train.layout`)."""
+    rx, ry = pose[0], pose[1]
+    if layout.moving_shelf(x, y0).distance(rx, ry)[0] < layout.MOVING_SHELF_START_CLEARANCE:
+        return False
+    in_path = y0 - ROBOT_REACH < ry < y0 + layout.UPPER_SHELF_DEPTH + ROBOT_REACH
+    if not in_path:
+        return True
+    # Distance the shelf's leading edge travels before it reaches the robot's outline, around the track.
+    leading = x + math.copysign(layout.UPPER_SHELF_WIDTH / 2, vx)
+    track = 2 * layout.MOVING_SHELF_WRAP_X
+    ahead = ((rx - leading) * math.copysign(1.0, vx)) % track - ROBOT_REACH
+    return ahead >= abs(vx) * layout.MOVING_SHELF_START_LEAD
 
 
 def _checked_shelf(value: Any) -> ShelfMotion:
