@@ -353,10 +353,14 @@ def test_thesis_preset_uses_the_potential_field_reward_outside_the_static_scenar
 def test_bench_in_the_two_robot_scenario_writes_all_rows(tmp_path: Path) -> None:
     args = ["bench", "--scenario", "two-robots", "--algos", "td3", "--seeds", "1", "--out", str(tmp_path)]
     args += ["--max-steps", "600", "--eval-episodes", "3", "--workers", "1", "--preset", "thesis"]
-    assert main(args) == 0
+    assert main([*args, "--set", "success_bonus=20"]) == 0
     table = (tmp_path / "bench.md").read_text()
     for label in ("TD3 (ours)", "TD3 (study)", "reliability per seed (%)", "Scenario `two-robots`"):
         assert label in table
+    assert "preset `thesis` with success_bonus=20" in table
     data = json.loads((tmp_path / "bench.json").read_text())
     assert data["scenario"] == "two-robots" and data["runs"][0]["scenario"] == "two-robots"
+    config = json.loads((tmp_path / "runs" / "td3-seed0" / "config.json").read_text())
+    assert config["hyperparameters"]["success_bonus"] == 20.0
+    assert config["hyperparameters"]["reward"] == "potential-field"  # the study's two-robot reward
     assert data["potential_field"]["success_rate"] == 1.0  # the baseline on the same 3 episodes

@@ -74,8 +74,8 @@ STUDY_BY_SCENARIO: dict[str, dict[str, dict[str, Any]]] = {
 study reports the two-robot runs as curves, not as a 200-run evaluation."""
 
 
-def _one_run(job: tuple[str, str, int, str, int, int, str]) -> dict[str, Any]:
-    algo, preset, seed, out, max_steps, eval_episodes, scenario = job
+def _one_run(job: tuple[str, str, int, str, int, int, str, tuple[str, ...]]) -> dict[str, Any]:
+    algo, preset, seed, out, max_steps, eval_episodes, scenario, overrides = job
     from embedrl.train.cli import load_model_policy
     from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.trainer import train
@@ -83,7 +83,7 @@ def _one_run(job: tuple[str, str, int, str, int, int, str]) -> dict[str, Any]:
     run = Path(out)
     # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
     budget = Budget(max_steps=max_steps, stop="study" if preset == "thesis" else "validation")
-    summary = train(algo, preset, seed, run, budget, scenario=scenario)
+    summary = train(algo, preset, seed, run, budget, scenario=scenario, overrides=overrides)
     report = evaluate(
         load_model_policy(run / "model.zip"),
         eval_episodes,
@@ -122,6 +122,7 @@ def run_bench(
     workers: int,
     seed_offset: int = 0,
     scenario: str = "static",
+    overrides: tuple[str, ...] = (),
 ) -> str:
     """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm on ``scenario``; the table,
     also written."""
@@ -130,7 +131,7 @@ def run_bench(
     study = STUDY_BY_SCENARIO[scenario]
     seed_list = list(range(seed_offset, seed_offset + seeds))
     jobs = [
-        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes, scenario)
+        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes, scenario, overrides)
         for a in algos
         for s in seed_list
     ]
@@ -197,7 +198,9 @@ def run_bench(
     )
     note = (
         f"Scenario `{scenario}`. Median [95% bootstrap interval] over {seeds} seed(s) "
-        f"({seed_list[0]}..{seed_list[-1]}), preset `{preset}`, budget {max_steps} steps."
+        f"({seed_list[0]}..{seed_list[-1]}), preset `{preset}`"
+        + (f" with {', '.join(overrides)}" if overrides else "")
+        + f", budget {max_steps} steps."
     )
     table = "\n".join(lines) + "\n\n" + pf_line + "\n\n" + note + "\n"
     (out / "bench.md").write_text(table)
@@ -207,6 +210,7 @@ def run_bench(
             "scenario": scenario,
             "seeds": seed_list,
             "preset": preset,
+            "overrides": list(overrides),
             "max_steps": max_steps,
             "rows": rows,
             "study": study,

@@ -260,10 +260,17 @@ def cmd_train(args: argparse.Namespace) -> int:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from embedrl.train.bench import run_bench
+    from embedrl.train.config import preset, with_overrides
+
+    for algo in args.algos:  # a bad --set fails here, in one line, before any run starts
+        try:
+            with_overrides(preset(algo, args.preset, args.scenario), args.set)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
 
     table = run_bench(
         args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers,
-        args.seed_offset, args.scenario,
+        args.seed_offset, args.scenario, tuple(args.set),
     )  # fmt: skip
     print(table)
     print(f"wrote {args.out}/bench.md and bench.json")
@@ -330,6 +337,13 @@ def register(sub: Any) -> None:
         help="train seeds OFFSET .. OFFSET + SEEDS - 1 (new seeds to try)",
     )
     p.add_argument("--preset", choices=PRESETS, default="tuned")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="change one of the preset's hyperparameters in every run, e.g. --set success_bonus=20",
+    )
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--max-steps", type=_positive, default=300_000)
     p.add_argument("--eval-episodes", type=_positive, default=200)
