@@ -54,6 +54,8 @@ def _terminate(signum: int, frame: FrameType | None) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
+    args.as_command = argv is None  # the process is this command (it may start itself again)
     handled = COMMON_ERRORS + tuple(e for package in PACKAGES for e in package.ERRORS)
     main_thread = threading.current_thread() is threading.main_thread()  # only it may set handlers
     previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None

@@ -396,3 +396,40 @@ def test_a_run_ships_its_best_validated_checkpoint(tmp_path: Path) -> None:
     assert [int(r["steps"]) for r in rows] == [300, 600, 900, 1200]
     best = max(rows, key=lambda r: (float(r["success_rate"]), float(r["mean_return"])))
     assert int(best["steps"]) == summary["best_validation"]["step"]
+
+
+@pytest.mark.slow
+def test_portable_training_repeats_whatever_instructions_the_cpu_offers(tmp_path: Path) -> None:
+    """The same run with MKL restricted to SSE4.2 (an older CPU) and unrestricted: identical with
+    --portable; the run records the CPU it used."""
+    import os
+    import subprocess
+    import sys
+
+    from stable_baselines3 import TD3
+
+    def run(name: str, instructions: str | None) -> np.ndarray:
+        env = {k: v for k, v in os.environ.items() if k not in ("MKL_CBWR", "ATEN_CPU_CAPABILITY")}
+        if instructions:
+            env["MKL_ENABLE_INSTRUCTIONS"] = instructions
+        args = ["train", "--portable", "--out", str(tmp_path / name), "--max-steps", "1500"]
+        args += [
+            "--stop",
+            "budget",
+            "--set",
+            "learning_starts=500",
+            "--set",
+            "demonstrations=2",
+            "--eval-every",
+            "100000",
+        ]
+        subprocess.run([sys.executable, "-m", "embedrl.cli", *args], env=env, check=True, capture_output=True)
+        config = json.loads((tmp_path / name / "config.json").read_text())
+        assert config["machine"]["portable"] and config["machine"]["torch_cpu_capability"] == "DEFAULT"
+        assert config["machine"]["cpu"] and config["machine"]["MKL_CBWR"] == "COMPATIBLE"
+        model = TD3.load(tmp_path / name / "model.zip", device="cpu")
+        obs = np.random.default_rng(0).uniform(-1, 1, (256, 6)).astype(np.float32)
+        return np.asarray(model.predict(obs, deterministic=True)[0])
+
+    np.testing.assert_array_equal(run("any", None), run("sse42", "SSE4_2"))
+    assert (tmp_path / "any" / "curve.csv").read_text() == (tmp_path / "sse42" / "curve.csv").read_text()

@@ -53,6 +53,10 @@ def load_model_policy(  # type: ignore[no-untyped-def]
     return act
 
 
+PORTABLE_HELP = (
+    "the same result on any x86-64 CPU (MKL's compatible code path, PyTorch's generic kernels; about 1.6x "
+    "slower); without it the same seed repeats on the same kind of CPU"
+)
 SCENARIO_HELP = "static (default), moving-shelf or two-robots (one policy drives both robots)"
 
 
@@ -204,6 +208,10 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if (args.resume is None) == (args.out is None):
         raise UsageError("give --out DIR for a new run or --resume DIR to continue one (not both)")
+    if args.portable:
+        from embedrl.train.portable import restart_portable
+
+        restart_portable(args.argv, args.as_command)
     if args.keep_training:
         if args.stop not in (None, "budget"):
             raise UsageError(f"--keep-training means --stop budget, not --stop {args.stop}")
@@ -213,6 +221,8 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.set:
             raise UsageError("--set changes a new run's hyperparameters; a resumed run keeps its own")
         saved = read_run_config(args.resume)
+        if saved.get("machine", {}).get("portable") and not args.portable:
+            raise UsageError(f"{args.resume} was trained with --portable: resume it with --portable")
         own = {
             "algo": saved["algo"],
             "scenario": saved.get("scenario", "static"),
@@ -262,6 +272,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from embedrl.train.bench import run_bench
     from embedrl.train.config import preset, with_overrides
 
+    if args.portable:
+        from embedrl.train.portable import restart_portable
+
+        restart_portable(args.argv, args.as_command)
     for algo in args.algos:  # a bad --set fails here, in one line, before any run starts
         try:
             with_overrides(preset(algo, args.preset, args.scenario), args.set)
@@ -324,6 +338,7 @@ def register(sub: Any) -> None:
         "the target success), study (the study's criterion: 50-episode average >= 2) or budget",
     )
     p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
+    p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")
@@ -348,6 +363,7 @@ def register(sub: Any) -> None:
     p.add_argument("--max-steps", type=_positive, default=300_000)
     p.add_argument("--eval-episodes", type=_positive, default=200)
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+    p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")

@@ -62,6 +62,7 @@ from embedrl.train.config import (
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
+from embedrl.train.portable import machine
 from embedrl.train.rewards import SUCCESS_BONUS
 from embedrl.train.scenarios import SCENARIOS
 
@@ -467,7 +468,7 @@ def train(
             overrides=list(overrides),
         )
         (out / "config.json").write_text(
-            json.dumps({**vars(run_config), "provenance": provenance()}, indent=2)
+            json.dumps({**vars(run_config), "provenance": provenance(), "machine": machine()}, indent=2)
         )
         with (out / "curve.csv").open("w", newline="") as f:
             csv.writer(f).writerow(CURVE_FIELDS)
