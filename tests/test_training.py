@@ -310,18 +310,31 @@ def test_shipped_policies_meet_their_bar() -> None:
 
     from embedrl.common import SHIP_TEST_SEED
     from embedrl.train.evaluate import evaluate
+    from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.ship import MIN_SUCCESS, POLICIES, SHIP_EPISODES
 
-    shipped = sorted(POLICIES.glob("*.json"))
-    assert len(shipped) == 4, "policies/static should ship ddpg, ppo, sac and td3"
-    for meta_file in shipped:
+    shipped = {
+        p.parent.name: sorted(x.stem for x in p.parent.glob("*.json")) for p in POLICIES.glob("*/*.json")
+    }
+    assert shipped == {
+        "static": ["ddpg", "ppo", "sac", "td3"],
+        "moving-shelf": ["td3"],
+        "two-robots": ["td3"],
+    }
+    for meta_file in sorted(POLICIES.glob("*/*.json")):
+        scenario = meta_file.parent.name
         meta = json.loads(meta_file.read_text())
-        model = POLICIES / meta["model"]
+        model = meta_file.parent / meta["model"]
         assert hashlib.sha256(model.read_bytes()).hexdigest() == meta["sha256"]
+        assert meta["config"].get("scenario", "static") == scenario
         recorded = meta["evaluation"]
         assert recorded["episodes"] == SHIP_EPISODES and recorded["success_rate"] >= MIN_SUCCESS
         assert recorded["seed"] == SHIP_TEST_SEED  # never a training seed
-        measured = evaluate(load_model_policy(model), SHIP_EPISODES, SHIP_TEST_SEED, meta["model"])
+        assert recorded["env_id"] == SCENARIOS[scenario].env_id
+        measured = evaluate(
+            load_model_policy(model), SHIP_EPISODES, SHIP_TEST_SEED, meta["model"],
+            env_id=SCENARIOS[scenario].env_id,
+        )  # fmt: skip
         assert abs(measured.successes - recorded["successes"]) <= 2, (meta["model"], measured.successes)
 
 
