@@ -260,9 +260,12 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
     table = (tmp_path / "bench.md").read_text()
     for label in (
         "runs reaching the stop criterion",
-        "training episodes to the criterion",
-        "env steps to the criterion",
-        "average reward (ours: 3 evaluation runs; study: training average)",
+        "episodes to the study's criterion, all (demonstrations and random warm-up included)",
+        "episodes to the study's criterion, learning only (without those)",
+        "env steps to the study's criterion",
+        "average reward at the stop (training, last 50 episodes)",
+        "average reward of the selected policy (3 test runs)",
+        "runs reaching the deployable criterion (97% of 100 validation runs)",
         "successful / collisions / no result",
         "mean time (s)",
         "reliability (%)",

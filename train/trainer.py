@@ -538,6 +538,9 @@ def train(
         "best_validation": best,
         "total_steps": int(model.num_timesteps),
         "total_episodes": len(monitor.returns),
+        "average50_at_stop": float(np.mean(monitor.returns[-STOP_WINDOW:])) if monitor.returns else None,
+        "warmup_episodes": _episodes_within(out / "curve.csv", _warmup_steps(cfg)),
+        "demonstration_episodes": _demonstration_episodes(cfg),
         "updates": int(getattr(model, "_n_updates", 0)),
         "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started,
     }
@@ -645,6 +648,22 @@ def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.n
         return np.asarray(model.predict(x, deterministic=True)[0], dtype=np.float32)
 
     return act
+
+
+def _warmup_steps(cfg: Any) -> int:
+    """Env steps of random actions before learning (off-policy agents' ``learning_starts``)."""
+    return 0 if isinstance(cfg, PPOConfig) else int(cfg.learning_starts)
+
+
+def _demonstration_episodes(cfg: Any) -> int:
+    """Episodes of the potential-field controller the agent learnt from before training (not in the curve)."""
+    return int(cfg.warm_start_demonstrations if isinstance(cfg, PPOConfig) else cfg.demonstrations)
+
+
+def _episodes_within(curve: Path, steps: int) -> int:
+    """Training episodes that ended within the first ``steps`` env steps (the random warm-up)."""
+    with curve.open() as f:
+        return sum(int(row["steps"]) <= steps for row in csv.DictReader(f))
 
 
 def _truncate_curve(path: Path, episodes: int) -> None:
