@@ -1,13 +1,15 @@
 """``embedrl bench``: K seeds per algorithm trained in parallel, the reference study's table.
 
-Each run trains until the stop criterion (or the budget), then its final model is evaluated
-deterministically on seeds it was not trained on. Per algorithm the table gives the median over
-seeds with a 95% bootstrap interval, and the study's numbers beside ours; the potential-field
-controller is evaluated on the same seeds.
+Each run trains until its stop rule (or the budget), then its selected model is evaluated
+deterministically on seeds it was not trained on. A run that finished before (its ``summary.json``) is not
+trained again and one that was interrupted is resumed, so an interrupted bench goes on where it stopped.
+Per algorithm the table gives the median over seeds with a 95% bootstrap interval, and the study's numbers
+beside ours; the potential-field controller is evaluated on the same seeds.
 """
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -81,9 +83,15 @@ def _one_run(job: tuple[str, str, int, str, int, int, str, tuple[str, ...]]) -> 
     from embedrl.train.trainer import train
 
     run = Path(out)
-    # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
-    budget = Budget(max_steps=max_steps, stop="study" if preset == "thesis" else "validation")
-    summary = train(algo, preset, seed, run, budget, scenario=scenario, overrides=overrides)
+    if (run / "summary.json").is_file():  # finished before: an interrupted bench goes on, a table is rebuilt
+        summary = {**_derived(run), **json.loads((run / "summary.json").read_text())}
+    else:
+        # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
+        budget = Budget(max_steps=max_steps, stop="study" if preset == "thesis" else "validation")
+        resume = (run / "config.json").is_file()
+        summary = train(
+            algo, preset, seed, run, budget, resume=resume, scenario=scenario, overrides=overrides
+        )
     report = evaluate(
         load_model_policy(run / "model.zip"),
         eval_episodes,
@@ -94,6 +102,25 @@ def _one_run(job: tuple[str, str, int, str, int, int, str, tuple[str, ...]]) -> 
     return {
         **summary,
         "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
+    }
+
+
+def _derived(run: Path) -> dict[str, Any]:
+    """What a run's summary holds about its curve and its demonstrations, from its files (for runs whose
+    summary predates these keys)."""
+    import csv
+
+    from embedrl.train.trainer import STOP_WINDOW
+
+    hyper = json.loads((run / "config.json").read_text())["hyperparameters"]
+    with (run / "curve.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    returns = [float(r["return"]) for r in rows]
+    warmup = int(hyper.get("learning_starts", 0))
+    return {
+        "average50_at_stop": float(np.mean(returns[-STOP_WINDOW:])) if returns else None,
+        "warmup_episodes": sum(int(r["steps"]) <= warmup for r in rows),
+        "demonstration_episodes": int(hyper.get("demonstrations", hyper.get("warm_start_demonstrations", 0))),
     }
 
 
