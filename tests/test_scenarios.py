@@ -321,7 +321,11 @@ def test_short_run_in_a_scenario_loads_and_evaluates(scenario: str, algo: str, t
     summary = train(
         algo, "tuned", 0, run, Budget(max_steps=800, eval_every=400), overrides=overrides, scenario=scenario
     )
-    assert summary["scenario"] == scenario and summary["updates"] > 0
+    assert summary["scenario"] == scenario and summary["updates"] > 0  # real updates, PPO's included
+    # PPO keeps its behaviour-cloned start, and its updates changed it.
+    assert (run / "warm_start_model.zip").is_file() == (algo == "ppo")
+    if algo == "ppo":
+        assert (run / "warm_start_model.zip").read_bytes() != (run / "last_model.zip").read_bytes()
     config = json.loads((run / "config.json").read_text())
     assert config["scenario"] == scenario
     rows = list(csv.DictReader((run / "curve.csv").open()))

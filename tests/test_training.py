@@ -291,6 +291,7 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
     # 600 steps: TD3's 1,000 random warm-up steps are not over, so it has made no update; PPO always
     # completes its first rollout (2,048 steps) and trains on it for 10 epochs
     assert [(r["algo"], r["updates"]) for r in data["runs"]] == [("td3", 0)] * 2 + [("ppo", 10)] * 2
+    assert "reliability of behaviour cloning alone, before any PPO update (%)" in table
     # Run again: the finished runs are not trained again, the table is rebuilt from them.
     curve = tmp_path / "runs" / "td3-seed100" / "curve.csv"
     before = (curve.stat().st_mtime_ns, curve.read_text())

@@ -99,9 +99,20 @@ def _one_run(job: tuple[str, str, int, str, int, int, str, tuple[str, ...]]) -> 
         f"{algo} seed {seed}",
         env_id=SCENARIOS[scenario].env_id,
     )
+    cloned = None
+    if (run / "warm_start_model.zip").is_file():  # PPO: what behaviour cloning alone gives, on the same seeds
+        alone = evaluate(
+            load_model_policy(run / "warm_start_model.zip"),
+            eval_episodes,
+            BENCH_TEST_SEED,
+            f"{algo} seed {seed} warm start",
+            env_id=SCENARIOS[scenario].env_id,
+        )
+        cloned = {k: getattr(alone, k) for k in REPORT_KEYS}
     return {
         **summary,
         "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
+        "warm_start_evaluation": cloned,
     }
 
 
@@ -200,6 +211,14 @@ def run_bench(
             "reliability_per_seed": " ; ".join(
                 f"{r['seed']}: {100 * r['evaluation']['success_rate']:.1f}" for r in mine
             ),
+            "cloning_alone": _cell(
+                [
+                    100 * r["warm_start_evaluation"]["success_rate"]
+                    for r in mine
+                    if r.get("warm_start_evaluation")
+                ],
+                ".1f",
+            ),
             "validated": f"{sum(r['validation_target_step'] is not None for r in mine)} / {len(mine)}",
             "validation_steps": _cell(
                 [r["validation_target_step"] for r in mine if r["validation_target_step"] is not None], ".0f"
@@ -219,6 +238,7 @@ def run_bench(
         ("reliability", "reliability (%)"),
         ("reliability_range", "reliability worst / median / best seed (%)"),
         ("reliability_per_seed", "reliability per seed (%)"),
+        ("cloning_alone", "reliability of behaviour cloning alone, before any PPO update (%)"),
         ("validated", "runs reaching the deployable criterion (97% of 100 validation runs)"),
         ("validation_steps", "env steps to the deployable criterion"),
         ("updates", "policy updates by the algorithm (SB3 _n_updates; a warm start does not count)"),

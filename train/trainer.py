@@ -68,6 +68,8 @@ from embedrl.train.scenarios import SCENARIOS
 
 BEST_MODEL = "best_model"
 """The checkpoint with the best validation evaluation so far (``best_model.zip``)."""
+WARM_START_MODEL = "warm_start_model"
+"""PPO's behaviour-cloned start before any PPO update (``warm_start_model.zip``): what cloning alone gives."""
 LAST_MODEL = "last_model"
 """The model when training ended (``last_model.zip``)."""
 STOP_WINDOW = 50
@@ -509,6 +511,8 @@ def train(
             save_normalization(env, out / f"{name}_vecnormalize.npz")
             env.save(str(out / f"{name}_vecnormalize.pkl"))  # type: ignore[attr-defined]
 
+    if not resume and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
+        save_model(WARM_START_MODEL)  # behaviour cloning alone, before any PPO update
     monitor = RunMonitor(out, budget, state, save, validate, progress, lambda: save_model(BEST_MODEL))
     remaining = budget.max_steps - int(state.get("steps", 0))
     if resume:
