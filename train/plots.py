@@ -119,7 +119,11 @@ def plot_successes(curve_csv: Path, evaluations_csv: Path | None, path: Path, ti
             label="validation (deterministic, every robot through)",
         )
     ax.set(xlabel="env steps (all robots)", ylabel="successes [%]", ylim=(-2, 102), title=title)
-    ax.legend(loc="lower right", fontsize="small")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="lower right", fontsize="small")
+    else:
+        ax.text(0.5, 0.5, f"fewer than {SUCCESS_WINDOW} episodes per robot, no evaluation yet",
+                ha="center", transform=ax.transAxes)  # fmt: skip
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
     finally:

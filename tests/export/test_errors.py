@@ -249,7 +249,7 @@ def test_failed_closed_loop_fails_the_export_and_writes_nothing(
     from embedrl.export import verify
 
     def always_differs(
-        reference: Any, compiled: Any, episodes: int, seed: int, progress: bool
+        reference: Any, compiled: Any, episodes: int, seed: int, progress: bool, env_id: str
     ) -> dict[str, Any]:
         return {
             "episodes": episodes,
