@@ -59,3 +59,74 @@ def test_waiting_in_the_gap_never_pays_more_than_driving_through() -> None:
     assert best_step == pytest.approx(0.06 * math.exp(0.45) + 0.05 - 0.14)
     assert 0.0 < best_step < 0.005
     assert 200 * best_step < SUCCESS_BONUS / 4
+
+
+# -- potential-based shaping (reward="shaped") --------------------------------------------------------
+
+
+def test_way_to_goal_and_shaping_match_hand_computed_values() -> None:
+    from embedrl.train import rewards
+
+    # In the aisle: straight to the middle of the goal line (0, -0.15).
+    assert rewards.way_to_goal(0.3, 0.25) == pytest.approx(math.hypot(0.3, 0.4), abs=1e-12)
+    # Beside the shelves: to the aisle mouth (1.25, 0.32), then on to the goal.
+    expected = math.hypot(1.5 - 1.25, 0.8 - 0.32) + math.hypot(1.25, 0.32 + 0.15)
+    assert rewards.way_to_goal(1.5, 0.8) == pytest.approx(expected, abs=1e-12)
+    assert rewards.way_to_goal(-1.5, 0.8) == pytest.approx(expected, abs=1e-12)
+    # gamma * Phi(s') - Phi(s); Phi = 0 after the last step.
+    assert rewards.shaping(-2.0, -1.5, False, 0.99) == pytest.approx(0.99 * -1.5 + 2.0)
+    assert rewards.shaping(-0.2, -0.1, True, 0.99) == pytest.approx(0.2)
+
+
+def test_shaping_leaves_the_optimal_policy_of_a_small_mdp_unchanged() -> None:
+    """A corridor of 6 cells, the goal at the right end (+5), a pit at the left end (-2), -0.14 a step,
+    like the warehouse's economics; shaping from any potential keeps every state's best action."""
+    from embedrl.train import rewards
+
+    n, gamma = 6, 0.99
+    rng = np.random.default_rng(0)
+
+    def q_values(potential: np.ndarray | None) -> np.ndarray:
+        q = np.zeros((n, 2))
+        for _ in range(2000):
+            v = q.max(axis=1)
+            new = np.zeros_like(q)
+            for s in range(1, n - 1):
+                for a, nxt in enumerate((s - 1, s + 1)):
+                    terminal = nxt in (0, n - 1)
+                    r = -0.14 + (5.0 if nxt == n - 1 else -2.0 if nxt == 0 else 0.0)
+                    if potential is not None:
+                        r += rewards.shaping(potential[s], potential[nxt], terminal, gamma)
+                    new[s, a] = r + (0.0 if terminal else gamma * v[nxt])
+            q = new
+        return q
+
+    plain = q_values(None).argmax(axis=1)[1:-1]
+    for _ in range(5):
+        assert np.array_equal(q_values(rng.normal(0, 3, n)).argmax(axis=1)[1:-1], plain)
+    # The warehouse's own potential, along a line towards the goal, too.
+    line = np.array([rewards.potential(1.6 - 0.3 * k, 0.3) for k in range(n)])
+    assert np.array_equal(q_values(line).argmax(axis=1)[1:-1], plain)
+
+
+def test_the_shaped_env_reward_is_the_study_reward_plus_the_shaping_term() -> None:
+    from embedrl.train import rewards
+
+    env = gym.make("embedrl/WarehouseRobot-v0", reward="shaped")
+    plain = gym.make("embedrl/WarehouseRobot-v0")
+    rng = np.random.default_rng(1)
+    for seed in range(3):
+        env.reset(seed=seed)
+        plain.reset(seed=seed)
+        start = env.unwrapped.trajectory[0]  # type: ignore[attr-defined]
+        phi = rewards.potential(start[0], start[1])
+        done = False
+        while not done:
+            a = rng.uniform(-1, 1, 2).astype(np.float32)
+            _, r, terminated, truncated, _ = env.step(a)
+            _, r_plain, *_ = plain.step(a)
+            x, y, _theta = env.unwrapped.trajectory[-1]  # type: ignore[attr-defined]
+            after = rewards.potential(x, y)
+            expected = float(r_plain) + rewards.shaping(phi, after, terminated)
+            assert float(r) == pytest.approx(expected, abs=1e-9)
+            phi, done = after, terminated or truncated

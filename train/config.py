@@ -73,8 +73,9 @@ class OffPolicyConfig:
     demonstration_noise: float = 0.2
     """Gaussian noise on the demonstrations' actions (they then cover more than one path)."""
     reward: str = "thesis"
-    """The env's reward: ``thesis`` (the study's eq. 19) or ``potential-field`` (its contours at the four
-    corners); see :mod:`train.rewards`."""
+    """The env's reward: ``thesis`` (the study's eq. 19), ``potential-field`` (its contours at the four
+    corners) or ``shaped`` (eq. 19 plus potential-based shaping at the agent's discount); see
+    :mod:`train.rewards`."""
     success_bonus: float = 5.0
     """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
 
@@ -142,8 +143,9 @@ class PPOConfig:
     warm_start_epochs: int = 40
     """Passes of behaviour cloning over the demonstrations."""
     reward: str = "thesis"
-    """The env's reward: ``thesis`` (the study's eq. 19) or ``potential-field`` (its contours at the four
-    corners); see :mod:`train.rewards`."""
+    """The env's reward: ``thesis`` (the study's eq. 19), ``potential-field`` (its contours at the four
+    corners) or ``shaped`` (eq. 19 plus potential-based shaping at the agent's discount); see
+    :mod:`train.rewards`."""
     success_bonus: float = 5.0
     """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
 
@@ -256,6 +258,10 @@ def with_overrides(config: AlgoConfig, assignments: Sequence[str]) -> AlgoConfig
 
 
 def _parse(key: str, raw: str, current: Any) -> Any:
+    from embedrl.train.rewards import REWARDS
+
+    if key == "reward" and raw not in REWARDS:
+        raise ValueError(f"--set reward={raw}: choose from {', '.join(REWARDS)}")
     try:
         if isinstance(current, bool):
             if raw.lower() not in ("true", "false"):

@@ -112,6 +112,8 @@ def env_kwargs(cfg: Any) -> dict[str, Any]:
     out: dict[str, Any] = {"reward": cfg.reward}
     if cfg.success_bonus != SUCCESS_BONUS:
         out["success_bonus"] = cfg.success_bonus
+    if cfg.reward == "shaped":  # shaping leaves the optimal policy unchanged only at the agent's own discount
+        out["shaping_gamma"] = cfg.gamma
     return out
 
 

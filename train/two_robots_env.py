@@ -64,7 +64,8 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
     Per robot, on its own state after the step: ``reward="thesis"`` is the study's eq. 19 with the
     success bonus ``success_bonus`` (5, or the study's other variant 20); ``reward="potential-field"``
     the study's two-robot reward, whose contours surround every obstacle *and the other robot*, averaged
-    over the robot's four corners (:mod:`train.rewards`). A robot that touches something gets -2; a robot
+    over the robot's four corners; ``reward="shaped"`` adds potential-based shaping towards the gap to
+    eq. 19 (:mod:`train.rewards`). A robot that touches something gets -2; a robot
     whose episode ends because the other one crashed gets no penalty (it is truncated, not terminated).
 
     ## Starting State
@@ -98,6 +99,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         render_mode: str | None = None,
         reward: str = "thesis",
         success_bonus: float = rewards.SUCCESS_BONUS,
+        shaping_gamma: float = rewards.SHAPING_GAMMA,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -110,12 +112,15 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         self.render_mode = render_mode
         self.reward_name = reward
         self.success_bonus = success_bonus
+        self.shaping_gamma = shaping_gamma
         self.possible_agents = list(AGENTS)
         self.agents: list[str] = []
         self._obs_space = spaces.Box(TWO_ROBOTS.obs_low, TWO_ROBOTS.obs_high, dtype=np.float32)
         self._act_space = spaces.Box(TWO_ROBOTS.act_low, TWO_ROBOTS.act_high, dtype=np.float32)
         self._np_random, _ = seeding.np_random(None)
         self._world: World | None = None
+        self._phi = [0.0, 0.0]
+        """Each robot's shaping potential before the step (``reward="shaped"``)."""
         self._steps = 0
         self.trajectories: list[list[Pose]] = [[], []]
         """Each robot's (x, y, theta) after reset and after every step it was in the arena."""
@@ -181,6 +186,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         self._steps = 0
         self.agents = list(AGENTS)
         self.trajectories = [[poses[0]], [poses[1]]]
+        self._phi = [rewards.potential(p[0], p[1]) for p in poses]
         self.outcomes = [None, None]
         return {a: self._observe(i) for i, a in enumerate(AGENTS)}, {
             a: self._info(i) for i, a in enumerate(AGENTS)
@@ -235,9 +241,13 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
             force = forces[i]
             assert force is not None
             w = float(obs[agent][5])
-            if self.reward_name == "thesis":
+            if self.reward_name in ("thesis", "shaped"):
                 x, y = float(obs[agent][0]), float(obs[agent][1])
                 rew[agent] = rewards.thesis(x, y, w, force, made_it, collided, self.success_bonus)
+                if self.reward_name == "shaped":
+                    phi = rewards.potential(poses[i][0], poses[i][1])
+                    rew[agent] += rewards.shaping(self._phi[i], phi, collided or made_it, self.shaping_gamma)
+                    self._phi[i] = phi
             else:
                 others = [poses[1 - i]] if world.active[1 - i] else []
                 rew[agent] = rewards.potential_field(

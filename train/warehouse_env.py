@@ -71,7 +71,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     than -2; a timeout about -25. Waiting in the gap earns at most +0.004 per step, far less
     than the +5 for passing through. Range per step: [-2.164, 5.004].
     ``reward="potential-field"`` replaces the position terms by the study's potential field averaged
-    over the robot's four corners, with contours around every shelf and wall (:mod:`train.rewards`).
+    over the robot's four corners, with contours around every shelf and wall; ``reward="shaped"`` adds
+    potential-based shaping towards the gap to the study's reward (:mod:`train.rewards`).
 
     ## Starting State
     Uniformly random: |x| in [1.35, 1.6] m on a random side, y in [0.1, 1.0] m, heading in
@@ -89,7 +90,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Arguments
     ``gymnasium.make("embedrl/WarehouseRobot-v0", render_mode="rgb_array", reward="thesis",
-    success_bonus=5.0)`` (``reward`` is ``"thesis"`` or ``"potential-field"``).
+    success_bonus=5.0)`` (``reward`` is ``"thesis"``, ``"potential-field"`` or ``"shaped"``).
 
     ## Version History
     - v0: initial version (static scenario).
@@ -100,7 +101,11 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 1 / SAMPLE_TIME}  # noqa: RUF012 (gymnasium API)
 
     def __init__(
-        self, render_mode: str | None = None, reward: str = "thesis", success_bonus: float = SUCCESS_BONUS
+        self,
+        render_mode: str | None = None,
+        reward: str = "thesis",
+        success_bonus: float = SUCCESS_BONUS,
+        shaping_gamma: float = rewards.SHAPING_GAMMA,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -113,11 +118,14 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         if not (math.isfinite(success_bonus) and success_bonus >= 0):
             raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus}")
         self.success_bonus = success_bonus
+        self.shaping_gamma = shaping_gamma
         self.action_space = spaces.Box(self.SPEC.act_low, self.SPEC.act_high, dtype=np.float32)
         low, high = self.SPEC.obs_low, self.SPEC.obs_high
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self._low, self._high = low, high
         self._world: World | None = None
+        self._phi = 0.0
+        """The shaping potential of the state before the step (``reward="shaped"``)."""
         self._steps = 0
         self.trajectory: list[tuple[float, float, float]] = []
         """(x, y, theta) after reset and after every step of the current episode."""
@@ -156,6 +164,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"start_pose ({x}, {y}, {theta}) overlaps {', '.join(overlaps)}")
         self._world = world
         self._steps = 0
+        self._phi = rewards.potential(x, y)
         self.trajectory = [(x, y, theta)]
         self.obstacle_history = [self._moving_obstacles()]
         return self._observe(), {"is_success": False, "collided": False, "collided_with": None}
@@ -199,14 +208,18 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         pose = world.pose(0)
         self.trajectory.append(pose)
         self.obstacle_history.append(self._moving_obstacles())
-        if self.reward_name == "thesis":
+        terminated = made_it or collided
+        if self.reward_name in ("thesis", "shaped"):
             x, y, w = float(obs[0]), float(obs[1]), float(obs[5])
             r = rewards.thesis(x, y, w, a, made_it, collided, self.success_bonus)
+            if self.reward_name == "shaped":
+                phi = rewards.potential(pose[0], pose[1])
+                r += rewards.shaping(self._phi, phi, terminated, self.shaping_gamma)
+                self._phi = phi
         else:
             r = rewards.potential_field(
                 pose, float(obs[5]), a, made_it, collided, self._obstacles(), bonus=self.success_bonus
             )
-        terminated = made_it or collided
         truncated = not terminated and self._steps >= self.SPEC.max_steps
         info = {"is_success": made_it, "collided": collided, "collided_with": hit}
         return obs, r, terminated, truncated, info
