@@ -50,6 +50,14 @@ CONTOUR_RANGE = 0.05
 """Decay length of an obstacle's contour [m]."""
 
 
+def check_options(reward: str, success_bonus: float) -> None:
+    """The envs' reward arguments: a known reward and a finite, non-negative success bonus (ValueError)."""
+    if reward not in REWARDS:
+        raise ValueError(f"reward {reward!r} is not one of {', '.join(REWARDS)}")
+    if not (math.isfinite(success_bonus) and success_bonus >= 0):
+        raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus}")
+
+
 def step_costs(w: float, action: np.ndarray) -> float:
     """The study's per-step terms that do not depend on the position: living, turning and effort."""
     return -LIVING_COST - 0.001 * w * w - 0.01 * float(action[0] ** 2 + action[1] ** 2)

@@ -105,10 +105,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
             raise ValueError(
                 f"render_mode {render_mode!r} is not supported; use one of {self.metadata['render_modes']}"
             )
-        if reward not in rewards.REWARDS:
-            raise ValueError(f"reward {reward!r} is not one of {', '.join(rewards.REWARDS)}")
-        if not (math.isfinite(success_bonus) and success_bonus >= 0):
-            raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus}")
+        rewards.check_options(reward, success_bonus)
         self.render_mode = render_mode
         self.reward_name = reward
         self.success_bonus = success_bonus

@@ -111,12 +111,9 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(
                 f"render_mode {render_mode!r} is not supported; use one of {self.metadata['render_modes']}"
             )
-        if reward not in rewards.REWARDS:
-            raise ValueError(f"reward {reward!r} is not one of {', '.join(rewards.REWARDS)}")
+        rewards.check_options(reward, success_bonus)
         self.render_mode = render_mode
         self.reward_name = reward
-        if not (math.isfinite(success_bonus) and success_bonus >= 0):
-            raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus}")
         self.success_bonus = success_bonus
         self.shaping_gamma = shaping_gamma
         self.action_space = spaces.Box(self.SPEC.act_low, self.SPEC.act_high, dtype=np.float32)
