@@ -73,9 +73,23 @@ def test_way_to_goal_and_shaping_match_hand_computed_values() -> None:
     expected = math.hypot(1.5 - 1.25, 0.8 - 0.32) + math.hypot(1.25, 0.32 + 0.15)
     assert rewards.way_to_goal(1.5, 0.8) == pytest.approx(expected, abs=1e-12)
     assert rewards.way_to_goal(-1.5, 0.8) == pytest.approx(expected, abs=1e-12)
+    # Phi = 3 m - way, positive everywhere in the arena.
+    assert rewards.potential(0.3, 0.25) == pytest.approx(3.0 - 0.5, abs=1e-12)
+    assert rewards.potential(1.5, 0.8) == pytest.approx(3.0 - expected, abs=1e-12)
     # gamma * Phi(s') - Phi(s); Phi = 0 after the last step.
-    assert rewards.shaping(-2.0, -1.5, False, 0.99) == pytest.approx(0.99 * -1.5 + 2.0)
-    assert rewards.shaping(-0.2, -0.1, True, 0.99) == pytest.approx(0.2)
+    assert rewards.shaping(1.0, 1.5, False, 0.99) == pytest.approx(0.99 * 1.5 - 1.0)
+    assert rewards.shaping(2.8, 2.9, True, 0.99) == pytest.approx(-2.8)
+
+
+def test_a_collision_forfeits_the_potential_so_crashing_at_once_stays_costly() -> None:
+    """The shaped trap, measured with Phi = -way: a crash landed on the goal's potential (0). With the
+    offset, a crash from the start costs more than eq. 19's -2 and a step towards the goal earns."""
+    from embedrl.train import rewards
+
+    start = rewards.potential(1.5, 0.8)
+    assert rewards.shaping(start, 0.0, True, 0.99) < -0.9
+    closer = rewards.potential(1.4, 0.7)
+    assert rewards.shaping(start, closer, False, 0.99) > 0.1
 
 
 def test_shaping_leaves_the_optimal_policy_of_a_small_mdp_unchanged() -> None:
@@ -120,13 +134,16 @@ def test_the_shaped_env_reward_is_the_study_reward_plus_the_shaping_term() -> No
         plain.reset(seed=seed)
         start = env.unwrapped.trajectory[0]  # type: ignore[attr-defined]
         phi = rewards.potential(start[0], start[1])
-        done = False
+        done, plain_total = False, 0.0
         while not done:
             a = rng.uniform(-1, 1, 2).astype(np.float32)
-            _, r, terminated, truncated, _ = env.step(a)
+            _, r, terminated, truncated, info = env.step(a)
             _, r_plain, *_ = plain.step(a)
+            plain_total += float(r_plain)
             x, y, _theta = env.unwrapped.trajectory[-1]  # type: ignore[attr-defined]
             after = rewards.potential(x, y)
             expected = float(r_plain) + rewards.shaping(phi, after, terminated)
             assert float(r) == pytest.approx(expected, abs=1e-9)
             phi, done = after, terminated or truncated
+        # What the study's criterion and the evaluations measure: the return without the shaping term.
+        assert info["study_return"] == pytest.approx(plain_total, abs=1e-9)

@@ -148,7 +148,8 @@ def run_episode(
     """Run one episode from ``reset(seed=seed)`` until it terminates or is truncated.
 
     The outcome comes from ``info``'s ``is_success`` and ``collided`` (an env without them only times
-    out); ``sample_time`` converts steps to simulated time.
+    out); the return is ``info["study_return"]`` where the env gives it (the reward without a shaping
+    term), else the sum of rewards; ``sample_time`` converts steps to simulated time.
     """
     obs, info = env.reset(seed=seed)
     total, steps = 0.0, 0
@@ -158,7 +159,7 @@ def run_episode(
         steps += 1
         if terminated or truncated:
             break
-    return episode_result(env, seed, info, steps, total, sample_time)
+    return episode_result(env, seed, info, steps, float(info.get("study_return", total)), sample_time)
 
 
 def episode_result(
@@ -189,9 +190,9 @@ def run_two_robot_episode(env: WarehouseTwoRobotsEnv, policy: Policy, seed: int)
     totals = dict.fromkeys(env.possible_agents, 0.0)
     steps = 0
     while env.agents:
-        obs, rewards, _, _, _ = env.step({a: policy(obs[a]) for a in env.agents})
-        for agent, r in rewards.items():
-            totals[agent] += float(r)
+        obs, rewards, _, _, infos = env.step({a: policy(obs[a]) for a in env.agents})
+        for agent, r in rewards.items():  # the return without a shaping term where the env gives it
+            totals[agent] = float(infos[agent].get("study_return", totals[agent] + float(r)))
         steps += 1
     outcomes = tuple(str(o) for o in env.outcomes)
     if env.succeeded:

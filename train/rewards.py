@@ -19,13 +19,19 @@ be felt even when the centre is clear.
 ``shaped`` is ``thesis`` plus potential-based shaping (Ng, Harada and Russell 1999), which provably leaves
 the optimal policy unchanged::
 
-    r' = r + gamma * Phi(s') - Phi(s),   Phi(s) = -SHAPING_GAIN * (length of the way to the goal from s)
+    r' = r + gamma * Phi(s') - Phi(s),   Phi(s) = SHAPING_GAIN * (WAY_MAX - length of the way to the goal from s)
 
-with ``Phi = 0`` after a terminal step. The way to the goal is the potential-field controller's: beside the
-shelves, to the aisle mouth and on from there to the middle of the goal line; in the aisle, straight to it.
-Every metre of way made good earns about ``SHAPING_GAIN``, so a policy that drives towards the gap is paid
-before it ever gets through, and the crash-early trap (a collision at once costs less than wandering)
-loses its pull.
+with ``Phi = 0`` after a terminal step (what invariance in an episodic task needs). The way to the goal is
+the potential-field controller's: beside the shelves, to the aisle mouth and on from there to the middle of
+the goal line; in the aisle, straight to it. Every metre of way made good earns about ``SHAPING_GAIN``, so a
+policy that drives towards the gap is paid before it ever gets through.
+
+The offset ``WAY_MAX`` (longer than any way in the arena) makes every live state's potential higher than a
+terminal state's 0, so a collision forfeits the potential gathered so far. Without it (``Phi = -way``) a
+crash would land on the goal's potential: crashing at once would collect the whole way in one step, and the
+crash-early trap (a collision at once costs less than wandering) keeps its pull. Measured: TD3 from scratch
+fell into it with ``Phi = -way``. The offset changes the shaping term by a constant potential, which
+leaves the optimal policy unchanged as well.
 """
 
 from __future__ import annotations
@@ -122,7 +128,9 @@ def potential_field(
 
 
 SHAPING_GAIN = 1.0
-"""Potential per metre of way to the goal (the way from a start is 1.6-2.4 m)."""
+"""Potential per metre of way to the goal (the way from a start is 1.6-2.1 m)."""
+WAY_MAX = 3.0
+"""Offset of the potential [m]: longer than the way from anywhere in the arena (at most 2.93 m)."""
 SHAPING_GAMMA = 0.99
 """The default discount of the shaping term; invariance needs the agent's own, which training passes
 (the envs' ``shaping_gamma``)."""
@@ -142,8 +150,8 @@ def way_to_goal(x: float, y: float) -> float:
 
 
 def potential(x: float, y: float) -> float:
-    """The shaping potential ``Phi`` of a non-terminal state."""
-    return -SHAPING_GAIN * way_to_goal(x, y)
+    """The shaping potential ``Phi`` of a non-terminal state (positive everywhere in the arena)."""
+    return SHAPING_GAIN * (WAY_MAX - way_to_goal(x, y))
 
 
 def shaping(phi_before: float, phi_after: float, terminal: bool, gamma: float = SHAPING_GAMMA) -> float:

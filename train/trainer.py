@@ -356,7 +356,9 @@ class RunMonitor(BaseCallback):
             if done and "episode" in info:
                 episode = info["episode"]
                 success = bool(info.get("is_success"))
-                self._episode(float(episode["r"]), int(episode["l"]), steps, success, robot)
+                # The study's return (without a shaping term) is what its criterion averages.
+                ret = float(info.get("study_return", episode["r"]))
+                self._episode(ret, int(episode["l"]), steps, success, robot)
                 self.pending_q0 = q0(self.model, obs)
         if steps >= self.next_eval:
             self.next_eval += self.budget.eval_every

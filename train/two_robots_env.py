@@ -118,6 +118,8 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         self._world: World | None = None
         self._phi = [0.0, 0.0]
         """Each robot's shaping potential before the step (``reward="shaped"``)."""
+        self._study_returns = [0.0, 0.0]
+        """Each robot's return so far without the shaping term (``info["study_return"]``)."""
         self._steps = 0
         self.trajectories: list[list[Pose]] = [[], []]
         """Each robot's (x, y, theta) after reset and after every step it was in the arena."""
@@ -151,6 +153,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
             "is_success": self.outcomes[i] == "success",
             "collided": self.outcomes[i] == "collision",
             "collided_with": self._world.hits[i],
+            "study_return": self._study_returns[i],
         }
 
     # -- PettingZoo API --------------------------------------------------------------------------
@@ -184,6 +187,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         self.agents = list(AGENTS)
         self.trajectories = [[poses[0]], [poses[1]]]
         self._phi = [rewards.potential(p[0], p[1]) for p in poses]
+        self._study_returns = [0.0, 0.0]
         self.outcomes = [None, None]
         return {a: self._observe(i) for i, a in enumerate(AGENTS)}, {
             a: self._info(i) for i, a in enumerate(AGENTS)
@@ -241,6 +245,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
             if self.reward_name in ("thesis", "shaped"):
                 x, y = float(obs[agent][0]), float(obs[agent][1])
                 rew[agent] = rewards.thesis(x, y, w, force, made_it, collided, self.success_bonus)
+                self._study_returns[i] += rew[agent]
                 if self.reward_name == "shaped":
                     phi = rewards.potential(poses[i][0], poses[i][1])
                     rew[agent] += rewards.shaping(self._phi[i], phi, collided or made_it, self.shaping_gamma)
@@ -250,6 +255,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
                 rew[agent] = rewards.potential_field(
                     poses[i], w, force, made_it, collided, layout.OBSTACLES, others, self.success_bonus
                 )
+                self._study_returns[i] += rew[agent]
             term[agent] = collided or made_it
             trunc[agent] = not term[agent] and (crashed or timeout)
             infos[agent] = self._info(i)

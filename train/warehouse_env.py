@@ -73,6 +73,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     ``reward="potential-field"`` replaces the position terms by the study's potential field averaged
     over the robot's four corners, with contours around every shelf and wall; ``reward="shaped"`` adds
     potential-based shaping towards the gap to the study's reward (:mod:`train.rewards`).
+    ``info["study_return"]`` is the episode's return so far without the shaping term (what the study's
+    criterion and every evaluation measure).
 
     ## Starting State
     Uniformly random: |x| in [1.35, 1.6] m on a random side, y in [0.1, 1.0] m, heading in
@@ -123,6 +125,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._world: World | None = None
         self._phi = 0.0
         """The shaping potential of the state before the step (``reward="shaped"``)."""
+        self._study_return = 0.0
+        """The episode's return so far without the shaping term (``info["study_return"]``)."""
         self._steps = 0
         self.trajectory: list[tuple[float, float, float]] = []
         """(x, y, theta) after reset and after every step of the current episode."""
@@ -162,6 +166,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._world = world
         self._steps = 0
         self._phi = rewards.potential(x, y)
+        self._study_return = 0.0
         self.trajectory = [(x, y, theta)]
         self.obstacle_history = [self._moving_obstacles()]
         return self._observe(), {"is_success": False, "collided": False, "collided_with": None}
@@ -209,6 +214,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.reward_name in ("thesis", "shaped"):
             x, y, w = float(obs[0]), float(obs[1]), float(obs[5])
             r = rewards.thesis(x, y, w, a, made_it, collided, self.success_bonus)
+            self._study_return += r
             if self.reward_name == "shaped":
                 phi = rewards.potential(pose[0], pose[1])
                 r += rewards.shaping(self._phi, phi, terminated, self.shaping_gamma)
@@ -217,8 +223,14 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             r = rewards.potential_field(
                 pose, float(obs[5]), a, made_it, collided, self._obstacles(), bonus=self.success_bonus
             )
+            self._study_return += r
         truncated = not terminated and self._steps >= self.SPEC.max_steps
-        info = {"is_success": made_it, "collided": collided, "collided_with": hit}
+        info = {
+            "is_success": made_it,
+            "collided": collided,
+            "collided_with": hit,
+            "study_return": self._study_return,
+        }
         return obs, r, terminated, truncated, info
 
     def render(self) -> np.ndarray | None:
