@@ -1,9 +1,13 @@
 """Hyperparameters: one typed dataclass per algorithm, and the named presets ``thesis`` and ``tuned``.
 
 ``thesis`` is the reference study's setup: fully connected 100-100 ReLU networks (deterministic actors
-end in tanh), discount 0.99, mini-batches of 128, a replay buffer of 1e6, target smoothing 1e-3 for
-DDPG and TD3, Ornstein-Uhlenbeck exploration noise with variance 0.1 for DDPG, Adam. ``tuned`` keeps
-the network sizes (so the deployed C stays comparable) and changes what helps learning here.
+end in tanh), critics with an observation and an action branch added together, softplus standard
+deviations for SAC's and PPO's actors (:mod:`train.study_agents`), discount 0.99, mini-batches of 128, a
+replay buffer of 1e6, target smoothing 1e-3 for DDPG and TD3, Ornstein-Uhlenbeck exploration noise with
+variance 0.1 and learning rates 1e-4 (actor) and 1e-3 (critic) for DDPG, an experience horizon of 512
+for PPO, Adam, and no random warm-up (learning from the first transition). ``tuned`` keeps the network
+sizes (so the deployed C stays comparable), SB3's standard network structure, and changes what helps
+learning here.
 """
 
 from __future__ import annotations
@@ -50,7 +54,7 @@ class OffPolicyConfig:
     """Shared by DDPG, TD3 and SAC."""
 
     learning_rate: float = 1e-3
-    """Adam step size of actor and critic."""
+    """Adam step size of the critic, and of the actor unless the algorithm has its own for it."""
     gamma: float = 0.99
     """Discount factor."""
     batch_size: int = 128
@@ -59,14 +63,18 @@ class OffPolicyConfig:
     """Replay buffer capacity (transitions)."""
     tau: float = 1e-3
     """Target network smoothing factor."""
-    learning_starts: int = 1_000
-    """Random-action steps before learning starts."""
+    learning_starts: int = 0
+    """Random-action steps before learning starts (0: the agent's own noisy actions and updates from
+    the first transition on; SB3 samples the first mini-batches with replacement)."""
     train_freq: int = 1
     """Env steps between gradient updates."""
     gradient_steps: int = 1
     """Gradient updates per update."""
     net_arch: tuple[int, ...] = NET_ARCH
     """Hidden layer sizes of actor and critic (ReLU)."""
+    two_branch_critic: bool = True
+    """The study's critic: observation and action in separate branches, added before the last hidden
+    activation (:class:`train.study_agents.TwoBranchCritic`); false: SB3's, joined at the input."""
     demonstrations: int = 0
     """Episodes of the potential-field controller (with exploration noise) put into the replay buffer
     before learning: they show the way through the gap, which random exploration almost never finds."""
@@ -78,6 +86,8 @@ class OffPolicyConfig:
     :mod:`train.rewards`."""
     success_bonus: float = 5.0
     """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
+    shaping_gain: float = 1.0
+    """``reward="shaped"``: potential per metre of way to the goal (:data:`train.rewards.SHAPING_GAIN`)."""
 
 
 @dataclass(frozen=True)
@@ -88,6 +98,8 @@ class DDPGConfig(OffPolicyConfig):
     """Standard deviation of the OU noise (variance 0.1 in the study)."""
     noise_theta: float = 0.15
     """Mean reversion rate of the OU noise."""
+    actor_learning_rate: float = 1e-4
+    """Adam step size of the actor (``learning_rate`` is the critic's)."""
 
 
 @dataclass(frozen=True)
@@ -108,6 +120,9 @@ class SACConfig(OffPolicyConfig):
 
     ent_coef: str = "auto"
     """Entropy coefficient ("auto" learns it)."""
+    softplus_std: bool = True
+    """The study's actor: standard deviation = softplus of a linear head
+    (:class:`train.study_agents.SoftplusSACPolicy`); false: SB3's clamped log-std head."""
 
 
 @dataclass(frozen=True)
@@ -118,8 +133,8 @@ class PPOConfig:
     """Adam step size."""
     gamma: float = 0.99
     """Discount factor."""
-    n_steps: int = 2048
-    """Env steps per rollout."""
+    n_steps: int = 512
+    """Env steps per rollout (the study's experience horizon)."""
     batch_size: int = 128
     """Mini-batch size."""
     n_epochs: int = 10
@@ -136,6 +151,9 @@ class PPOConfig:
     """VecNormalize observations (PPO needs it); the statistics are saved with the model."""
     log_std_init: float = 0.0
     """Initial log standard deviation of the Gaussian policy (exploration)."""
+    softplus_std: bool = True
+    """The study's actor: a state-dependent standard deviation, softplus of a linear head
+    (:class:`train.study_agents.SoftplusActorCriticPolicy`); false: SB3's state-independent parameter."""
     warm_start_demonstrations: int = 0
     """Episodes of the potential-field controller (noisy actions, clean labels) whose observations
     pretrain the policy mean by behaviour cloning before PPO (the on-policy analogue of the off-policy
@@ -148,6 +166,8 @@ class PPOConfig:
     :mod:`train.rewards`."""
     success_bonus: float = 5.0
     """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
+    shaping_gain: float = 1.0
+    """``reward="shaped"``: potential per metre of way to the goal (:data:`train.rewards.SHAPING_GAIN`)."""
 
 
 AlgoConfig = DDPGConfig | TD3Config | SACConfig | PPOConfig
@@ -212,11 +232,22 @@ def _preset(algo: str, name: str) -> AlgoConfig:
             demonstrations=100,
             noise_sigma=0.2,
             learning_rate=1e-4,
+            actor_learning_rate=1e-4,
             gamma=0.98,
+            two_branch_critic=False,
         ),
-        "td3": replace(TD3Config(), tau=5e-3, learning_starts=10_000, noise_sigma=0.2, demonstrations=100),
+        "td3": replace(
+            TD3Config(),
+            tau=5e-3,
+            learning_starts=10_000,
+            noise_sigma=0.2,
+            demonstrations=100,
+            two_branch_critic=False,
+        ),
         "sac": replace(
             SACConfig(),
+            softplus_std=False,
+            two_branch_critic=False,
             learning_rate=7.3e-4,
             tau=0.02,
             learning_starts=10_000,
@@ -227,6 +258,7 @@ def _preset(algo: str, name: str) -> AlgoConfig:
         ),
         "ppo": replace(
             PPOConfig(),
+            softplus_std=False,
             n_steps=1024,
             batch_size=64,
             gamma=0.98,

@@ -56,12 +56,14 @@ CONTOUR_RANGE = 0.05
 """Decay length of an obstacle's contour [m]."""
 
 
-def check_options(reward: str, success_bonus: float) -> None:
-    """The envs' reward arguments: a known reward and a finite, non-negative success bonus (ValueError)."""
+def check_options(reward: str, success_bonus: float, shaping_gain: float = 1.0) -> None:
+    """The envs' reward arguments: a known reward, a finite, non-negative success bonus and shaping gain
+    (ValueError)."""
     if reward not in REWARDS:
         raise ValueError(f"reward {reward!r} is not one of {', '.join(REWARDS)}")
-    if not (math.isfinite(success_bonus) and success_bonus >= 0):
-        raise ValueError(f"success_bonus must be a finite number >= 0, got {success_bonus}")
+    for name, value in (("success_bonus", success_bonus), ("shaping_gain", shaping_gain)):
+        if not (math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a finite number >= 0, got {value}")
 
 
 def step_costs(w: float, action: np.ndarray) -> float:
@@ -149,9 +151,9 @@ def way_to_goal(x: float, y: float) -> float:
     return math.hypot(x - mouth, y - MOUTH_Y) + math.hypot(MOUTH_X, MOUTH_Y - layout.GOAL_Y)
 
 
-def potential(x: float, y: float) -> float:
+def potential(x: float, y: float, gain: float = SHAPING_GAIN) -> float:
     """The shaping potential ``Phi`` of a non-terminal state (positive everywhere in the arena)."""
-    return SHAPING_GAIN * (WAY_MAX - way_to_goal(x, y))
+    return gain * (WAY_MAX - way_to_goal(x, y))
 
 
 def shaping(phi_before: float, phi_after: float, terminal: bool, gamma: float = SHAPING_GAMMA) -> float:

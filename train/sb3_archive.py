@@ -41,6 +41,9 @@ POLICY_CLASSES = {
     ("stable_baselines3.common.policies", "ActorCriticPolicy"),
     ("stable_baselines3.ppo.policies", "MlpPolicy"),
     ("stable_baselines3.a2c.policies", "MlpPolicy"),
+    ("embedrl.train.study_agents", "StudyTD3Policy"),
+    ("embedrl.train.study_agents", "StudySACPolicy"),
+    ("embedrl.train.study_agents", "SoftplusActorCriticPolicy"),
 }
 """(module, name) of the policy classes an archive may name."""
 ACTIVATIONS: dict[str, type[nn.Module]] = {

@@ -37,7 +37,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
-from stable_baselines3 import DDPG, PPO, SAC, TD3
+from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.monitor import Monitor
@@ -63,8 +63,14 @@ from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
 from embedrl.train.portable import machine
-from embedrl.train.rewards import SUCCESS_BONUS
+from embedrl.train.rewards import SHAPING_GAIN, SUCCESS_BONUS, check_options
 from embedrl.train.scenarios import SCENARIOS
+from embedrl.train.study_agents import (
+    SeparateRatesDDPG,
+    SoftplusActorCriticPolicy,
+    StudySACPolicy,
+    StudyTD3Policy,
+)
 
 BEST_MODEL = "best_model"
 """The checkpoint with the best validation evaluation so far (``best_model.zip``)."""
@@ -76,7 +82,7 @@ STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
 STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
-CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
+CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": SeparateRatesDDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
 EVALUATIONS_FILE = "evaluations.csv"
 EVALUATION_FIELDS = ("steps", "success_rate", "mean_return")
 """evaluations.csv: one row per validation evaluation."""
@@ -114,6 +120,8 @@ def env_kwargs(cfg: Any) -> dict[str, Any]:
         out["success_bonus"] = cfg.success_bonus
     if cfg.reward == "shaped":  # shaping leaves the optimal policy unchanged only at the agent's own discount
         out["shaping_gamma"] = cfg.gamma
+        if cfg.shaping_gain != SHAPING_GAIN:
+            out["shaping_gain"] = cfg.shaping_gain
     return out
 
 
@@ -134,7 +142,7 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
             "log_std_init": cfg.log_std_init,
         }
         return PPO(
-            "MlpPolicy",
+            SoftplusActorCriticPolicy if cfg.softplus_std else "MlpPolicy",
             env,
             n_steps=cfg.n_steps,
             batch_size=cfg.batch_size,
@@ -145,6 +153,7 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
             policy_kwargs=kwargs,
             **common,
         )
+    policy_kwargs: dict[str, Any] = {"net_arch": list(cfg.net_arch), "activation_fn": torch.nn.ReLU}
     off = {
         "batch_size": cfg.batch_size,
         "buffer_size": cfg.buffer_size,
@@ -152,16 +161,28 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
         "learning_starts": cfg.learning_starts,
         "train_freq": cfg.train_freq,
         "gradient_steps": cfg.gradient_steps,
-        "policy_kwargs": {"net_arch": list(cfg.net_arch), "activation_fn": torch.nn.ReLU},
+        "policy_kwargs": policy_kwargs,
     }
     n = env.action_space.shape[0]  # type: ignore[index]
+    # The study's structures need embedrl's classes; without them models stay plain SB3 files.
+    deterministic_policy: Any = "MlpPolicy"
+    if cfg.two_branch_critic and not isinstance(cfg, SACConfig):
+        deterministic_policy = StudyTD3Policy
+        policy_kwargs["two_branch_critic"] = True
     if isinstance(cfg, DDPGConfig):
         ou = OrnsteinUhlenbeckActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n), theta=cfg.noise_theta)
-        return DDPG("MlpPolicy", env, action_noise=ou, **off, **common)
+        return SeparateRatesDDPG(
+            deterministic_policy,
+            env,
+            action_noise=ou,
+            actor_learning_rate=cfg.actor_learning_rate,
+            **off,
+            **common,
+        )
     if isinstance(cfg, TD3Config):
         noise = NormalActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n))
         return TD3(
-            "MlpPolicy",
+            deterministic_policy,
             env,
             action_noise=noise,
             policy_delay=cfg.policy_delay,
@@ -170,7 +191,11 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
             **common,
         )
     assert isinstance(cfg, SACConfig)
-    return SAC("MlpPolicy", env, ent_coef=cfg.ent_coef, **off, **common)
+    sac_policy: Any = "MlpPolicy"
+    if cfg.softplus_std or cfg.two_branch_critic:
+        sac_policy = StudySACPolicy
+        policy_kwargs.update(softplus_std=cfg.softplus_std, two_branch_critic=cfg.two_branch_critic)
+    return SAC(sac_policy, env, ent_coef=cfg.ent_coef, **off, **common)
 
 
 def _demonstration_steps(
@@ -451,6 +476,7 @@ def train(
         raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
     try:
         cfg = with_overrides(preset(algo, preset_name, scenario), overrides)
+        check_options(cfg.reward, cfg.success_bonus, cfg.shaping_gain)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations

@@ -100,16 +100,18 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         reward: str = "thesis",
         success_bonus: float = rewards.SUCCESS_BONUS,
         shaping_gamma: float = rewards.SHAPING_GAMMA,
+        shaping_gain: float = rewards.SHAPING_GAIN,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode {render_mode!r} is not supported; use one of {self.metadata['render_modes']}"
             )
-        rewards.check_options(reward, success_bonus)
+        rewards.check_options(reward, success_bonus, shaping_gain)
         self.render_mode = render_mode
         self.reward_name = reward
         self.success_bonus = success_bonus
         self.shaping_gamma = shaping_gamma
+        self.shaping_gain = shaping_gain
         self.possible_agents = list(AGENTS)
         self.agents: list[str] = []
         self._obs_space = spaces.Box(TWO_ROBOTS.obs_low, TWO_ROBOTS.obs_high, dtype=np.float32)
@@ -186,7 +188,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         self._steps = 0
         self.agents = list(AGENTS)
         self.trajectories = [[poses[0]], [poses[1]]]
-        self._phi = [rewards.potential(p[0], p[1]) for p in poses]
+        self._phi = [rewards.potential(p[0], p[1], self.shaping_gain) for p in poses]
         self._study_returns = [0.0, 0.0]
         self.outcomes = [None, None]
         return {a: self._observe(i) for i, a in enumerate(AGENTS)}, {
@@ -247,7 +249,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
                 rew[agent] = rewards.thesis(x, y, w, force, made_it, collided, self.success_bonus)
                 self._study_returns[i] += rew[agent]
                 if self.reward_name == "shaped":
-                    phi = rewards.potential(poses[i][0], poses[i][1])
+                    phi = rewards.potential(poses[i][0], poses[i][1], self.shaping_gain)
                     rew[agent] += rewards.shaping(self._phi[i], phi, collided or made_it, self.shaping_gamma)
                     self._phi[i] = phi
             else:

@@ -108,16 +108,18 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         reward: str = "thesis",
         success_bonus: float = SUCCESS_BONUS,
         shaping_gamma: float = rewards.SHAPING_GAMMA,
+        shaping_gain: float = rewards.SHAPING_GAIN,
     ) -> None:
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode {render_mode!r} is not supported; use one of {self.metadata['render_modes']}"
             )
-        rewards.check_options(reward, success_bonus)
+        rewards.check_options(reward, success_bonus, shaping_gain)
         self.render_mode = render_mode
         self.reward_name = reward
         self.success_bonus = success_bonus
         self.shaping_gamma = shaping_gamma
+        self.shaping_gain = shaping_gain
         self.action_space = spaces.Box(self.SPEC.act_low, self.SPEC.act_high, dtype=np.float32)
         low, high = self.SPEC.obs_low, self.SPEC.obs_high
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
@@ -165,7 +167,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             raise ValueError(f"start_pose ({x}, {y}, {theta}) overlaps {', '.join(overlaps)}")
         self._world = world
         self._steps = 0
-        self._phi = rewards.potential(x, y)
+        self._phi = rewards.potential(x, y, self.shaping_gain)
         self._study_return = 0.0
         self.trajectory = [(x, y, theta)]
         self.obstacle_history = [self._moving_obstacles()]
@@ -216,7 +218,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             r = rewards.thesis(x, y, w, a, made_it, collided, self.success_bonus)
             self._study_return += r
             if self.reward_name == "shaped":
-                phi = rewards.potential(pose[0], pose[1])
+                phi = rewards.potential(pose[0], pose[1], self.shaping_gain)
                 r += rewards.shaping(self._phi, phi, terminated, self.shaping_gamma)
                 self._phi = phi
         else:
