@@ -85,7 +85,15 @@ ROWS = {
     ),
     "resume of a folder that is no run": (lambda tmp: ["train", "--resume", str(tmp)], "not a run directory"),
     "a negative shaping gain": (
-        lambda tmp: ["train", "--set", "reward=shaped", "--set", "shaping_gain=-1", "--out", str(tmp / "out")],
+        lambda tmp: [
+            "train",
+            "--set",
+            "reward=shaped",
+            "--set",
+            "shaping_gain=-1",
+            "--out",
+            str(tmp / "out"),
+        ],
         "shaping_gain must be a finite number >= 0",
     ),
     "hil run without an export": (
