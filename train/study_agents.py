@@ -61,7 +61,8 @@ class TwoBranchQ(nn.Module):
         self.out = nn.Linear(width, 1)
 
     def forward(self, features: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        return self.out(self.activation(self.obs_path(features) + self.action_path(actions)))
+        q: th.Tensor = self.out(self.activation(self.obs_path(features) + self.action_path(actions)))
+        return q
 
 
 class TwoBranchCritic(ContinuousCritic):
@@ -70,7 +71,7 @@ class TwoBranchCritic(ContinuousCritic):
 
     def __init__(
         self,
-        observation_space: spaces.Space,
+        observation_space: spaces.Space[Any],
         action_space: spaces.Box,
         net_arch: list[int],
         features_extractor: BaseFeaturesExtractor,
@@ -138,7 +139,8 @@ class SoftplusActor(Actor):
         super().__init__(*args, **kwargs)
         if self.use_sde:
             raise ValueError("softplus standard deviations do not combine with gSDE")
-        self.std = self.log_std  # the same linear head, read through softplus
+        head: Any = self.log_std  # a Linear without gSDE (SB3 annotates the gSDE case)
+        self.std: nn.Linear = head  # the same linear head, read through softplus
         del self.log_std
 
     def get_action_dist_params(self, obs: Any) -> tuple[th.Tensor, th.Tensor, dict[str, th.Tensor]]:
