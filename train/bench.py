@@ -76,8 +76,14 @@ STUDY_BY_SCENARIO: dict[str, dict[str, dict[str, Any]]] = {
 study reports the two-robot runs as curves, not as a 200-run evaluation."""
 
 
-def _one_run(job: tuple[str, str, int, str, int, int, str, tuple[str, ...]]) -> dict[str, Any]:
-    algo, preset, seed, out, max_steps, eval_episodes, scenario, overrides = job
+Job = tuple[str, str, int, str, int, int, str, tuple[str, ...], str | None]
+"""algo, preset, seed, run directory, max steps, test episodes, scenario, overrides, stop rule (None: the
+study's criterion for ``thesis``, the deployable one for ``tuned``)."""
+
+
+def one_run(job: Job) -> dict[str, Any]:
+    """Train one run (or take it as it finished, or resume it) and evaluate its selected model."""
+    algo, preset, seed, out, max_steps, eval_episodes, scenario, overrides, stop = job
     from embedrl.train.cli import load_model_policy
     from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.trainer import train
@@ -87,7 +93,7 @@ def _one_run(job: tuple[str, str, int, str, int, int, str, tuple[str, ...]]) -> 
         summary = {**_derived(run), **json.loads((run / "summary.json").read_text())}
     else:
         # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
-        budget = Budget(max_steps=max_steps, stop="study" if preset == "thesis" else "validation")
+        budget = Budget(max_steps=max_steps, stop=stop or ("study" if preset == "thesis" else "validation"))
         resume = (run / "config.json").is_file()
         summary = train(
             algo, preset, seed, run, budget, resume=resume, scenario=scenario, overrides=overrides
@@ -168,13 +174,13 @@ def run_bench(
 
     study = STUDY_BY_SCENARIO[scenario]
     seed_list = list(range(seed_offset, seed_offset + seeds))
-    jobs = [
-        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes, scenario, overrides)
+    jobs: list[Job] = [
+        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes, scenario, overrides, None)
         for a in algos
         for s in seed_list
     ]
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        runs = list(pool.map(_one_run, jobs))
+        runs = list(pool.map(one_run, jobs))
     from embedrl.train.potential_field import PotentialFieldController
 
     pf = evaluate(

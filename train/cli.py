@@ -1,4 +1,5 @@
-"""The training package's subcommands: ``eval``, ``render``, ``train``, ``bench`` and ``bench-env``.
+"""The training package's subcommands: ``eval``, ``render``, ``train``, ``bench``, ``shaping`` and
+``bench-env``.
 
 :func:`register` adds them to the ``embedrl`` command (:mod:`embedrl.cli`).
 """
@@ -291,6 +292,28 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_shaping(args: argparse.Namespace) -> int:
+    import math
+
+    from embedrl.train.config import preset, with_overrides
+    from embedrl.train.shaping_bench import FROM_SCRATCH, run_shaping
+
+    if not (math.isfinite(args.gain) and args.gain >= 0):
+        raise UsageError(f"--gain must be a finite number >= 0, got {args.gain}")
+    for algo in args.algos:  # a bad --set fails here, in one line, before any run starts
+        try:
+            with_overrides(preset(algo, args.preset), [*FROM_SCRATCH[algo], *args.set])
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    table = run_shaping(
+        args.algos, args.seeds, args.seed_offset, args.preset, args.out, args.max_steps, args.eval_episodes,
+        args.workers, args.gain, tuple(args.set),
+    )  # fmt: skip
+    print(table)
+    print(f"wrote {args.out}/shaping.md, shaping.json and shaping.png")
+    return 0
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
     _add_policy_arguments(p)
@@ -365,6 +388,28 @@ def register(sub: Any) -> None:
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser(
+        "shaping",
+        help="train from scratch with the study's reward and with potential-based shaping; table and curves",
+    )
+    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    p.add_argument("--seeds", type=_positive, default=5)
+    p.add_argument("--seed-offset", type=int, default=300, help="train seeds OFFSET .. OFFSET + SEEDS - 1")
+    p.add_argument("--preset", choices=PRESETS, default="tuned", help="without its demonstrations (default tuned)")
+    p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="change one of the preset's hyperparameters in every run",
+    )
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--max-steps", type=_positive, default=1_000_000)
+    p.add_argument("--eval-episodes", type=_positive, default=200)
+    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+    p.set_defaults(func=cmd_shaping)
 
     p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")
     add_scenario_argument(p)
