@@ -147,3 +147,47 @@ def test_the_shaped_env_reward_is_the_study_reward_plus_the_shaping_term() -> No
             phi, done = after, terminated or truncated
         # What the study's criterion and the evaluations measure: the return without the shaping term.
         assert info["study_return"] == pytest.approx(plain_total, abs=1e-9)
+
+
+def test_shaping_keeps_the_crash_early_trap_of_a_crashing_policy() -> None:
+    """Why shaping alone does not lead out of the trap: it shifts every Q of *any* policy by -Phi(s)
+    (Q'^pi = Q^pi - Phi), so under a policy that crashes, crashing at once still looks better than one
+    step towards the goal, with or without shaping. Corridor as above, the policy always goes left."""
+    from embedrl.train import rewards
+
+    n, gamma = 6, 0.99
+
+    def q_of_go_left(potential: np.ndarray | None) -> np.ndarray:
+        v = np.zeros(n)
+        for _ in range(200):  # policy evaluation of "always left"
+            v = np.array(
+                [0.0]
+                + [
+                    -0.14
+                    + (-2.0 if s - 1 == 0 else 0.0)
+                    + (
+                        rewards.shaping(potential[s], potential[s - 1], s - 1 == 0, gamma)
+                        if potential is not None
+                        else 0.0
+                    )
+                    + (0.0 if s - 1 == 0 else gamma * v[s - 1])
+                    for s in range(1, n - 1)
+                ]
+                + [0.0]
+            )
+        q = np.zeros((n, 2))
+        for s in range(1, n - 1):
+            for a, nxt in enumerate((s - 1, s + 1)):
+                terminal = nxt in (0, n - 1)
+                r = -0.14 + (5.0 if nxt == n - 1 else -2.0 if nxt == 0 else 0.0)
+                if potential is not None:
+                    r += rewards.shaping(potential[s], potential[nxt], terminal, gamma)
+                q[s, a] = r + (0.0 if terminal else gamma * v[nxt])
+        return q
+
+    plain = q_of_go_left(None)
+    assert plain[1, 0] > plain[1, 1]  # the trap: beside the pit, falling in beats a step right
+    line = np.array([rewards.potential(1.6 - 0.3 * k, 0.3, gain=5.0) for k in range(n)])
+    shaped = q_of_go_left(line)
+    np.testing.assert_allclose(shaped[1:-1], plain[1:-1] - line[1:-1, None], atol=1e-9)
+    assert shaped[1, 0] > shaped[1, 1]

@@ -1,0 +1,61 @@
+"""``embedrl shaping``: the from-scratch comparison of the study's reward and potential-based shaping."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from embedrl.cli import main
+from embedrl.train.shaping_bench import run_shaping
+
+
+def _returns(run: Path) -> list[float]:
+    with (run / "curve.csv").open() as f:
+        return [float(r["return"]) for r in csv.DictReader(f)]
+
+
+def test_shaping_comparison_writes_table_runs_and_curves(tmp_path: Path) -> None:
+    out = tmp_path / "shaping"
+    table = run_shaping(["td3", "ppo"], 1, 7, "tuned", out, 700, 5, 1, 2.0, ("net_arch=16,16",))
+    lines = table.splitlines()
+    assert lines[0] == "| | TD3 eq. 19 | TD3 shaped | PPO eq. 19 | PPO shaped |"
+    assert lines[2].startswith("| runs reaching the study's criterion | 0 / 1 | 0 / 1 |")
+    assert (out / "shaping.md").read_text() == table
+    assert (out / "shaping.png").stat().st_size > 10_000
+    report = json.loads((out / "shaping.json").read_text())
+    assert report["shaping_gain"] == 2.0 and report["seeds"] == [7]
+    runs = {(r["algo"], r["reward_variant"]): r for r in report["runs"]}
+    assert set(runs) == {("td3", "thesis"), ("td3", "shaped"), ("ppo", "thesis"), ("ppo", "shaped")}
+    for (algo, reward), run in runs.items():
+        config = json.loads((Path(run["run"]) / "config.json").read_text())
+        hyper = config["hyperparameters"]
+        assert hyper["reward"] == reward and (reward == "thesis" or hyper["shaping_gain"] == 2.0)
+        assert hyper["demonstrations" if algo == "td3" else "warm_start_demonstrations"] == 0  # from scratch
+        assert not (Path(run["run"]) / "warm_start_model.zip").exists()
+    # TD3's first 10,000 steps are random actions, the same for both rewards: the criterion's returns are
+    # then the same, because both count the eq. 19 return only (the shaping term left out).
+    thesis, shaped = (_returns(Path(runs[("td3", r)]["run"])) for r in ("thesis", "shaped"))
+    assert len(thesis) > 20 and thesis == shaped
+    # Finished runs are reused: a second call trains nothing and gives the same table.
+    stamp = (Path(runs[("ppo", "shaped")]["run"]) / "summary.json").stat().st_mtime_ns
+    assert run_shaping(["td3", "ppo"], 1, 7, "tuned", out, 700, 5, 1, 2.0, ("net_arch=16,16",)) == table
+    assert (Path(runs[("ppo", "shaped")]["run"]) / "summary.json").stat().st_mtime_ns == stamp
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["--gain", "-1"], "--gain must be a finite number >= 0"),
+        (["--gain", "nan"], "--gain must be a finite number >= 0"),
+        (["--set", "nosuch=1"], "expected NAME=VALUE"),
+    ],
+)
+def test_bad_shaping_arguments_are_one_line_errors(
+    argv: list[str], said: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["shaping", "--out", str(tmp_path / "s"), *argv]) == 2
+    assert said in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
