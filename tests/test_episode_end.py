@@ -57,20 +57,25 @@ def test_collision_terminates_with_the_penalty(env: Env, name: str) -> None:
     env.reset(options={"start_pose": COLLISION_STARTS[name]})
     step, obs, r, terminated, truncated, info = drive(env, FULL_AHEAD, 10)
     assert terminated and not truncated, f"no collision with the {name} after {step} steps"
+    study_return = info.pop("study_return")
     assert info == {"is_success": False, "collided": True, "collided_with": name}
     assert r == reward(float(obs[0]), float(obs[1]), float(obs[5]), FULL_AHEAD, False, True)
     assert r < -COLLISION_PENALTY
-    # Steps before the collision carry no penalty.
+    # Steps before the collision carry no penalty; the episode's return is every step's reward.
     env.reset(options={"start_pose": COLLISION_STARTS[name]})
+    total = 0.0
     for _ in range(step - 1):
         r_before = env.step(FULL_AHEAD)[1]
         assert float(r_before) > -0.2
+        total += float(r_before)
+    assert study_return == pytest.approx(total + r, abs=1e-9)
 
 
 def test_driving_down_through_the_gap_succeeds_with_the_bonus(env: Env) -> None:
     env.reset(options={"start_pose": (0.0, 0.3, DOWN)})
     _, obs, r, terminated, truncated, info = drive(env, FULL_AHEAD, 10)
     assert terminated and not truncated
+    assert SUCCESS_BONUS - 2.0 < info.pop("study_return") < r  # a few steps of -0.14 before the bonus
     assert info == {"is_success": True, "collided": False, "collided_with": None}
     assert r == reward(float(obs[0]), float(obs[1]), float(obs[5]), FULL_AHEAD, True, False)
     assert r > SUCCESS_BONUS - 0.2

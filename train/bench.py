@@ -10,6 +10,7 @@ beside ours; the potential-field controller is evaluated on the same seeds.
 from __future__ import annotations
 
 import json
+import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -141,6 +142,15 @@ def _derived(run: Path) -> dict[str, Any]:
     }
 
 
+def run_jobs(jobs: list[Job], workers: int) -> list[dict[str, Any]]:
+    """Every job's result, in order: in this process with one worker, else in a pool of fresh
+    interpreters (``spawn``: a forked child can inherit a lock some thread of this process held)."""
+    if workers == 1:
+        return [one_run(job) for job in jobs]
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return list(pool.map(one_run, jobs))
+
+
 def median_ci(values: list[float], seed: int = 0) -> tuple[float, float, float]:
     """Median and its 95% bootstrap interval."""
     data = np.asarray(values, dtype=float)
@@ -179,8 +189,7 @@ def run_bench(
         for a in algos
         for s in seed_list
     ]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        runs = list(pool.map(one_run, jobs))
+    runs = run_jobs(jobs, workers)
     from embedrl.train.potential_field import PotentialFieldController
 
     pf = evaluate(

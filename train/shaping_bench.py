@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import csv
 import json
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from embedrl.common import atomic_write, provenance, write_json
-from embedrl.train.bench import Job, one_run
+from embedrl.train.bench import Job, run_jobs
 from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
 
 REWARD_VARIANTS = ("thesis", "shaped")
@@ -129,8 +128,7 @@ def run_shaping(
             for seed in seed_list:
                 run = out / "runs" / f"{algo}-{reward}-seed{seed}"
                 jobs.append((algo, preset, seed, str(run), max_steps, eval_episodes, "static", changes, "study"))
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        results = list(pool.map(one_run, jobs))
+    results = run_jobs(jobs, workers)
     runs = []
     for job, result in zip(jobs, results, strict=True):
         _, _, length = _curve(Path(job[3]))
