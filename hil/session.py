@@ -21,8 +21,8 @@ from __future__ import annotations
 import json
 import sys
 import time
-from collections.abc import Callable
-from contextlib import ExitStack
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -276,35 +276,26 @@ class BusPolicy:
         return "no action for the step although the node still sends status"
 
 
-def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
-    """Several nodes on one bus, one robot each (the same scenario, each robot its own seeds), in
-    lock-step: every step all observations go out, then every action is collected. A robot whose node
-    does not answer ends its episode as a fault; the others go on."""
+@contextmanager
+def _nodes_on_one_bus(
+    cfg: SessionConfig, interface: Interface, count: int
+) -> Iterator[tuple[list[Link], list[Node], list[BusPolicy]]]:
+    """``count`` nodes on one bus (node k with node k's CAN IDs), each with its own link and bus policy,
+    booted; on exit the nodes get a last status in, then are stopped and the links closed. The lists stay
+    readable afterwards (the links' statistics)."""
     logger = can.Logger(cfg.log) if cfg.log else None
     links: list[Link] = []
     nodes: list[Node] = []
-    envs: list[gym.Env[np.ndarray, np.ndarray]] = []
     policies: list[BusPolicy] = []
-    episodes: list[dict[str, Any]] = []
     try:
-        for k in range(cfg.nodes):
+        for k in range(count):
             codec = Codec(interface, k, cfg.fd)
             links.append(Link(_open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
             nodes.append(_start_node(cfg, interface, k))
             policies.append(BusPolicy(cfg, interface, links[k], nodes[k]))
-            envs.append(gym.make(interface.env_id))
         for link in links:
             link.wait_status(NODE_BOOT_S)
-        for index in range(cfg.episodes):
-            marks = [len(link.stats.diffs) for link in links]
-            seeds = [node_seed(cfg.seed, index, k) for k in range(cfg.nodes)]
-            rows = _together(policies, envs, seeds, interface.sample_time_s)
-            for k, row in enumerate(rows):
-                diffs = links[k].stats.diffs[marks[k] :]
-                row.update(node=k, injected=[], max_action_abs_diff=max(diffs, default=None))
-            episodes += rows
-            if not all(node.alive() for node in nodes):
-                break  # a node is gone: later episodes could only fail the same way
+        yield links, nodes, policies
         for link in links:
             link.wait_status(0.3)
     finally:
@@ -314,6 +305,28 @@ def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
             link.close()
         if logger is not None:
             logger.stop()
+
+
+def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
+    """Several nodes on one bus, one robot each (the same scenario, each robot its own seeds), in
+    lock-step: every step all observations go out, then every action is collected. A robot whose node
+    does not answer ends its episode as a fault; the others go on."""
+    envs: list[gym.Env[np.ndarray, np.ndarray]] = []
+    episodes: list[dict[str, Any]] = []
+    try:
+        with _nodes_on_one_bus(cfg, interface, cfg.nodes) as (links, nodes, policies):
+            envs += [gym.make(interface.env_id) for _ in range(cfg.nodes)]
+            for index in range(cfg.episodes):
+                marks = [len(link.stats.diffs) for link in links]
+                seeds = [node_seed(cfg.seed, index, k) for k in range(cfg.nodes)]
+                rows = _together(policies, envs, seeds, interface.sample_time_s)
+                for k, row in enumerate(rows):
+                    diffs = links[k].stats.diffs[marks[k] :]
+                    row.update(node=k, injected=[], max_action_abs_diff=max(diffs, default=None))
+                episodes += rows
+                if not all(node.alive() for node in nodes):
+                    break  # a node is gone: later episodes could only fail the same way
+    finally:
         for env in envs:
             env.close()
     return _write_nodes_results(cfg, links, episodes, interface.sample_time_s)
@@ -422,68 +435,50 @@ def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
     and episode (``node`` = robot index, ``seed`` = the episode's seed)."""
     from embedrl.train.two_robots_env import AGENTS, WarehouseTwoRobotsEnv
 
-    logger = can.Logger(cfg.log) if cfg.log else None
-    links: list[Link] = []
-    nodes: list[Node] = []
-    policies: list[BusPolicy] = []
     episodes: list[dict[str, Any]] = []
     env = WarehouseTwoRobotsEnv()
     safe = np.asarray(interface.safe_action, dtype=np.float32)
     try:
-        for k in range(len(AGENTS)):
-            codec = Codec(interface, k, cfg.fd)
-            links.append(Link(_open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
-            nodes.append(_start_node(cfg, interface, k))
-            policies.append(BusPolicy(cfg, interface, links[k], nodes[k]))
-        for link in links:
-            link.wait_status(NODE_BOOT_S)
-        for index in range(cfg.episodes):
-            seed = cfg.seed + index
-            marks = [len(link.stats.diffs) for link in links]
-            obs, _ = env.reset(seed=seed)
-            totals = [0.0, 0.0]
-            faults: list[str | None] = [None, None]
-            for policy in policies:
-                policy.begin_episode()
-            while env.agents:
-                live = [k for k, a in enumerate(AGENTS) if a in env.agents and faults[k] is None]
-                for k in live:
-                    if cfg.kill_node == (k, index, policies[k].in_episode):
-                        nodes[k].stop()
-                    policies[k].send(obs[AGENTS[k]])
-                actions = {a: safe for a in env.agents}
-                for k in live:
-                    try:
-                        actions[AGENTS[k]] = policies[k].collect(obs[AGENTS[k]])
-                    except NodeFault as fault:
-                        faults[k] = str(fault)
-                stepped, rewards, _, _, _ = env.step(actions)
-                obs.update(stepped)
-                for agent, r in rewards.items():
-                    totals[AGENTS.index(agent)] += float(r)
-            for k in range(len(AGENTS)):
-                steps = len(env.trajectories[k]) - 1
-                hit = env._world.hits[k] if env._world is not None else None
-                diffs = links[k].stats.diffs[marks[k] :]
-                killed = cfg.kill_node is not None and cfg.kill_node[:2] == (k, index)
-                episodes.append({
-                    "seed": seed, "outcome": "fault" if faults[k] else env.outcomes[k], "steps": steps,
-                    "episode_return": totals[k], "time_s": steps * interface.sample_time_s,
-                    "collided_with": hit, "trajectory": list(env.trajectories[k]), "fault": faults[k],
-                    "node": k, "injected": ["kill"] if killed else [],
-                    "max_action_abs_diff": max(diffs, default=None), "robots": list(env.outcomes),
-                })  # fmt: skip
-            if not all(node.alive() for node in nodes):
-                break  # a node is gone: its robot could only fault in later episodes
-        for link in links:
-            link.wait_status(0.3)
+        with _nodes_on_one_bus(cfg, interface, len(AGENTS)) as (links, nodes, policies):
+            for index in range(cfg.episodes):
+                seed = cfg.seed + index
+                marks = [len(link.stats.diffs) for link in links]
+                obs, _ = env.reset(seed=seed)
+                totals = [0.0, 0.0]
+                faults: list[str | None] = [None, None]
+                for policy in policies:
+                    policy.begin_episode()
+                while env.agents:
+                    live = [k for k, a in enumerate(AGENTS) if a in env.agents and faults[k] is None]
+                    for k in live:
+                        if cfg.kill_node == (k, index, policies[k].in_episode):
+                            nodes[k].stop()
+                        policies[k].send(obs[AGENTS[k]])
+                    actions = {a: safe for a in env.agents}
+                    for k in live:
+                        try:
+                            actions[AGENTS[k]] = policies[k].collect(obs[AGENTS[k]])
+                        except NodeFault as fault:
+                            faults[k] = str(fault)
+                    stepped, rewards, _, _, _ = env.step(actions)
+                    obs.update(stepped)
+                    for agent, r in rewards.items():
+                        totals[AGENTS.index(agent)] += float(r)
+                for k in range(len(AGENTS)):
+                    steps = len(env.trajectories[k]) - 1
+                    hit = env._world.hits[k] if env._world is not None else None
+                    diffs = links[k].stats.diffs[marks[k] :]
+                    killed = cfg.kill_node is not None and cfg.kill_node[:2] == (k, index)
+                    episodes.append({
+                        "seed": seed, "outcome": "fault" if faults[k] else env.outcomes[k], "steps": steps,
+                        "episode_return": totals[k], "time_s": steps * interface.sample_time_s,
+                        "collided_with": hit, "trajectory": list(env.trajectories[k]), "fault": faults[k],
+                        "node": k, "injected": ["kill"] if killed else [],
+                        "max_action_abs_diff": max(diffs, default=None), "robots": list(env.outcomes),
+                    })  # fmt: skip
+                if not all(node.alive() for node in nodes):
+                    break  # a node is gone: its robot could only fault in later episodes
     finally:
-        for node in nodes:
-            node.stop()
-        for link in links:
-            link.close()
-        if logger is not None:
-            logger.stop()
         env.close()
     return _write_nodes_results(cfg, links, episodes, interface.sample_time_s)
 
