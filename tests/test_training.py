@@ -156,7 +156,7 @@ def test_a_run_killed_and_resumed_ends_bit_identical_to_the_same_run_uninterrupt
 
 
 def _short_run(run: Path) -> None:
-    """A TD3 run with two checkpoints (random warm-up only: no learning, seconds)."""
+    """A TD3 run with two checkpoints (seconds)."""
     assert main(["train", "--algo", "td3", "--preset", "thesis", "--out", str(run), "--max-steps", "400",
                  "--checkpoint-every", "200", "--eval-every", "100000"]) == 0  # fmt: skip
 
@@ -168,7 +168,7 @@ def test_resume_refuses_flags_that_contradict_the_run(
     _short_run(run)
     capsys.readouterr()
     for flags, said in (
-        (["--max-steps", "999"], "--max-steps 999 (the run has 400)"),
+        (["--max-steps", "300"], "--max-steps 300 (the run has 400)"),
         (["--algo", "sac"], "--algo sac (the run has td3)"),
         (["--seed", "5"], "--seed 5 (the run has 0)"),
         (["--keep-training"], "--stop budget (the run has validation)"),
@@ -181,6 +181,21 @@ def test_resume_refuses_flags_that_contradict_the_run(
         assert said in err and len(err.strip().splitlines()) == 1, err
     # flags equal to the run's own are fine (nothing left to train: the budget is spent)
     assert main(["train", "--resume", str(run), "--max-steps", "400", "--algo", "td3"]) == 0
+
+
+def test_a_resumed_run_trains_on_past_its_budget_and_records_it(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    _short_run(run)
+    episodes = len((run / "curve.csv").read_text().splitlines())
+    assert main(["train", "--resume", str(run), "--max-steps", "700"]) == 0
+    summary = json.loads((run / "summary.json").read_text())
+    assert summary["total_steps"] == 700
+    assert len((run / "curve.csv").read_text().splitlines()) > episodes  # the same curve, continued
+    config = json.loads((run / "config.json").read_text())
+    assert config["budget"]["max_steps"] == 700
+    assert config["extensions"] == [{"from_max_steps": 400, "to_max_steps": 700}]
+    assert main(["train", "--resume", str(run)]) == 0  # the new budget is the run's own now
+    assert json.loads((run / "summary.json").read_text())["total_steps"] == 700
 
 
 def test_checkpoints_are_swapped_atomically_and_a_bad_one_is_a_clear_error(
@@ -288,9 +303,9 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
         for a in ("td3", "ppo")
         for s in (100, 101)
     )
-    # 600 steps: TD3's 1,000 random warm-up steps are not over, so it has made no update; PPO always
-    # completes its first rollout (2,048 steps) and trains on it for 10 epochs
-    assert [(r["algo"], r["updates"]) for r in data["runs"]] == [("td3", 0)] * 2 + [("ppo", 10)] * 2
+    # 600 steps: the study's TD3 learns from its first transition (no random warm-up), one update per
+    # step; PPO completes two rollouts of 512 steps and trains on each for 10 epochs
+    assert [(r["algo"], r["updates"]) for r in data["runs"]] == [("td3", 600)] * 2 + [("ppo", 20)] * 2
     assert "reliability of behaviour cloning alone, before any PPO update (%)" in table
     # Run again: the finished runs are not trained again, the table is rebuilt from them.
     curve = tmp_path / "runs" / "td3-seed100" / "curve.csv"
@@ -301,6 +316,12 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
     assert main(args) == 0
     assert (curve.stat().st_mtime_ns, curve.read_text()) == before
     assert (tmp_path / "bench.md").read_text() == table
+    # A larger budget trains on the runs that did not meet their stop rule, from where they stopped.
+    args[args.index("600")] = "900"
+    assert main(args) == 0
+    data = json.loads((tmp_path / "bench.json").read_text())
+    assert [r["total_steps"] for r in data["runs"] if r["algo"] == "td3"] == [900, 900]
+    assert curve.read_text().startswith(before[1]) and curve.read_text() != before[1]
 
 
 @pytest.mark.slow

@@ -90,11 +90,11 @@ def one_run(job: Job) -> dict[str, Any]:
     from embedrl.train.trainer import train
 
     run = Path(out)
-    if (run / "summary.json").is_file():  # finished before: an interrupted bench goes on, a table is rebuilt
+    # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
+    budget = Budget(max_steps=max_steps, stop=stop or ("study" if preset == "thesis" else "validation"))
+    if _finished(run, budget):  # an interrupted bench goes on, a table is rebuilt
         summary = {**_derived(run), **json.loads((run / "summary.json").read_text())}
-    else:
-        # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
-        budget = Budget(max_steps=max_steps, stop=stop or ("study" if preset == "thesis" else "validation"))
+    else:  # new, interrupted, or stopped at a smaller budget without meeting its stop rule: trained on
         resume = (run / "config.json").is_file()
         summary = train(
             algo, preset, seed, run, budget, resume=resume, scenario=scenario, overrides=overrides
@@ -121,6 +121,18 @@ def one_run(job: Job) -> dict[str, Any]:
         "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
         "warm_start_evaluation": cloned,
     }
+
+
+def _finished(run: Path, budget: Budget) -> bool:
+    """Whether a run is done for this budget: it has a summary, and it met its stop rule or trained as
+    long as the budget allows."""
+    if not (run / "summary.json").is_file():
+        return False
+    summary = json.loads((run / "summary.json").read_text())
+    stopped = (budget.stop == "study" and summary["criterion_reached"]) or (
+        budget.stop == "validation" and summary.get("validation_target_step") is not None
+    )
+    return bool(stopped or summary["total_steps"] >= budget.max_steps or summary["total_episodes"] >= budget.max_episodes)
 
 
 def _derived(run: Path) -> dict[str, Any]:

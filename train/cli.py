@@ -234,14 +234,17 @@ def cmd_train(args: argparse.Namespace) -> int:
             },
             "stop": saved["budget"].get("stop", "validation"),
         }
+        longer = given.get("max_steps", 0) > own["max_steps"]  # training on past the budget is allowed
         conflicts = [
-            f"--{k.replace('_', '-')} {v} (the run has {own[k]})" for k, v in given.items() if own[k] != v
+            f"--{k.replace('_', '-')} {v} (the run has {own[k]})"
+            for k, v in given.items()
+            if own[k] != v and not (k == "max_steps" and longer)
         ]
         if conflicts:
             raise UsageError(
                 f"--resume continues {args.resume} as it was configured; drop " + ", ".join(conflicts)
             )
-        values = own
+        values = {**own, "max_steps": max(own["max_steps"], given.get("max_steps", 0))}
     else:
         values = {**TRAIN_DEFAULTS, **given}
     budget = Budget(
@@ -348,7 +351,7 @@ def register(sub: Any) -> None:
         "--resume",
         type=Path,
         help="continue the run in this directory from its last checkpoint, with its own configuration "
-        "(flags that contradict it are refused)",
+        "(flags that contradict it are refused, except a larger --max-steps: training on)",
     )
     p.add_argument("--max-steps", type=_positive, help="default 300000")
     p.add_argument("--max-episodes", type=_positive, help="default 100000")

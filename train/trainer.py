@@ -46,7 +46,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm import tqdm
 
-from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, provenance
+from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, atomic_write, provenance
 from embedrl.train.config import (
     ALGOS,
     Budget,
@@ -469,6 +469,7 @@ def train(
     torch.set_num_threads(1)  # reproducible, and parallel runs do not fight over cores
     if resume:
         saved = read_run_config(out)
+        _extend_budget(out, saved, budget)
         algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
         overrides = saved.get("overrides", [])
         scenario = saved.get("scenario", "static")
@@ -599,6 +600,20 @@ def read_run_config(out: Path) -> dict[str, Any]:
     except (ValueError, KeyError, TypeError) as exc:
         raise UsageError(f"cannot resume {out}: config.json is damaged ({exc})") from None
     return saved
+
+
+def _extend_budget(out: Path, saved: dict[str, Any], budget: Budget) -> None:
+    """A resumed run may train on past its step budget (recorded in config.json's ``budget`` and
+    ``extensions``); a smaller budget than the run's is refused."""
+    old = int(saved["budget"].get("max_steps", 0))
+    if budget.max_steps < old:
+        raise UsageError(f"{out} has a budget of {old} steps; resume it with at least that many")
+    if budget.max_steps == old:
+        return
+    saved["budget"] = {**saved["budget"], "max_steps": budget.max_steps}
+    saved["extensions"] = [*saved.get("extensions", []), {"from_max_steps": old, "to_max_steps": budget.max_steps}]
+    text = json.dumps(saved, indent=2)
+    atomic_write(out / "config.json", lambda tmp: tmp.write_text(text))
 
 
 def _complete_checkpoint(out: Path) -> Path:
