@@ -157,10 +157,12 @@ def _derived(run: Path) -> dict[str, Any]:
 def run_jobs(jobs: list[Job], workers: int) -> list[dict[str, Any]]:
     """Every job's result, in order: in this process with one worker, else in a pool of fresh
     interpreters (``spawn``: a forked child can inherit a lock some thread of this process held)."""
+    from tqdm import tqdm
+
     if workers == 1:
-        return [one_run(job) for job in jobs]
+        return [one_run(job) for job in tqdm(jobs, desc="runs", unit="run")]
     with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return list(pool.map(one_run, jobs))
+        return list(tqdm(pool.map(one_run, jobs), total=len(jobs), desc="runs", unit="run"))
 
 
 def median_ci(values: list[float], seed: int = 0) -> tuple[float, float, float]:
