@@ -72,11 +72,21 @@ def plot(runs: list[dict[str, Any]], algos: list[str], max_steps: int, path: Pat
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.ticker import FuncFormatter
+
     grid = np.linspace(0, max_steps, GRID_POINTS)
-    fig, axes = plt.subplots(1, len(algos), figsize=(4.2 * len(algos), 4), sharey=True, squeeze=False)
+    columns = min(2, len(algos))
+    rows = -(-len(algos) // columns)
+    fig, grid_axes = plt.subplots(
+        rows, columns, figsize=(6 * columns, 3.6 * rows + 0.8), sharey=True, squeeze=False
+    )
+    axes = list(grid_axes.flat)
+    for ax in axes[len(algos) :]:
+        ax.set_visible(False)
     colours = {"thesis": "tab:red", "shaped": "tab:blue"}
     names = {"thesis": "study's reward (eq. 19)", "shaped": "eq. 19 + potential-based shaping"}
-    for ax, algo in zip(axes[0], algos, strict=True):
+    thousands = FuncFormatter(lambda x, _: f"{x / 1000:.0f}k" if x else "0")
+    for ax, algo in zip(axes, algos, strict=False):
         for reward in REWARD_VARIANTS:
             mine = [r for r in runs if r["algo"] == algo and r["reward_variant"] == reward]
             if not mine:
@@ -94,8 +104,10 @@ def plot(runs: list[dict[str, Any]], algos: list[str], max_steps: int, path: Pat
             ax.fill_between(grid, lo, hi, color=colours[reward], alpha=0.2, lw=0)
         ax.axhline(STOP_THRESHOLD, color="k", ls="--", lw=0.8)
         ax.set(title=algo.upper(), xlabel="env steps", xlim=(0, max_steps))
-        ax.legend(loc="lower right", fontsize="x-small")
-    axes[0][0].set_ylabel(f"eq. 19 return, {STOP_WINDOW}-episode training average")
+        ax.xaxis.set_major_formatter(thousands)
+        ax.legend(loc="lower right", fontsize="small")
+    for row in grid_axes:
+        row[0].set_ylabel(f"eq. 19 return,\n{STOP_WINDOW}-episode training average")
     fig.suptitle(f"{title}\nmedian over seeds; band: worst to best seed; dashed: the study's criterion")
     fig.tight_layout()
     try:
@@ -127,7 +139,9 @@ def run_shaping(
                 changes += (f"shaping_gain={gain}",)
             for seed in seed_list:
                 run = out / "runs" / f"{algo}-{reward}-seed{seed}"
-                jobs.append((algo, preset, seed, str(run), max_steps, eval_episodes, "static", changes, "study"))
+                jobs.append(
+                    (algo, preset, seed, str(run), max_steps, eval_episodes, "static", changes, "study")
+                )
     results = run_jobs(jobs, workers)
     runs = []
     for job, result in zip(jobs, results, strict=True):
@@ -151,7 +165,10 @@ def run_shaping(
             cells.append(cell(mine))
         rows.append((label, cells))
 
-    row("runs reaching the study's criterion", lambda m: f"{sum(r['criterion_reached'] for r in m)} / {len(m)}")
+    row(
+        "runs reaching the study's criterion",
+        lambda m: f"{sum(r['criterion_reached'] for r in m)} / {len(m)}",
+    )
     row(
         "env steps to the criterion (median [fastest, slowest] of those reaching it)",
         lambda m: _range_cell([r["steps_to_criterion"] for r in m if r["criterion_reached"]], ".0f"),
@@ -162,11 +179,15 @@ def run_shaping(
     )
     row(
         "eq. 19 average of the last 50 training episodes at the stop (median [worst, best])",
-        lambda m: _range_cell([r["average50_at_stop"] for r in m if r["average50_at_stop"] is not None], ".2f"),
+        lambda m: _range_cell(
+            [r["average50_at_stop"] for r in m if r["average50_at_stop"] is not None], ".2f"
+        ),
     )
     row(
         "mean length of the last 50 training episodes (steps; about 18 through the gap, 2-3 a crash at once)",
-        lambda m: _range_cell([r["mean_length_last50"] for r in m if r["mean_length_last50"] is not None], ".1f"),
+        lambda m: _range_cell(
+            [r["mean_length_last50"] for r in m if r["mean_length_last50"] is not None], ".1f"
+        ),
     )
     row(
         f"success of the selected model on {eval_episodes} test episodes, % (median [worst, best])",
