@@ -132,7 +132,11 @@ def _finished(run: Path, budget: Budget) -> bool:
     stopped = (budget.stop == "study" and summary["criterion_reached"]) or (
         budget.stop == "validation" and summary.get("validation_target_step") is not None
     )
-    return bool(stopped or summary["total_steps"] >= budget.max_steps or summary["total_episodes"] >= budget.max_episodes)
+    return bool(
+        stopped
+        or summary["total_steps"] >= budget.max_steps
+        or summary["total_episodes"] >= budget.max_episodes
+    )
 
 
 def _derived(run: Path) -> dict[str, Any]:
@@ -199,7 +203,17 @@ def run_bench(
     study = STUDY_BY_SCENARIO[scenario]
     seed_list = list(range(seed_offset, seed_offset + seeds))
     jobs: list[Job] = [
-        (a, preset, s, str(out / "runs" / f"{a}-seed{s}"), max_steps, eval_episodes, scenario, overrides, None)
+        (
+            a,
+            preset,
+            s,
+            str(out / "runs" / f"{a}-seed{s}"),
+            max_steps,
+            eval_episodes,
+            scenario,
+            overrides,
+            None,
+        )
         for a in algos
         for s in seed_list
     ]

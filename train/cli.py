@@ -399,7 +399,9 @@ def register(sub: Any) -> None:
     p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     p.add_argument("--seeds", type=_positive, default=5)
     p.add_argument("--seed-offset", type=int, default=300, help="train seeds OFFSET .. OFFSET + SEEDS - 1")
-    p.add_argument("--preset", choices=PRESETS, default="tuned", help="without its demonstrations (default tuned)")
+    p.add_argument(
+        "--preset", choices=PRESETS, default="tuned", help="without its demonstrations (default tuned)"
+    )
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
     p.add_argument(
         "--set",

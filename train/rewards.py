@@ -19,11 +19,11 @@ be felt even when the centre is clear.
 ``shaped`` is ``thesis`` plus potential-based shaping (Ng, Harada and Russell 1999), which provably leaves
 the optimal policy unchanged::
 
-    r' = r + gamma * Phi(s') - Phi(s),   Phi(s) = SHAPING_GAIN * (WAY_MAX - length of the way to the goal from s)
+    r' = r + gamma * Phi(s') - Phi(s),   Phi(s) = SHAPING_GAIN * (WAY_MAX - way_to_goal(s))
 
-with ``Phi = 0`` after a terminal step (what invariance in an episodic task needs). The way to the goal is
-the potential-field controller's: beside the shelves, to the aisle mouth and on from there to the middle of
-the goal line; in the aisle, straight to it. Every metre of way made good earns about ``SHAPING_GAIN``, so a
+with ``Phi = 0`` after a terminal step (what invariance in an episodic task needs). The way to the goal
+(``way_to_goal``) is the potential-field controller's: beside the shelves, to the aisle mouth and on from
+there to the middle of the goal line; in the aisle, straight to it. Every metre of way made good earns about ``SHAPING_GAIN``, so a
 policy that drives towards the gap is paid before it ever gets through.
 
 The offset ``WAY_MAX`` (longer than any way in the arena) makes every live state's potential higher than a

@@ -15,7 +15,6 @@ seed, for each reward).
 from __future__ import annotations
 
 import csv
-import json
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +70,6 @@ def plot(runs: list[dict[str, Any]], algos: list[str], max_steps: int, path: Pat
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
     from matplotlib.ticker import FuncFormatter
 
     grid = np.linspace(0, max_steps, GRID_POINTS)

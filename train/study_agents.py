@@ -193,7 +193,9 @@ class SoftplusActorCriticPolicy(ActorCriticPolicy):
         del self.log_std
         # The optimizer must see the new head (SB3 built it over the parameters before).
         self.optimizer = self.optimizer_class(
-            self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs  # type: ignore[call-arg]
+            self.parameters(),
+            lr=lr_schedule(1),
+            **self.optimizer_kwargs,  # type: ignore[call-arg]
         )
 
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:

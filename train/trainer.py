@@ -611,7 +611,10 @@ def _extend_budget(out: Path, saved: dict[str, Any], budget: Budget) -> None:
     if budget.max_steps == old:
         return
     saved["budget"] = {**saved["budget"], "max_steps": budget.max_steps}
-    saved["extensions"] = [*saved.get("extensions", []), {"from_max_steps": old, "to_max_steps": budget.max_steps}]
+    saved["extensions"] = [
+        *saved.get("extensions", []),
+        {"from_max_steps": old, "to_max_steps": budget.max_steps},
+    ]
     text = json.dumps(saved, indent=2)
     atomic_write(out / "config.json", lambda tmp: tmp.write_text(text))
 
