@@ -23,8 +23,8 @@ the optimal policy unchanged::
 
 with ``Phi = 0`` after a terminal step (what invariance in an episodic task needs). The way to the goal
 (``way_to_goal``) is the potential-field controller's: beside the shelves, to the aisle mouth and on from
-there to the middle of the goal line; in the aisle, straight to it. Every metre of way made good earns about ``SHAPING_GAIN``, so a
-policy that drives towards the gap is paid before it ever gets through.
+there to the middle of the goal line; in the aisle, straight to it. Every metre of way made good earns about
+``SHAPING_GAIN``, so a policy that drives towards the gap is paid before it ever gets through.
 
 The offset ``WAY_MAX`` (longer than any way in the arena) makes every live state's potential higher than a
 terminal state's 0, so a collision forfeits the potential gathered so far. Without it (``Phi = -way``) a
