@@ -106,7 +106,7 @@ def plot(runs: list[dict[str, Any]], algos: list[str], max_steps: int, path: Pat
         ax.legend(loc="lower right", fontsize="small")
     for row in grid_axes:
         row[0].set_ylabel(f"eq. 19 return,\n{STOP_WINDOW}-episode training average")
-    fig.suptitle(f"{title}\nmedian over seeds; band: worst to best seed; dashed: the study's criterion")
+    fig.suptitle(f"{title}\nline: median over seeds; band: worst to best seed\ndashed: the study's criterion")
     fig.tight_layout()
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
