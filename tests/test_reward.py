@@ -92,6 +92,24 @@ def test_a_collision_forfeits_the_potential_so_crashing_at_once_stays_costly() -
     assert rewards.shaping(start, closer, False, 0.99) > 0.1
 
 
+def _corridor_q(v: np.ndarray, potential: np.ndarray | None, gamma: float) -> np.ndarray:
+    """One Bellman backup of Q (left, right) in a corridor of ``len(v)`` cells: the goal at the right
+    end (+5), a pit at the left end (-2), -0.14 a step, shaped by ``potential`` if given; ``v`` the
+    values of the cells after the step."""
+    from embedrl.train import rewards
+
+    n = len(v)
+    q = np.zeros((n, 2))
+    for s in range(1, n - 1):
+        for a, nxt in enumerate((s - 1, s + 1)):
+            terminal = nxt in (0, n - 1)
+            r = -0.14 + (5.0 if nxt == n - 1 else -2.0 if nxt == 0 else 0.0)
+            if potential is not None:
+                r += rewards.shaping(potential[s], potential[nxt], terminal, gamma)
+            q[s, a] = r + (0.0 if terminal else gamma * v[nxt])
+    return q
+
+
 def test_shaping_leaves_the_optimal_policy_of_a_small_mdp_unchanged() -> None:
     """A corridor of 6 cells, the goal at the right end (+5), a pit at the left end (-2), -0.14 a step,
     like the warehouse's economics; shaping from any potential keeps every state's best action."""
@@ -104,15 +122,7 @@ def test_shaping_leaves_the_optimal_policy_of_a_small_mdp_unchanged() -> None:
         q = np.zeros((n, 2))
         for _ in range(2000):
             v = q.max(axis=1)
-            new = np.zeros_like(q)
-            for s in range(1, n - 1):
-                for a, nxt in enumerate((s - 1, s + 1)):
-                    terminal = nxt in (0, n - 1)
-                    r = -0.14 + (5.0 if nxt == n - 1 else -2.0 if nxt == 0 else 0.0)
-                    if potential is not None:
-                        r += rewards.shaping(potential[s], potential[nxt], terminal, gamma)
-                    new[s, a] = r + (0.0 if terminal else gamma * v[nxt])
-            q = new
+            q = _corridor_q(v, potential, gamma)
         return q
 
     plain = q_values(None).argmax(axis=1)[1:-1]
@@ -175,15 +185,7 @@ def test_shaping_keeps_the_crash_early_trap_of_a_crashing_policy() -> None:
                 ]
                 + [0.0]
             )
-        q = np.zeros((n, 2))
-        for s in range(1, n - 1):
-            for a, nxt in enumerate((s - 1, s + 1)):
-                terminal = nxt in (0, n - 1)
-                r = -0.14 + (5.0 if nxt == n - 1 else -2.0 if nxt == 0 else 0.0)
-                if potential is not None:
-                    r += rewards.shaping(potential[s], potential[nxt], terminal, gamma)
-                q[s, a] = r + (0.0 if terminal else gamma * v[nxt])
-        return q
+        return _corridor_q(v, potential, gamma)
 
     plain = q_of_go_left(None)
     assert plain[1, 0] > plain[1, 1]  # the trap: beside the pit, falling in beats a step right

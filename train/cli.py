@@ -317,6 +317,22 @@ def cmd_shaping(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_run_set_arguments(p: argparse.ArgumentParser, max_steps: int) -> None:
+    """The arguments of every command that trains a set of runs: overrides, output, budget, test
+    episodes, workers."""
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="change one of the preset's hyperparameters in every run, e.g. --set success_bonus=20",
+    )
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--max-steps", type=_positive, default=max_steps)
+    p.add_argument("--eval-episodes", type=_positive, default=200)
+    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+
+
 def register(sub: Any) -> None:
     p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
     _add_policy_arguments(p)
@@ -378,17 +394,7 @@ def register(sub: Any) -> None:
         help="train seeds OFFSET .. OFFSET + SEEDS - 1 (new seeds to try)",
     )
     p.add_argument("--preset", choices=PRESETS, default="tuned")
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="change one of the preset's hyperparameters in every run, e.g. --set success_bonus=20",
-    )
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--max-steps", type=_positive, default=300_000)
-    p.add_argument("--eval-episodes", type=_positive, default=200)
-    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+    _add_run_set_arguments(p, 300_000)
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_bench)
 
@@ -403,17 +409,7 @@ def register(sub: Any) -> None:
         "--preset", choices=PRESETS, default="tuned", help="without its demonstrations (default tuned)"
     )
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
-    p.add_argument(
-        "--set",
-        action="append",
-        default=[],
-        metavar="NAME=VALUE",
-        help="change one of the preset's hyperparameters in every run",
-    )
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--max-steps", type=_positive, default=1_000_000)
-    p.add_argument("--eval-episodes", type=_positive, default=200)
-    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+    _add_run_set_arguments(p, 1_000_000)
     p.set_defaults(func=cmd_shaping)
 
     p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")

@@ -110,6 +110,14 @@ class TwoBranchCritic(ContinuousCritic):
         return self.q_networks[0](features, actions)  # type: ignore[no-any-return]
 
 
+def _two_branch_critic(
+    policy: TD3Policy | SACPolicy, features_extractor: BaseFeaturesExtractor | None
+) -> ContinuousCritic:
+    """The critic SB3's ``make_critic`` would build, with two-branch Q networks."""
+    critic_kwargs = policy._update_features_extractor(policy.critic_kwargs, features_extractor)
+    return TwoBranchCritic(**critic_kwargs).to(policy.device)
+
+
 class StudyTD3Policy(TD3Policy):
     """TD3's and DDPG's policy, with two-branch critics if ``two_branch_critic``."""
 
@@ -120,8 +128,7 @@ class StudyTD3Policy(TD3Policy):
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
         if not self.two_branch_critic:
             return super().make_critic(features_extractor)
-        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return TwoBranchCritic(**critic_kwargs).to(self.device)
+        return _two_branch_critic(self, features_extractor)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         return {**super()._get_constructor_parameters(), "two_branch_critic": self.two_branch_critic}
@@ -168,8 +175,7 @@ class StudySACPolicy(SACPolicy):
     def make_critic(self, features_extractor: BaseFeaturesExtractor | None = None) -> ContinuousCritic:
         if not self.two_branch_critic:
             return super().make_critic(features_extractor)
-        critic_kwargs = self._update_features_extractor(self.critic_kwargs, features_extractor)
-        return TwoBranchCritic(**critic_kwargs).to(self.device)
+        return _two_branch_critic(self, features_extractor)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         flags = {"softplus_std": self.softplus_std, "two_branch_critic": self.two_branch_critic}
