@@ -48,8 +48,16 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised where the command is, so that its clean-up runs as for Ctrl-C."""
 
 
-def _terminate(signum: int, frame: FrameType | None) -> None:
-    raise Terminated
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _stop(signum: int, frame: FrameType | None) -> None:
+    """The first SIGINT or SIGTERM raises where the command is; any later one is ignored, so that a
+    second Ctrl-C cannot cut the clean-up short (which is bounded: guests and nodes are killed, not
+    waited for) and leave a guest or a node running."""
+    for s in STOP_SIGNALS:
+        signal.signal(s, signal.SIG_IGN)
+    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -58,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     args.as_command = argv is None  # the process is this command (it may start itself again)
     handled = COMMON_ERRORS + tuple(e for package in PACKAGES for e in package.ERRORS)
     main_thread = threading.current_thread() is threading.main_thread()  # only it may set handlers
-    previous = signal.signal(signal.SIGTERM, _terminate) if main_thread else None
+    previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS} if main_thread else {}
     try:
         return int(args.func(args))
     except handled as exc:
@@ -70,8 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
     finally:
-        if main_thread:
-            signal.signal(signal.SIGTERM, previous)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 if __name__ == "__main__":

@@ -82,7 +82,8 @@ DIAG_COUNTERS = (
     ("RangeErrors", 8, "Observation frames dropped for a signal outside its range"),
     ("StaleSteps", 8, "Observations dropped because their Step was not after the last answered one"),
     ("Incomplete", 8, "Observation steps abandoned before all their frames arrived"),
-    ("Saturations", 8, "Action values moved into their signal's range before sending"),
+    ("ActionFaults", 8, "Policy outputs refused (non-finite, outside the action's range, or an error status): "
+     "the safe action was sent and the node went SAFE"),
     ("SendFailures", 8, "Frames the CAN interface refused to send"),
     ("LinkResets", 4, "Times the CAN interface failed and was re-opened"),
 )
@@ -372,6 +373,7 @@ def _glue(interface: Interface, plan: Layout) -> tuple[str, str]:
     h = f"""{banner}#ifndef POLICY_IO_H
 #define POLICY_IO_H
 
+#include <stdbool.h>
 #include <stdint.h>
 
 #define POLICY_IO_OBS_DIM {len(interface.observation)}u
@@ -399,6 +401,10 @@ typedef enum {{ POLICY_IO_OK = 0, POLICY_IO_OUT_OF_RANGE = 1 }} policy_io_status
  * and leaves obs unchanged. */
 policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[POLICY_IO_FRAME_BYTES],
                                               float obs[POLICY_IO_OBS_DIM], uint16_t *step, uint8_t *counter);
+
+/* Whether every value of act is finite and inside its field's range (the interface's action bounds):
+ * the node sends nothing else. */
+bool policy_io_action_ok(const float act[POLICY_IO_ACT_DIM]);
 
 /* Pack action frame `part` (0 .. POLICY_IO_ACT_FRAMES - 1) with its fields of act, Step and Counter
  * (the E2E CRC byte is left for the caller). Each value is saturated to its field's range first (a value
@@ -447,6 +453,11 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
         (void){db}_{m}_pack(data, &msg, POLICY_IO_FRAME_BYTES);
         return saturated;
     }}""")
+    bounds = " &&\n           ".join(
+        f"is_finite(act[{s.index}]) && act[{s.index}] >= {c_float(s.field.low)} && "
+        f"act[{s.index}] <= {c_float(s.field.high)}"
+        for s in plan.action_slots
+    )
     c = f"""{banner}#include "policy_io.h"
 
 #include <string.h>
@@ -471,6 +482,19 @@ static float saturate(float v, float lo, float hi, unsigned *count)
     }}
     *count += 1u;
     return v > hi ? hi : lo;
+}}
+
+/* A bit test of the exponent: it holds under -ffast-math, where comparisons may assume no NaN. */
+static bool is_finite(float v)
+{{
+    uint32_t bits;
+    memcpy(&bits, &v, sizeof bits);
+    return (bits & 0x7F800000u) != 0x7F800000u;
+}}
+
+bool policy_io_action_ok(const float act[POLICY_IO_ACT_DIM])
+{{
+    return {bounds};
 }}
 
 unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DIM], uint16_t step,

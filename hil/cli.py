@@ -71,6 +71,12 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
                 "the two-robot scenario runs its two nodes in lock-step: drop --inject and --realtime "
                 "(--kill-node takes a node down)"
             )
+    for s in parse_schedule(args.inject):
+        if s.step > interface.max_steps:
+            raise HilError(
+                f"--inject {s.injector.name}@{s.episode}:{s.step}: episodes of {interface.name!r} end by "
+                f"step {interface.max_steps}, so the fault could never fire"
+            )
     if args.kill_node is not None and args.nodes < 2:
         raise HilError("--kill-node takes one of several nodes down; with one node use --inject kill")
     if args.kill_node is not None and args.kill_node[0] >= args.nodes:
@@ -208,14 +214,20 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         for e in results["episodes"]
     ]
     report = EvalReport.from_results(episodes, args.seed, f"HIL {args.export_dir}")
+    from embedrl.hil.nodes import action_ok
+
     session = ort.InferenceSession(
         str(_onnx_of(args.export_dir.resolve())), providers=["CPUExecutionProvider"]
     )
+    input_name = session.get_inputs()[0].name
+    interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
+    safe = np.asarray(interface.safe_action, dtype=np.float32)
 
     def simulated(obs: np.ndarray) -> np.ndarray:
-        return np.asarray(session.run(None, {"obs": obs.reshape(1, -1)})[0]).reshape(-1)
+        """The ONNX in the simulation, with the node's rule: an action it would refuse is the safe action."""
+        out = np.asarray(session.run(None, {input_name: obs.reshape(1, -1).astype(np.float32)})[0]).reshape(-1)
+        return out if action_ok(out, interface) else safe
 
-    interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
     pairs = None
     if interface.env_id == NO_ENV:  # open loop: no plant to simulate; the actions are compared per step
         sim = None
@@ -355,6 +367,12 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         print("note: injected faults change their episodes; without --allow-faults the run fails")
     results = run_hil(args, guest)
     data = _report(args, results)
+    fired = {(r["kind"], r["episode"], r["step"]) for r in data["injections"] or []}
+    data["injections_not_fired"] = [
+        f"{s.injector.name}@{s.episode}:{s.step}"
+        for s in schedule
+        if (s.injector.name, s.episode, s.step) not in fired
+    ]
     data["verdict"] = verdict(data, args.allow_faults)
     lat = data["latency_us"]
     diff = data["max_action_abs_diff"]
@@ -422,9 +440,9 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
 
 def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
     """Whether the run passed: no episode ended in a fault, none ended differently from the
-    simulation, and the node's actions matched the exported ONNX within the tolerance at every step.
+    simulation, the node refused no policy output, and the node's actions matched the exported ONNX within the tolerance at every step.
     With ``allow_faults`` the episodes with an injected fault are exempt from these three, and instead
-    every injection must have been detected by the node (for the classes it must detect) and the step
+    every scheduled fault must have fired, and every injection must have been detected by the node (for the classes it must detect) and the step
     answered or not as its class requires."""
     from embedrl.hil.session import TOLERANCE
 
@@ -445,8 +463,17 @@ def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
         failures.append(
             f"{len(differing)} episode(s) ended differently from the simulation (seeds {differing})"
         )
+    diags = [n["diag"] for n in data.get("nodes") or [] if n["diag"]] or [data.get("node_diag") or {}]
+    refused = sum(int(d.get("action_faults", 0)) for d in diags)
+    if refused:
+        failures.append(
+            f"the node refused {refused} policy output(s) (non-finite, outside the action range or an "
+            "error status) and sent the safe action instead"
+        )
     if diffs and max(diffs) > TOLERANCE:
         failures.append(f"the node's actions differ from the ONNX by {max(diffs):.3g} > {TOLERANCE}")
+    for where in data.get("injections_not_fired", []):
+        failures.append(f"fault {where} never fired: its episode ended before that step")
     for record in data["injections"] or []:
         where = f"{record['kind']}@{record['episode']}:{record['step']}"
         if record["detected"] is False:

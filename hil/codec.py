@@ -45,7 +45,7 @@ class Diag:
     range_errors: int
     stale_steps: int
     incomplete: int
-    saturations: int
+    action_faults: int
     send_failures: int
     link_resets: int
 

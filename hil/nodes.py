@@ -31,6 +31,17 @@ STOP_TIMEOUT_S = 5.0
 U8_MAX, U16_MAX, INFERENCE_US_MAX = 255, 65535, 1023
 
 
+def action_ok(action: np.ndarray, interface: Interface) -> bool:
+    """Every value finite and inside its field's range, compared in float32 (``policy_io_action_ok``):
+    the only actions a node sends besides the safe action."""
+    values = np.asarray(action, dtype=np.float32).reshape(-1)
+    return (
+        values.shape == (len(interface.action),)
+        and bool(np.all(np.isfinite(values)))
+        and all(np.float32(f.low) <= v <= np.float32(f.high) for f, v in zip(interface.action, values, strict=True))
+    )
+
+
 class Node(ABC):
     """A running policy node."""
 
@@ -123,7 +134,7 @@ class PythonNode(Node):
         self.state = "RUN"
         self.counts = dict.fromkeys(
             (
-                "frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors", "saturations",
+                "frames_ok", "crc_errors", "sequence_errors", "timeouts", "range_errors", "action_faults",
                 "resyncs", "stale_steps", "incomplete",
             ),
             0,
@@ -190,11 +201,11 @@ class PythonNode(Node):
         for name, _, slots in self.plan.action:
             values = {}
             for s in slots:
-                value = float(action[s.index])
-                inside = min(max(value, s.field.low), s.field.high) if value == value else s.field.low
-                self.counts["saturations"] += inside != value  # never wrapped around in the signal's bits
-                values[s.signal] = inside
+                values[s.signal] = float(action[s.index])  # checked by _action_ok or the safe action
             self._send(name, {"Step": step, **values})
+
+    def _action_ok(self, action: np.ndarray) -> bool:
+        return action_ok(action, self.interface)
 
     def _send_status(self) -> None:
         self._send(
@@ -286,6 +297,14 @@ class PythonNode(Node):
                 self.session.run(None, {self.input: self.pending_obs.reshape(1, -1)})[0]
             ).reshape(-1)
             self.inference_us = (time.perf_counter_ns() - start) // 1000
-            action = out.astype(np.float32) if np.all(np.isfinite(out)) else self.safe
+            action = out.astype(np.float32)
+            if not self._action_ok(action):
+                # the node never acts on numbers it did not check: the safe action, SAFE, counted
+                self.counts["action_faults"] += 1
+                self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
+                self._send_action(self.safe, step)
+                self._send_status()
+                self.last_step = step
+                return
         self._send_action(action, step)
         self.last_step = step

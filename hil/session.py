@@ -36,7 +36,7 @@ from embedrl.hil import candb
 from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.link import Link, Stats
-from embedrl.hil.nodes import CNode, Node, PythonNode
+from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode
 from embedrl.train.interface import NO_ENV, Interface
 from embedrl.train.scenarios import TWO_ROBOTS
@@ -179,7 +179,10 @@ class BusPolicy:
             raise NodeFault(self._silence_reason(sent_at))
         stats.latencies_us.append((time.perf_counter_ns() - start) / 1000.0)
         reference = np.asarray(self.session.run(None, {self.input: decoded.reshape(1, -1)})[0]).reshape(-1)
+        if not action_ok(reference, self.interface):  # what a correct node sends instead
+            reference = np.asarray(self.interface.safe_action, dtype=np.float32)
         diff = float(np.max(np.abs(action.action.astype(np.float64) - reference)))
+        diff = diff if np.isfinite(diff) else float("inf")
         stats.diffs.append(diff)
         if diff > TOLERANCE and stats.first_divergent_step is None:
             stats.first_divergent_step = self.step

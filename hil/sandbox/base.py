@@ -27,7 +27,9 @@ REPO = Path(__file__).resolve().parents[2]
 IFACE = "vcan0"
 POLL_S = 0.02
 STOP_TIMEOUT_S = 30.0
-"""How long a guest may take to shut down after the host asked it to."""
+"""How long an idle guest may take to shut down after the host asked it to. A guest closed while a job
+runs (the command was interrupted) is killed at once: it would not read the stop request until the
+job ended."""
 VCAN_UP = f"""if ip link add dev {IFACE} type vcan || [ -e /sys/class/net/{IFACE} ]; then
     ip link set {IFACE} mtu 72 || echo "embedrl: {IFACE} cannot carry CAN FD (mtu 72 refused)"
     ip link set up {IFACE} || echo "embedrl: no {IFACE} (ip link set up failed)"
@@ -137,6 +139,7 @@ class VmGuest(Guest):
         self.queue = workdir / "queue"
         self.console = workdir / "console.log"
         self.closed = False
+        self._busy = False
         self._jobs = 0
         self.queue.mkdir(parents=True, exist_ok=True)
         for stale in self.queue.iterdir():
@@ -184,6 +187,7 @@ class VmGuest(Guest):
         tmp.rename(self.queue / f"{name}.sh")  # the guest only picks up complete job files
         status_file = self.queue / f"{name}.rc"
         deadline = time.monotonic() + timeout_s
+        self._busy = True
         while not status_file.is_file():
             if self.process.poll() is not None:
                 self.closed = True
@@ -197,6 +201,7 @@ class VmGuest(Guest):
                     f"inside {self.description}; its output so far: {so_far}"
                 )
             time.sleep(POLL_S)
+        self._busy = False
         status = int(status_file.read_text().strip() or "1")
         return JobResult(status, _read(self.queue / f"{name}.out"))
 
@@ -214,13 +219,13 @@ class VmGuest(Guest):
         if self.closed and self.process.poll() is not None:
             return
         self.closed = True
-        (self.queue / "stop").touch()
         try:
-            self.process.wait(timeout=STOP_TIMEOUT_S)
-        except subprocess.TimeoutExpired:
-            self._kill()
-        else:
-            self._kill()  # helpers UML left behind
+            if not self._busy:  # an idle guest shuts down in order (its file systems synced)
+                (self.queue / "stop").touch()
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self.process.wait(timeout=STOP_TIMEOUT_S)
+        finally:
+            self._kill()  # always, even when a second signal interrupts the wait: helpers UML left behind
 
     def _died(self, what: str) -> Diagnosis:
         found = diagnose(self._log())

@@ -46,7 +46,8 @@ static void send_action(node_t *node, const float act[POLICY_ACT_DIM], uint16_t 
 {
     for (unsigned part = 0; part < POLICY_IO_ACT_FRAMES; ++part) {
         can_frame_t frame = {node->act_first_id + part, POLICY_IO_FRAME_BYTES, {0}};
-        node->saturations += policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
+        /* every action is checked (policy_io_action_ok) before it gets here: nothing to saturate */
+        (void)policy_io_encode_action(part, act, step, node->action_counter[part], frame.data);
         e2e_protect(frame.id, frame.data, frame.len);
         node->action_counter[part] = (uint8_t)((node->action_counter[part] + 1u) % E2E_COUNTER_MODULO);
         send_frame(node, &frame);
@@ -80,7 +81,7 @@ static void send_status(node_t *node)
     diag.range_errors = (uint8_t)saturate(node->range_errors, U8_MAX);
     diag.stale_steps = (uint8_t)saturate(node->stale_steps, U8_MAX);
     diag.incomplete = (uint8_t)saturate(node->incomplete, U8_MAX);
-    diag.saturations = (uint8_t)saturate(node->saturations, U8_MAX);
+    diag.action_faults = (uint8_t)saturate(node->action_faults, U8_MAX);
     diag.send_failures = (uint8_t)saturate(node->send_failures, U8_MAX);
     diag.link_resets = (uint8_t)saturate(node->link_resets, LINK_RESETS_MAX);
     policy_dbc_node_diag_pack(diag_frame.data, &diag, sizeof diag_frame.data);
@@ -127,9 +128,19 @@ static void complete_observation(node_t *node, uint32_t now_ms)
         send_action(node, safe_action, node->pending_step);
     } else {
         uint32_t start = clock_us();
-        (void)policy_step(node->pending_obs, act); /* writes the safe action on any non-finite value */
+        int status = policy_step(node->pending_obs, act);
         node->inference_us = clock_us() - start;
-        send_action(node, act, node->pending_step);
+        if (status == POLICY_OK && policy_io_action_ok(act)) {
+            send_action(node, act, node->pending_step);
+        } else {
+            /* the status code alone is not trusted: the numbers themselves are checked */
+            node->action_faults++;
+            node->state = NODE_SAFE;
+            node->consecutive_valid = 0;
+            node->last_safe_ms = now_ms;
+            send_action(node, safe_action, node->pending_step);
+            send_status(node);
+        }
     }
     node->last_step = node->pending_step;
 }

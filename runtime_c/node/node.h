@@ -8,8 +8,10 @@
  * once and the action echoes the Step. Once the first observation has arrived, no valid observation
  * for timeout_ms -> SAFE: the export's safe action (POLICY_SAFE_ACTION) is sent (and repeated every
  * timeout_ms); back to RUN only after recover_count consecutive valid observations, answered with the
- * safe action until then. A non-finite policy output also gives the safe action (policy_step
- * guarantees it). No malloc; every loop is bounded.
+ * safe action until then. The node never acts on numbers it did not check: whatever policy_step
+ * returns, an error status or an action that is non-finite or outside the interface's action range is
+ * a fault (action_faults): the step is answered with the safe action, the node goes SAFE and recovers
+ * as after a timeout. No malloc; every loop is bounded.
  *
  * Recovery rules (the README's table):
  * - alive counters re-synchronise after E2E_RESYNC_FRAMES consecutive counters outside the accepted
@@ -56,7 +58,7 @@ typedef struct {
     uint32_t inference_us;
     uint32_t rejected;     /* unknown ID or wrong length: dropped before any decoding */
     uint32_t range_errors; /* a signal outside its range in the DBC: frame dropped */
-    uint32_t saturations;  /* action values moved into their signal's range before sending */
+    uint32_t action_faults; /* policy outputs refused (non-finite, out of range, error status) */
     uint32_t incomplete; /* observation steps abandoned before all frames arrived */
     uint32_t stale_steps;   /* complete observations whose Step was not after the last answered one */
     uint32_t resyncs;       /* alive-counter re-synchronisations */

@@ -312,6 +312,7 @@ static void test_non_finite_output_gives_the_safe_action(void)
     float act[2];
     uint16_t step;
     CHECK(last_action(act, &step) && step == 7 && act[0] == 0.25f && act[1] == -0.5f);
+    CHECK(node.action_faults == 1u && node.state == NODE_SAFE); /* an error status is a fault too */
 }
 
 static void test_actions_outside_their_range_are_saturated_not_wrapped(void)
@@ -319,15 +320,55 @@ static void test_actions_outside_their_range_are_saturated_not_wrapped(void)
     /* 20-bit signals: without saturation 2.5 would arrive as -1.5 (a sign-flipped wheel force). */
     const float act[2] = {2.5f, -30000.0f};
     uint8_t data[8];
+    CHECK(!policy_io_action_ok(act));
     CHECK(policy_io_encode_action(0u, act, 5u, 0u, data) == 2u);
     struct policy_dbc_action_t m;
     CHECK(policy_dbc_action_unpack(&m, data, 8) == 0);
     CHECK(policy_dbc_action_force_left_decode(m.force_left) == 1.0);
     CHECK(policy_dbc_action_force_right_decode(m.force_right) == -1.0);
     const float inside[2] = {0.25f, -1.0f};
+    CHECK(policy_io_action_ok(inside));
     CHECK(policy_io_encode_action(0u, inside, 6u, 1u, data) == 0u);
     CHECK(policy_dbc_action_unpack(&m, data, 8) == 0 && m.step == 6u);
     CHECK(policy_dbc_action_force_left_decode(m.force_left) == 0.25);
+    const float nan_inf[2][2] = {{NAN, 0.0f}, {0.0f, -INFINITY}};
+    CHECK(!policy_io_action_ok(nan_inf[0]) && !policy_io_action_ok(nan_inf[1]));
+}
+
+/* A policy that returns POLICY_OK with NaN or an out-of-range action: the node checks the numbers. */
+static void test_a_policy_that_lies_about_its_status_gets_the_safe_action(void)
+{
+    const float lies[2] = {FAKE_POLICY_NAN_SIN, FAKE_POLICY_OUT_OF_RANGE_SIN};
+    for (unsigned k = 0; k < 2; ++k) {
+        node_t node;
+        fresh(&node);
+        float act[2];
+        uint16_t step;
+        const float good[6] = {0.4f, 0.2f, 0.0f, 1.0f, 0.0f, 0.0f};
+        send_observation(&node, 1, good, 1000);
+        CHECK(last_action(act, &step) && step == 1 && fabsf(act[0] - 0.2f) < 4e-6f);
+        const float bad[6] = {0.4f, 0.2f, lies[k], 0.8f, 0.0f, 0.0f};
+        send_observation(&node, 2, bad, 1010);
+        CHECK(last_action(act, &step) && step == 2 && act[0] == 0.25f && act[1] == -0.5f);
+        CHECK(node.action_faults == 1u && node.state == NODE_SAFE);
+        /* the fault is announced at once: NodeStatus State SAFE, NodeDiag ActionFaults 1 */
+        const can_frame_t *status = fake_sent(fake_sent_count() - 2u);
+        const can_frame_t *diag = fake_sent(fake_sent_count() - 1u);
+        struct policy_dbc_node_status_t s;
+        struct policy_dbc_node_diag_t d;
+        CHECK(status->id == POLICY_DBC_NODE_STATUS_FRAME_ID && diag->id == POLICY_DBC_NODE_DIAG_FRAME_ID);
+        policy_dbc_node_status_unpack(&s, status->data, 8);
+        policy_dbc_node_diag_unpack(&d, diag->data, 8);
+        CHECK(s.state == 1u && d.action_faults == 1u);
+        /* recovery as after a timeout: RECOVER valid observations answered safe, then the policy again */
+        uint32_t t = 1020;
+        for (uint16_t st = 3; st < 3u + RECOVER - 1u; ++st, t += 10) {
+            send_observation(&node, st, good, t);
+            CHECK(last_action(act, &step) && step == st && act[0] == 0.25f && node.state == NODE_SAFE);
+        }
+        send_observation(&node, (uint16_t)(3u + RECOVER - 1u), good, t);
+        CHECK(node.state == NODE_RUN && last_action(act, &step) && fabsf(act[0] - 0.2f) < 4e-6f);
+    }
 }
 
 static void test_a_value_outside_its_range_is_never_given_to_the_policy(void)
@@ -490,6 +531,7 @@ int main(void)
     test_non_finite_output_gives_the_safe_action();
     test_a_value_outside_its_range_is_never_given_to_the_policy();
     test_actions_outside_their_range_are_saturated_not_wrapped();
+    test_a_policy_that_lies_about_its_status_gets_the_safe_action();
     test_status_frame_reports_counters();
     test_counters_resynchronise_after_a_loss_burst_or_a_sender_restart();
     test_a_step_that_goes_backwards_is_never_answered();

@@ -15,6 +15,8 @@ from typing import Any, ClassVar
 import pytest
 
 from embedrl.cli import build_parser, main
+from embedrl.hil import candb
+from embedrl.hil.candb import load_interface
 from embedrl.hil.cli import cmd_run
 from embedrl.hil.faults import CATALOGUE, INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import Guest
@@ -43,6 +45,10 @@ class HilContract:
     def where(self) -> Guest | None:
         """The guest the C node runs in (None: the Python node runs in the test process)."""
         return None
+
+    def lying_export(self, export_dir: Path, tmp_path: Path) -> Path:
+        """A copy of ``export_dir`` whose policy gives NaN actions while reporting success."""
+        raise NotImplementedError
 
     def run_hil(self, where: Guest | None, export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
         return hil(
@@ -81,7 +87,7 @@ class HilContract:
         assert all(line.split()[2][:4] in ("200#", "300#", "301#") for line in received)  # Action, status
         diag = report["node_diag"]
         assert diag["bus_state"] == "ACTIVE" and diag["resyncs"] == diag["range_errors"] == 0
-        assert diag["saturations"] == diag["send_failures"] == diag["link_resets"] == 0
+        assert diag["action_faults"] == diag["send_failures"] == diag["link_resets"] == 0
         assert diag["stale_steps"] <= report["retries"]  # a retry of a slow answer is a repeated step
         assert (tmp_path / "plots" / "hil_latency.png").is_file()
         assert (tmp_path / "plots" / "hil_trajectories.png").is_file()
@@ -213,3 +219,29 @@ class HilContract:
         code = main([*argv, "--node", self.node, "--realtime", "--timeout-ms", "200"])
         assert code == 2 and "must exceed the policy's sample time (300 ms)" in capsys.readouterr().err
         assert not (tmp_path / "x.json").exists()
+
+    def test_a_policy_that_reports_success_with_nan_actions_gets_the_safe_action(
+        self, where: Guest | None, safe_export_dir: Path, tmp_path: Path
+    ) -> None:
+        # The node checks the numbers, not the status: never (-1, -1) (NaN saturated), only (0.1, 0).
+        lying = self.lying_export(safe_export_dir, tmp_path)
+        out, log = tmp_path / "hil.json", tmp_path / "frames.log"
+        argv = ["hil", "run", "--export-dir", str(lying), "--json", str(out), "--log", str(log)]
+        args = build_parser().parse_args(
+            [*argv, "--node", self.node, "--episodes", "1", "--timeout-ms", "500"]
+        )
+        assert cmd_run(args, where) == 1
+        report = json.loads(out.read_text())
+        assert report["verdict"]["passed"] is False
+        assert report["node_diag"]["action_faults"] >= report["steps"] // 3  # SAFE, then K = 3 to recover
+        interface = load_interface(lying / "interface.json")
+        db = candb.database(interface)
+        action = db.get_message_by_name("Action")
+        answers = [
+            action.decode(bytes.fromhex(line.split()[2].split("#")[1]))
+            for line in log.read_text().splitlines()
+            if line.endswith(" R") and line.split()[2].startswith(f"{action.frame_id:03X}#")
+        ]
+        assert len(answers) >= report["steps"] > 0
+        for answer in answers:
+            assert answer["ForceLeft"] == pytest.approx(0.1, abs=4e-6) and answer["ForceRight"] == 0.0

@@ -10,7 +10,10 @@ import shutil
 import signal
 from pathlib import Path
 
+import numpy as np
+import onnx
 import pytest
+from onnx import helper, numpy_helper
 
 from embedrl.cli import main
 from tests.hil.contract import HilContract
@@ -21,6 +24,20 @@ class TestPythonNodeOnVirtualBus(HilContract):
     node = "python"
     sandboxes = ("none",)
     channel = "embedrl-"
+
+    def lying_export(self, export_dir: Path, tmp_path: Path) -> Path:
+        """The ONNX's actions multiplied by NaN: the Python node runs the ONNX."""
+        lying = tmp_path / "lying"
+        shutil.copytree(export_dir, lying)
+        model = onnx.load(lying / "policy.onnx")
+        graph = model.graph
+        output = graph.output[0].name
+        graph.initializer.append(numpy_helper.from_array(np.array([np.nan], dtype=np.float32), "nan"))
+        for node in graph.node:
+            node.output[:] = [f"{o}_honest" if o == output else o for o in node.output]
+        graph.node.append(helper.make_node("Mul", [f"{output}_honest", "nan"], [output]))
+        onnx.save(model, lying / "policy.onnx")
+        return lying
 
 
 def test_an_export_without_an_interface_is_a_clear_error(

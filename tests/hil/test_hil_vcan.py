@@ -31,6 +31,21 @@ class TestCNodeOnVcan(HilContract):
     def where(self, guest: Guest) -> Guest | None:
         return guest
 
+    def lying_export(self, export_dir: Path, tmp_path: Path) -> Path:
+        """The generated policy_step wrapped: NaN in every action, POLICY_OK returned."""
+        lying = tmp_path / "lying"
+        shutil.copytree(export_dir, lying)
+        source = lying / "c" / "policy.c"
+        text = source.read_text().replace("int policy_step(", "static int honest_policy_step(")
+        source.write_text(
+            text
+            + "\nint policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])\n{\n"
+            "    (void)honest_policy_step(obs, act);\n"
+            "    for (int i = 0; i < POLICY_ACT_DIM; ++i) {\n        act[i] = NAN;\n    }\n"
+            "    return POLICY_OK;\n}\n"
+        )
+        return lying
+
 
 def test_the_command_boots_its_own_sandbox(export_dir: Path, tmp_path: Path) -> None:
     report = hil(None, export_dir, tmp_path, "--episodes", "1", "--timeout-ms", str(NODE_TIMEOUT_MS))

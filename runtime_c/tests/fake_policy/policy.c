@@ -21,6 +21,16 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     if (obs[0] > 1.5f) {
         return safe(act, POLICY_ERR_ACT_NOT_FINITE);
     }
+    if (obs[2] == FAKE_POLICY_NAN_SIN) { /* a policy that lies: NaN with status OK */
+        act[0] = NAN;
+        act[1] = 0.0f;
+        return POLICY_OK;
+    }
+    if (obs[2] == FAKE_POLICY_OUT_OF_RANGE_SIN) { /* status OK, an action beyond the interface's range */
+        act[0] = 0.0f;
+        act[1] = -1.5f;
+        return POLICY_OK;
+    }
     act[0] = obs[0] / 2.0f;
     act[1] = obs[1] / 2.0f;
     return POLICY_OK;

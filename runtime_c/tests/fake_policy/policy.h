@@ -10,7 +10,11 @@
 /* Not zero: the node's watchdog must send the policy's own safe action. */
 #define POLICY_SAFE_ACTION {0.25f, -0.5f}
 
-/* act = (obs[0] / 2, obs[1] / 2); if obs[0] > 1.5 the "network" overflows: safe action, code 2. */
+/* act = (obs[0] / 2, obs[1] / 2); if obs[0] > 1.5 the "network" overflows: safe action, code 2.
+ * Two inputs make it lie, returning POLICY_OK with numbers the node must refuse: sin_theta (obs[2]) of
+ * FAKE_POLICY_NAN_SIN gives act[0] = NaN, of FAKE_POLICY_OUT_OF_RANGE_SIN gives act[1] = -1.5. */
+#define FAKE_POLICY_NAN_SIN 0.5f
+#define FAKE_POLICY_OUT_OF_RANGE_SIN (-0.5f)
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
 
 #endif
