@@ -402,8 +402,9 @@ typedef enum {{ POLICY_IO_OK = 0, POLICY_IO_OUT_OF_RANGE = 1 }} policy_io_status
 policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[POLICY_IO_FRAME_BYTES],
                                               float obs[POLICY_IO_OBS_DIM], uint16_t *step, uint8_t *counter);
 
-/* Whether every value of act is finite and inside its field's range (the interface's action bounds):
- * the node sends nothing else. */
+/* Whether every value of act is finite and inside its field's range (the interface's action bounds,
+ * widened by half the signal's resolution: a value that close is the bound after rounding, e.g. a
+ * tanh that gives 1.0000002): the node sends nothing else. */
 bool policy_io_action_ok(const float act[POLICY_IO_ACT_DIM]);
 
 /* Pack action frame `part` (0 .. POLICY_IO_ACT_FRAMES - 1) with its fields of act, Step and Counter
@@ -454,8 +455,8 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
         return saturated;
     }}""")
     bounds = " &&\n           ".join(
-        f"is_finite(act[{s.index}]) && act[{s.index}] >= {c_float(s.field.low)} && "
-        f"act[{s.index}] <= {c_float(s.field.high)}"
+        f"is_finite(act[{s.index}]) && act[{s.index}] >= {c_float(s.field.low - s.scale / 2)} && "
+        f"act[{s.index}] <= {c_float(s.field.high + s.scale / 2)}"
         for s in plan.action_slots
     )
     c = f"""{banner}#include "policy_io.h"

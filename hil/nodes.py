@@ -32,14 +32,13 @@ U8_MAX, U16_MAX, INFERENCE_US_MAX = 255, 65535, 1023
 
 
 def action_ok(action: np.ndarray, interface: Interface) -> bool:
-    """Every value finite and inside its field's range, compared in float32 (``policy_io_action_ok``):
-    the only actions a node sends besides the safe action."""
+    """Every value finite and inside its field's range widened by half the signal's resolution,
+    compared in float32 (``policy_io_action_ok``): the only actions a node sends besides the safe one."""
     values = np.asarray(action, dtype=np.float32).reshape(-1)
-    return (
-        values.shape == (len(interface.action),)
-        and bool(np.all(np.isfinite(values)))
-        and all(np.float32(f.low) <= v <= np.float32(f.high) for f, v in zip(interface.action, values, strict=True))
-    )
+    if values.shape != (len(interface.action),) or not np.all(np.isfinite(values)):
+        return False
+    bounds = [(f.low - candb.scale_of(f) / 2, f.high + candb.scale_of(f) / 2) for f in interface.action]
+    return all(np.float32(lo) <= v <= np.float32(hi) for (lo, hi), v in zip(bounds, values, strict=True))
 
 
 class Node(ABC):
@@ -200,8 +199,8 @@ class PythonNode(Node):
     def _send_action(self, action: np.ndarray, step: int) -> None:
         for name, _, slots in self.plan.action:
             values = {}
-            for s in slots:
-                values[s.signal] = float(action[s.index])  # checked by _action_ok or the safe action
+            for s in slots:  # checked by action_ok (or the safe action): at most rounding to the bound
+                values[s.signal] = min(max(float(action[s.index]), s.field.low), s.field.high)
             self._send(name, {"Step": step, **values})
 
     def _action_ok(self, action: np.ndarray) -> bool:

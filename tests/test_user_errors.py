@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -126,9 +127,15 @@ def test_a_user_error_is_one_line_exit_2_and_writes_nothing(row: str, tmp_path: 
 
 
 def run_and_interrupt(
-    argv: list[str], tmp: Path, wait_for: str, sig: signal.Signals
+    argv: list[str],
+    tmp: Path,
+    wait_for: str,
+    sig: signal.Signals,
+    again_after_s: float | None = None,
+    settle_s: float = 0.0,
 ) -> subprocess.CompletedProcess[str]:
-    """Start ``embedrl ARGV``, send ``sig`` once its output shows ``wait_for``; the finished process."""
+    """Start ``embedrl ARGV``, send ``sig`` ``settle_s`` after its output shows ``wait_for`` (and once
+    more ``again_after_s`` later); the finished process, its ``seconds_to_exit`` after the first signal."""
     env = {**os.environ, "TMPDIR": str(tmp / "tmp"), "PYTHONUNBUFFERED": "1"}
     proc = subprocess.Popen(
         [sys.executable, "-m", "embedrl.cli", *argv],
@@ -143,9 +150,17 @@ def run_and_interrupt(
         seen.append(line)
         if wait_for in line:
             break
+    time.sleep(settle_s)
     proc.send_signal(sig)
+    first = time.monotonic()
+    if again_after_s is not None:
+        time.sleep(again_after_s)
+        if proc.poll() is None:
+            proc.send_signal(sig)
     out, err = proc.communicate(timeout=120)
-    return subprocess.CompletedProcess(argv, proc.returncode, "".join(seen) + out, err)
+    done = subprocess.CompletedProcess(argv, proc.returncode, "".join(seen) + out, err)
+    done.seconds_to_exit = time.monotonic() - first  # type: ignore[attr-defined]
+    return done
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])

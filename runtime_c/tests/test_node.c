@@ -331,6 +331,10 @@ static void test_actions_outside_their_range_are_saturated_not_wrapped(void)
     CHECK(policy_io_encode_action(0u, inside, 6u, 1u, data) == 0u);
     CHECK(policy_dbc_action_unpack(&m, data, 8) == 0 && m.step == 6u);
     CHECK(policy_dbc_action_force_left_decode(m.force_left) == 0.25);
+    const float rounding[2] = {1.0000002f, -1.0000001f}; /* onnxruntime's tanh: the bound after rounding */
+    CHECK(policy_io_action_ok(rounding));
+    const float beyond[2] = {1.00001f, 0.0f};
+    CHECK(!policy_io_action_ok(beyond));
     const float nan_inf[2][2] = {{NAN, 0.0f}, {0.0f, -INFINITY}};
     CHECK(!policy_io_action_ok(nan_inf[0]) && !policy_io_action_ok(nan_inf[1]));
 }

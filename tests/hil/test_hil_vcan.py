@@ -7,8 +7,11 @@ the command does.
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import tempfile
+import time
 from pathlib import Path
 
 import pytest
@@ -18,6 +21,7 @@ from embedrl.hil.sandbox import Guest
 from embedrl.hil.sandbox.base import JobResult
 from tests.hil.contract import NODE_TIMEOUT_MS, HilContract
 from tests.hil.helpers import hil
+from tests.test_user_errors import run_and_interrupt
 
 pytestmark = pytest.mark.slow
 
@@ -80,3 +84,38 @@ def test_a_successful_run_leaves_no_temporary_folder(guest: Guest, export_dir: P
     before = set(Path(tempfile.gettempdir()).glob("embedrl-hil-*"))
     hil(guest, export_dir, tmp_path, "--episodes", "1")
     assert set(Path(tempfile.gettempdir()).glob("embedrl-hil-*")) == before
+
+
+def _processes_mentioning(text: str) -> list[str]:
+    """Command lines of the running processes whose command line or working folder mentions ``text``."""
+    found = []
+    for proc in Path("/proc").iterdir():
+        if not proc.name.isdigit():
+            continue
+        try:
+            cmdline = (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+            cwd = os.readlink(proc / "cwd")
+        except OSError:
+            continue  # gone, or a kernel thread
+        if text in cmdline or text in cwd:
+            found.append(f"{proc.name}: {cmdline}")
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_two_signals_2_s_apart_end_the_guest_and_everything_it_started(
+    sig: signal.Signals, export_dir: Path, tmp_path: Path
+) -> None:
+    (tmp_path / "tmp").mkdir()  # TMPDIR of the command: the guest's work folder is in it
+    argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(tmp_path / "h.json"), "--episodes", "5000"]
+    # signalled while the guest runs the session (a busy guest does not read a stop request)
+    done = run_and_interrupt(argv, tmp_path, "running 5000 episode(s)", sig, again_after_s=2.0, settle_s=3.0)
+    assert done.returncode == 128 + sig, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
+    assert done.seconds_to_exit < 5.0  # type: ignore[attr-defined]
+    deadline = time.monotonic() + 5.0
+    while _processes_mentioning(str(tmp_path)) and time.monotonic() < deadline:
+        time.sleep(0.1)  # SIGKILLed processes may take a moment to be reaped
+    assert _processes_mentioning(str(tmp_path)) == []
+    assert not [p for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")]
+    assert not (tmp_path / "h.json").exists()
