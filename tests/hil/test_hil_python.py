@@ -6,6 +6,7 @@ the same suite runs against the compiled node over SocketCAN in ``test_hil_vcan.
 
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 from pathlib import Path
@@ -97,3 +98,26 @@ def test_an_interrupted_hil_run_leaves_nothing_behind(
     assert done.returncode == 128 + sig and done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
     assert not (tmp_path / "h.json").exists()
     assert not [p for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")]  # no work folder
+
+
+def test_a_fault_scheduled_beyond_the_episode_limit_is_refused_up_front(
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(tmp_path / "x.json")]
+    assert main([*argv, "--node", "python", "--inject", "corrupt@0:5000"]) == 2
+    err = capsys.readouterr().err
+    assert "end by step 200, so the fault could never fire" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "x.json").exists()
+
+
+def test_a_fault_whose_episode_ends_before_its_step_fails_the_run(export_dir: Path, tmp_path: Path) -> None:
+    # Episode 0 of seed 0 ends (success) after 24 steps: a fault at step 150 never fires.
+    out = tmp_path / "x.json"
+    argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), "--node", "python"]
+    assert main([*argv, "--inject", "corrupt@0:150", "--allow-faults", "--seed", "0"]) == 1
+    report = json.loads(out.read_text())
+    assert report["per_episode"][0]["steps"] < 150 and report["injections"] == []
+    assert report["injections_not_fired"] == ["corrupt@0:150"]
+    assert report["verdict"]["failures"] == [
+        "fault corrupt@0:150 never fired: its episode ended before that step"
+    ]
