@@ -19,11 +19,15 @@ from types import FrameType
 from typing import NoReturn
 
 from embedrl import __version__
+from embedrl.common import check_output
 from embedrl.export import cli as export_cli
 from embedrl.hil import cli as hil_cli
 from embedrl.train import cli as train_cli
 
 PACKAGES = (train_cli, export_cli, hil_cli)
+OUTPUTS = (("json", False), ("log", False), ("plot", True))
+"""Output options of any command, and whether the option names a folder (``--plot`` of ``hil run``;
+``--plot`` of ``eval`` is a file)."""
 COMMON_ERRORS: tuple[type[Exception], ...] = (OSError, ValueError, json.JSONDecodeError)
 
 
@@ -68,6 +72,10 @@ def main(argv: list[str] | None = None) -> int:
     main_thread = threading.current_thread() is threading.main_thread()  # only it may set handlers
     previous = {s: signal.signal(s, _stop) for s in STOP_SIGNALS} if main_thread else {}
     try:
+        for option, folder in OUTPUTS:
+            path = getattr(args, option, None)
+            if path is not None:  # checked before any work: a run's results are never lost at the end
+                check_output(path, f"--{option}", folder=folder and args.command == "hil")
         return int(args.func(args))
     except handled as exc:
         if args.debug:

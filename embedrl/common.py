@@ -46,6 +46,33 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def parse_json(text: str | bytes) -> Any:
+    """``json.loads`` for untrusted text: a document nested too deeply for the parser is a ValueError,
+    like any other malformed document, not a RecursionError."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
+
+
+def check_output(path: Path, option: str, folder: bool = False) -> None:
+    """Refuse, before any work, an output ``path`` that could not be written at the end: ``path`` an
+    existing folder (a file is wanted) or file (a folder is wanted), or its nearest existing ancestor
+    not a writable folder. Missing folders are left to the writer, so a refused or failed run leaves
+    nothing behind. ValueError names ``option``."""
+    if folder and path.exists() and not path.is_dir():
+        raise ValueError(f"{option} {path}: a file is in the way of the folder")
+    if not folder and path.is_dir():
+        raise ValueError(f"{option} {path}: is a folder; give a file name")
+    ancestor = (path if folder else path.parent).absolute()
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ValueError(f"{option} {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ValueError(f"{option} {path}: {ancestor} is not writable")
+
+
 def provenance() -> dict[str, Any]:
     """What produced a result: the command line and the versions of the packages that matter."""
     versions: dict[str, str | None] = {}

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from embedrl.common import table
+from embedrl.common import parse_json, table
 from embedrl.export.errors import ExportError
 from embedrl.train.cli import add_model_file_arguments
 from embedrl.train.config import SCENARIO_NAMES
@@ -39,7 +38,7 @@ def _names(path: Path | None) -> dict[str, Any] | None:
     if path is None:
         return None
     try:
-        names = json.loads(path.read_text())
+        names = parse_json(path.read_text())
     except (OSError, ValueError) as exc:
         raise ExportError(f"--names {path}: not a readable JSON file ({exc})") from None
     if not isinstance(names, dict):

@@ -26,7 +26,6 @@ Run as ``python -m embedrl.hil.candb (--scenario NAME | --interface FILE) --out 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import string
 import sys
@@ -42,6 +41,7 @@ from cantools.database.can.formats.dbc.dbc_attribute_definition import DbcAttrib
 from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
 from cantools.database.conversion import BaseConversion
 
+from embedrl.common import parse_json
 from embedrl.export.ops.base import c_float
 from embedrl.hil.errors import HilError
 from embedrl.train.interface import Field, Interface, InterfaceError
@@ -82,8 +82,12 @@ DIAG_COUNTERS = (
     ("RangeErrors", 8, "Observation frames dropped for a signal outside its range"),
     ("StaleSteps", 8, "Observations dropped because their Step was not after the last answered one"),
     ("Incomplete", 8, "Observation steps abandoned before all their frames arrived"),
-    ("ActionFaults", 8, "Policy outputs refused (non-finite, outside the action's range, or an error status): "
-     "the safe action was sent and the node went SAFE"),
+    (
+        "ActionFaults",
+        8,
+        "Policy outputs refused (non-finite, outside the action's range, or an error status): the safe "
+        "action was sent and the node went SAFE",
+    ),
     ("SendFailures", 8, "Frames the CAN interface refused to send"),
     ("LinkResets", 4, "Times the CAN interface failed and was re-opened"),
 )
@@ -516,7 +520,7 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
 def load_interface(path: Path) -> Interface:
     """An export's ``interface.json`` (untrusted input: validated)."""
     try:
-        return Interface.from_json(json.loads(path.read_text()))
+        return Interface.from_json(parse_json(path.read_text()))
     except (OSError, ValueError) as exc:
         raise HilError(f"{path}: {exc}") from None
 

@@ -24,6 +24,7 @@ from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.sac.policies import SACPolicy
 from stable_baselines3.td3.policies import TD3Policy
 
+from embedrl.common import parse_json
 from embedrl.train import sb3_archive as archive
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 
@@ -83,7 +84,7 @@ def model_metadata(model: Path) -> dict[str, Any] | None:
         with zipfile.ZipFile(model) as zf:
             if METADATA_ENTRY not in zf.namelist():
                 return None
-            entry = json.loads(zf.read(METADATA_ENTRY))
+            entry = parse_json(zf.read(METADATA_ENTRY))
     except (zipfile.BadZipFile, ValueError) as exc:
         raise InvalidModelFileError(f"{model}: unreadable {METADATA_ENTRY} ({exc})") from None
     if not isinstance(entry, dict) or not isinstance(entry.get("normalization", {}), dict | None):

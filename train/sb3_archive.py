@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import ast
 import base64
-import json
 import pickletools
 import re
 import zipfile
@@ -31,6 +30,7 @@ import numpy as np
 from gymnasium import spaces
 from torch import nn
 
+from embedrl.common import parse_json
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 
 POLICY_CLASSES = {
@@ -72,7 +72,7 @@ def read_data(path: Path) -> dict[str, Any]:
     """The archive's ``data`` entry as JSON (nothing unpickled)."""
     try:
         with zipfile.ZipFile(path) as archive:
-            data = json.loads(archive.read("data"))
+            data = parse_json(archive.read("data"))
     except (zipfile.BadZipFile, KeyError, ValueError, OSError) as exc:
         raise InvalidModelFileError(f"{path}: not a readable Stable-Baselines3 model ({exc})") from None
     if not isinstance(data, dict):

@@ -46,7 +46,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm import tqdm
 
-from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, atomic_write, provenance
+from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, atomic_write, parse_json, provenance
 from embedrl.train.config import (
     ALGOS,
     Budget,
@@ -592,7 +592,7 @@ def train(
 def read_run_config(out: Path) -> dict[str, Any]:
     """A run directory's config.json (the run's algorithm, preset, seed, budget and overrides)."""
     try:
-        saved: dict[str, Any] = json.loads((out / "config.json").read_text())
+        saved: dict[str, Any] = parse_json((out / "config.json").read_text())
         for key in ("algo", "preset", "seed", "budget"):
             saved[key]
     except FileNotFoundError:
@@ -667,7 +667,7 @@ def _load_checkpoint(
     """Model, training env, counters and random generators' states of a checkpoint (the run's own files:
     pickles it wrote itself)."""
     try:
-        state: dict[str, Any] = json.loads((checkpoint / "state.json").read_text())
+        state: dict[str, Any] = parse_json((checkpoint / "state.json").read_text())
         with (checkpoint / "random.pkl").open("rb") as f:
             generators: dict[str, Any] = pickle.load(f)
         with (checkpoint / "env.pkl").open("rb") as f:

@@ -42,8 +42,7 @@ class TestCNodeOnVcan(HilContract):
         source = lying / "c" / "policy.c"
         text = source.read_text().replace("int policy_step(", "static int honest_policy_step(")
         source.write_text(
-            text
-            + "\nint policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])\n{\n"
+            text + "\nint policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])\n{\n"
             "    (void)honest_policy_step(obs, act);\n"
             "    for (int i = 0; i < POLICY_ACT_DIM; ++i) {\n        act[i] = NAN;\n    }\n"
             "    return POLICY_OK;\n}\n"
@@ -107,7 +106,16 @@ def test_two_signals_2_s_apart_end_the_guest_and_everything_it_started(
     sig: signal.Signals, export_dir: Path, tmp_path: Path
 ) -> None:
     (tmp_path / "tmp").mkdir()  # TMPDIR of the command: the guest's work folder is in it
-    argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(tmp_path / "h.json"), "--episodes", "5000"]
+    argv = [
+        "hil",
+        "run",
+        "--export-dir",
+        str(export_dir),
+        "--json",
+        str(tmp_path / "h.json"),
+        "--episodes",
+        "5000",
+    ]
     # signalled while the guest runs the session (a busy guest does not read a stop request)
     done = run_and_interrupt(argv, tmp_path, "running 5000 episode(s)", sig, again_after_s=2.0, settle_s=3.0)
     assert done.returncode == 128 + sig, done.stderr

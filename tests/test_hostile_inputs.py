@@ -1,0 +1,285 @@
+"""Hostile files and arguments: each class is refused in one line with exit status 2, before it costs
+time or memory (the limits are read from headers, never after allocating), and nothing is written.
+
+Every row runs the real command in a child process and asserts its wall time and peak memory (the
+child's own maximum resident set, from ``wait4``) against a budget: a class that is refused only after
+the cost is paid fails here even if the message is right.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from tests.test_user_errors import TD3, _external, _gemm_model
+
+TIME_BUDGET_S = 10.0
+"""Wall time of a refusal, on a loaded 2-core machine (importing torch alone takes ~2 s)."""
+MEMORY_BUDGET_MB = 600
+"""Peak resident memory of a refusal (the exporter's imports alone take ~340 MB)."""
+DEEP = 100_000
+"""Nesting depth of the hostile JSON documents (Python's parser recurses once per level)."""
+
+
+def _onnx_row(make: Callable[[], onnx.ModelProto], *extra: str) -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        path = tmp / "model dir" / "m.onnx"
+        path.parent.mkdir()
+        onnx.save(make(), path)
+        return ["export", str(path), "--out", str(tmp / "out"), "--episodes", "0", *extra]
+
+    return argv
+
+
+def _weights(rows: int = 2, cols: int = 6) -> TensorProto:
+    return numpy_helper.from_array(np.random.default_rng(0).normal(size=(rows, cols)).astype(np.float32), "W")
+
+
+def ir_version_14() -> onnx.ModelProto:
+    model = _gemm_model(_weights(), 6, 2)
+    model.ir_version = 14
+    return model
+
+
+def many_relus() -> onnx.ModelProto:
+    nodes = [helper.make_node("Relu", ["obs" if i == 0 else f"r{i - 1}"], [f"r{i}"]) for i in range(20_000)]
+    nodes.append(helper.make_node("Gemm", ["r19999", "W"], ["act"], transB=1))
+    graph = helper.make_graph(
+        nodes,
+        "g",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, ["batch", 6])],
+        [helper.make_tensor_value_info("act", TensorProto.FLOAT, ["batch", 2])],
+        [_weights()],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+
+def reshape_with_zero() -> onnx.ModelProto:
+    shape = numpy_helper.from_array(np.array([1, 6, 0], dtype=np.int64), "shape")
+    graph = helper.make_graph(
+        [
+            helper.make_node("Reshape", ["obs", "shape"], ["r"]),
+            helper.make_node("Gemm", ["r", "W"], ["act"], transB=1),
+        ],
+        "g",
+        [helper.make_tensor_value_info("obs", TensorProto.FLOAT, [1, 6])],
+        [helper.make_tensor_value_info("act", TensorProto.FLOAT, [1, 2])],
+        [_weights(), shape],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+
+def wide_input() -> onnx.ModelProto:
+    # a 2^40-wide input declared in the header; the weights are tiny and do not fit it
+    return _gemm_model(_weights(), 2**40, 2)
+
+
+def external_without_length(tmp: Path) -> list[str]:
+    folder = tmp / "model dir"
+    folder.mkdir()
+    onnx.save(_gemm_model(_external("W", [2, 6], "w.bin"), 6, 2), folder / "m.onnx")
+    with (folder / "w.bin").open("wb") as f:
+        f.truncate(200 * 2**20)  # 200 MB (sparse): only 48 bytes belong to W
+    return ["export", str(folder / "m.onnx"), "--out", str(tmp / "out"), "--episodes", "0"]
+
+
+def external_through_symlink(tmp: Path) -> list[str]:
+    folder = tmp / "model dir"
+    folder.mkdir()
+    (tmp / "secret.bin").write_bytes(np.zeros(12, np.float32).tobytes())
+    (folder / "w.bin").symlink_to(tmp / "secret.bin")
+    onnx.save(_gemm_model(_external("W", [2, 6], "w.bin"), 6, 2), folder / "m.onnx")
+    return ["export", str(folder / "m.onnx"), "--out", str(tmp / "out"), "--episodes", "0"]
+
+
+def _zip_with(tmp: Path, replace: dict[str, bytes], name: str = "m.zip") -> Path:
+    """The shipped TD3 zip with some entries replaced (its embedrl.json dropped unless given)."""
+    path = tmp / name
+    with zipfile.ZipFile(TD3) as src, zipfile.ZipFile(path, "w") as dst:
+        for info in src.infolist():
+            if info.filename in replace or info.filename == "embedrl.json":
+                continue
+            dst.writestr(info, src.read(info.filename))
+        for entry, data in replace.items():
+            dst.writestr(entry, data)
+    return path
+
+
+def _data_with(**kwargs: object) -> bytes:
+    with zipfile.ZipFile(TD3) as zf:
+        data = json.loads(zf.read("data"))
+    data["policy_kwargs"].update(kwargs)
+    data["policy_kwargs"].pop(":serialized:")
+    return json.dumps(data).encode()
+
+
+def sb3_row(replace: Callable[[], dict[str, bytes]], command: str = "export") -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        path = _zip_with(tmp, replace())
+        if command == "eval":
+            return ["eval", str(path), "--episodes", "1"]
+        return ["export", str(path), "--out", str(tmp / "out"), "--episodes", "0"]
+
+    return argv
+
+
+def _deep_json() -> bytes:
+    return b"[" * DEEP + b"]" * DEEP
+
+
+def _npz(**arrays: np.ndarray) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]
+    return buffer.getvalue()
+
+
+def npz_row(make: Callable[[Path], Path]) -> Callable[[Path], list[str]]:
+    def argv(tmp: Path) -> list[str]:
+        stats = make(tmp)
+        return [
+            "export",
+            str(TD3),
+            "--vecnormalize",
+            str(stats),
+            "--out",
+            str(tmp / "out"),
+            "--episodes",
+            "0",
+        ]
+
+    return argv
+
+
+def vector_epsilon(tmp: Path) -> Path:
+    path = tmp / "stats.npz"
+    ok = np.zeros(6)
+    path.write_bytes(
+        _npz(mean=ok, var=ok + 1, epsilon=np.ones(3), clip_obs=np.float64(10), norm_obs=np.bool_(True))
+    )
+    return path
+
+
+def huge_header(tmp: Path) -> Path:
+    """A ``mean`` whose .npy header declares 1e13 float64 values (80 TB) over 8 bytes of data."""
+    path = tmp / "stats.npz"
+    header = {"descr": "<f8", "fortran_order": False, "shape": (10**13,)}
+    npy = io.BytesIO()
+    np.lib.format.write_array_header_1_0(npy, header)
+    npy.write(b"\0" * 8)
+    ok = np.zeros(6)
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("mean.npy", npy.getvalue())
+        for name, value in (("var", ok + 1), ("epsilon", np.float64(1e-8)), ("clip_obs", np.float64(10)),
+                            ("norm_obs", np.bool_(True))):  # fmt: skip
+            buffer = io.BytesIO()
+            np.save(buffer, value)
+            zf.writestr(f"{name}.npy", buffer.getvalue())
+    return path
+
+
+def deep_names(tmp: Path) -> list[str]:
+    names = tmp / "names.json"
+    names.write_bytes(_deep_json())
+    return ["export", str(TD3), "--names", str(names), "--out", str(tmp / "out"), "--episodes", "0"]
+
+
+def deep_interface(tmp: Path) -> list[str]:
+    export = tmp / "export"
+    (export / "c").mkdir(parents=True)
+    (export / "c" / "policy.c").write_text("int x;\n")
+    (export / "policy.onnx").write_bytes(b"")
+    (export / "interface.json").write_bytes(_deep_json())
+    return ["hil", "run", "--export-dir", str(export), "--node", "python"]
+
+
+ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
+    "ONNX at IR version 14": (_onnx_row(ir_version_14), "IR version 14"),
+    "ONNX of 20,000 Relu nodes": (_onnx_row(many_relus), "20,001 nodes exceed the limit"),
+    "ONNX Reshape to [1, 6, 0]": (_onnx_row(reshape_with_zero), "Reshape"),
+    "ONNX input 2^40 wide": (_onnx_row(wide_input), "1,099,511,627,776"),
+    "ONNX input 2^40 wide with --obs-range": (
+        _onnx_row(wide_input, "--obs-range=-1:1", "--act-range=-1:1", "--sample-time", "0.1"),
+        "1,099,511,627,776",
+    ),
+    "ONNX external data without a length (200 MB file)": (external_without_length, "w.bin"),
+    "ONNX external data through a symlink": (external_through_symlink, "symbolic link"),
+    "SB3 net_arch [10000, 10000]": (
+        sb3_row(lambda: {"data": _data_with(net_arch=[10_000, 10_000])}),
+        "parameters exceed the limit",
+    ),
+    "SB3 net_arch [-5]": (sb3_row(lambda: {"data": _data_with(net_arch=[-5])}), "net_arch"),
+    "SB3 net_arch [-5] (eval)": (sb3_row(lambda: {"data": _data_with(net_arch=[-5])}, "eval"), "net_arch"),
+    "SB3 deeply nested data": (sb3_row(lambda: {"data": _deep_json()}), "nested too deeply"),
+    "SB3 deeply nested embedrl.json": (sb3_row(lambda: {"embedrl.json": _deep_json()}), "nested too deeply"),
+    "SB3 deeply nested policy_kwargs literal": (
+        sb3_row(lambda: {"data": _data_with(net_arch="[" * DEEP + "]" * DEEP)}),
+        "net_arch",
+    ),
+    "--names deeply nested": (deep_names, "nested too deeply"),
+    "interface.json deeply nested": (deep_interface, "nested too deeply"),
+    "vecnormalize .npz with a vector epsilon": (npz_row(vector_epsilon), "epsilon"),
+    "vecnormalize .npz declaring 1e13 values": (npz_row(huge_header), "10,000,000,000,000"),
+    "--max-model-mb inf": (
+        lambda tmp: ["export", str(TD3), "--out", str(tmp / "out"), "--max-model-mb", "inf"],
+        "--max-model-mb",
+    ),
+    "--max-params -1": (
+        lambda tmp: ["export", str(TD3), "--out", str(tmp / "out"), "--max-params", "-1"],
+        "--max-params",
+    ),
+}
+
+
+def run_measured(
+    argv: list[str], env: dict[str, str]
+) -> tuple[subprocess.CompletedProcess[str], float, float]:
+    """``embedrl ARGV`` in a child: the result, its wall time in s and its peak resident memory in MB
+    (``wait4`` on the child itself, so no other process counts)."""
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        start = time.monotonic()
+        proc = subprocess.Popen([sys.executable, "-m", "embedrl.cli", *argv], stdout=out, stderr=err, env=env)
+        deadline = start + 120
+        while True:
+            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                break
+            if time.monotonic() > deadline:
+                proc.kill()
+            time.sleep(0.02)
+        elapsed = time.monotonic() - start
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        result = subprocess.CompletedProcess(argv, proc.returncode, out.read(), err.read())
+    return result, elapsed, usage.ru_maxrss / 1024
+
+
+@pytest.mark.parametrize("row", list(ROWS))
+def test_a_hostile_input_is_refused_in_one_line_before_it_costs(row: str, tmp_path: Path) -> None:
+    make_argv, said = ROWS[row]
+    argv = make_argv(tmp_path)
+    temporary = tmp_path / "tmp"
+    temporary.mkdir()
+    before = sorted(p.name for p in tmp_path.iterdir())
+    env = {**os.environ, "TMPDIR": str(temporary)}
+    result, elapsed, peak_mb = run_measured(argv, env)
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert len(lines) == 1 and said in lines[0] and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert elapsed < TIME_BUDGET_S, f"{elapsed:.1f} s"
+    assert peak_mb < MEMORY_BUDGET_MB, f"{peak_mb:.0f} MB"
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no staging folder
+    assert not [p for p in temporary.iterdir() if p.name.startswith("embedrl")]
