@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,33 @@ def _ranges(text: str) -> tuple[tuple[float, float], ...]:
     if any(len(p) != 2 for p in pairs):
         raise argparse.ArgumentTypeError(f"expected LOW:HIGH[,LOW:HIGH...], got {text!r}")
     return tuple((p[0], p[1]) for p in pairs)
+
+
+MAX_MODEL_MB = 4096.0
+"""The largest --max-model-mb: a limit, not a way to switch limits off."""
+MAX_PARAMS = 1_000_000_000
+
+
+def _model_mb(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value <= MAX_MODEL_MB:  # NaN and inf fail too
+        raise argparse.ArgumentTypeError(
+            f"expected a size in MB within (0, {MAX_MODEL_MB:.0f}], got {text!r}"
+        )
+    return value
+
+
+def _param_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if not 1 <= value <= MAX_PARAMS:
+        raise argparse.ArgumentTypeError(f"expected a count within 1..{MAX_PARAMS:,}, got {text!r}")
+    return value
 
 
 def _names(path: Path | None) -> dict[str, Any] | None:
@@ -189,13 +217,13 @@ def register(sub: Any) -> None:
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument(
         "--max-model-mb",
-        type=float,
+        type=_model_mb,
         default=64.0,
         help="refuse models larger than this, external data included (default 64)",
     )
     p.add_argument(
         "--max-params",
-        type=int,
+        type=_param_count,
         default=4_000_000,
         help="refuse models with more weights (default 4,000,000)",
     )

@@ -7,6 +7,8 @@ domain; float32 weights (int64 only for Reshape shapes), all finite.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -33,7 +35,10 @@ class Limits:
     max_bytes: int = 64 * 2**20
     """The model file plus its external data."""
     max_parameters: int = 4_000_000
-    """Weights in all initializers (16 MB as float32)."""
+    """Weights in all initializers (16 MB as float32); also the most values of the graph's input or
+    output."""
+    max_nodes: int = 2_000
+    """Nodes in the graph (the study's policy has 7; a recurrent or large one a few hundred)."""
 
 
 LIMITS_HINT = "--max-model-mb and --max-params raise the limits"
@@ -56,10 +61,15 @@ def load_onnx(path: Path, limits: Limits = Limits()) -> onnx.ModelProto:
             f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {exc})"
         ) from None
     _check_sizes(path, model, size, limits)
+    _check_graph(path, model, limits)
     try:
         onnx.external_data_helper.load_external_data_for_model(model, str(path.parent))
     except (OSError, ValueError, RuntimeError) as exc:
         raise InvalidModelError(f"{path}: cannot read its external data ({exc})") from None
+    if model.ir_version > runtime_ir_version():
+        # Newer files (onnx's own default may be ahead of onnxruntime) hold nothing the importer accepts
+        # that an older IR cannot: float32 and int64 tensors, default-domain ops.
+        model.ir_version = runtime_ir_version()
     if not model.graph.node and not model.graph.output:
         raise InvalidModelError(f"{path}: not an ONNX model (empty graph)")
     try:
@@ -75,21 +85,20 @@ def _mb(n: int) -> str:
 
 
 def _check_sizes(path: Path, model: onnx.ModelProto, size: int, limits: Limits) -> None:
-    """Parameters and bytes as the file declares them, external data's locations and sizes."""
+    """Parameters and bytes as the file declares them, external data's locations and sizes; each external
+    tensor gets an explicit ``length`` (its declared size), so that no more than that is ever read."""
     parameters, external = 0, 0
+    folder = path.parent.resolve()
     for tensor in model.graph.initializer:
-        count = int(np.prod(tensor.dims, dtype=np.int64)) if tensor.dims else 1
+        if any(d < 0 for d in tensor.dims):
+            raise InvalidModelError(f"{path}: initializer '{tensor.name}' has a negative dimension")
+        count = math.prod(tensor.dims) if tensor.dims else 1
         parameters += count
+        if parameters > limits.max_parameters:
+            break
         if tensor.data_location != onnx.TensorProto.EXTERNAL:
             continue
-        info = {e.key: e.value for e in tensor.external_data}
-        location = PurePosixPath(info.get("location", ""))
-        if not info.get("location") or location.is_absolute() or ".." in location.parts:
-            raise InvalidModelError(
-                f"{path}: external data of '{tensor.name}' at {str(location)!r} is outside the model's folder"
-            )
-        itemsize = onnx.helper.tensor_dtype_to_np_dtype(tensor.data_type).itemsize
-        external += int(info.get("length", count * itemsize))
+        external += _check_external(path, folder, tensor, count)
     if parameters > limits.max_parameters:
         raise InvalidModelError(
             f"{path}: {parameters:,} parameters exceed the limit of {limits.max_parameters:,}; {LIMITS_HINT}"
@@ -99,6 +108,83 @@ def _check_sizes(path: Path, model: onnx.ModelProto, size: int, limits: Limits) 
             f"{path}: {(size + external) / 2**20:.1f} MB with its external data exceeds the "
             f"{_mb(limits.max_bytes)} limit; {LIMITS_HINT}"
         )
+
+
+def _check_external(path: Path, folder: Path, tensor: onnx.TensorProto, count: int) -> int:
+    """The bytes ``tensor``'s external data will read, after checking where and how much."""
+    info = {e.key: e.value for e in tensor.external_data}
+    location = PurePosixPath(info.get("location", ""))
+    if not info.get("location") or location.is_absolute() or ".." in location.parts:
+        raise InvalidModelError(
+            f"{path}: external data of '{tensor.name}' at {str(location)!r} is outside the model's folder"
+        )
+    target = folder / location
+    if target.is_symlink() or not target.resolve().is_relative_to(folder):
+        raise InvalidModelError(
+            f"{path}: external data of '{tensor.name}' ({location}) is a symbolic link; copy the file into "
+            "the model's folder"
+        )
+    if not target.is_file():
+        raise InvalidModelError(f"{path}: external data of '{tensor.name}' ({location}): no such file")
+    try:
+        itemsize = onnx.helper.tensor_dtype_to_np_dtype(tensor.data_type).itemsize
+        offset = int(info.get("offset", 0))
+        length = int(info.get("length", count * itemsize))
+    except (KeyError, ValueError, TypeError) as exc:
+        raise InvalidModelError(f"{path}: external data of '{tensor.name}' is not readable ({exc})") from None
+    if length != count * itemsize or offset < 0:
+        raise InvalidModelError(
+            f"{path}: external data of '{tensor.name}' ({location}) declares {length:,} bytes at offset "
+            f"{offset:,}; its shape {list(tensor.dims)} needs {count * itemsize:,}"
+        )
+    if offset + length > target.stat().st_size:
+        raise InvalidModelError(
+            f"{path}: external data of '{tensor.name}' ({location}) is {target.stat().st_size:,} bytes, "
+            f"too short for {length:,} bytes at offset {offset:,}"
+        )
+    if "length" not in info:
+        entry = tensor.external_data.add()
+        entry.key, entry.value = "length", str(length)  # onnx would read to the end of the file
+    return length
+
+
+def _check_graph(path: Path, model: onnx.ModelProto, limits: Limits) -> None:
+    """Node count and the declared sizes of the graph's inputs and outputs, before any work on them."""
+    nodes = len(model.graph.node)
+    if nodes > limits.max_nodes:
+        raise InvalidModelError(f"{path}: {nodes:,} nodes exceed the limit of {limits.max_nodes:,}")
+    for role, values in (("input", model.graph.input), ("output", model.graph.output)):
+        for value in values:
+            dims = [d.dim_value for d in value.type.tensor_type.shape.dim if d.HasField("dim_value")]
+            size = math.prod(dims) if dims else 1
+            if size > limits.max_parameters:
+                raise InvalidModelError(
+                    f"{path}: graph {role} '{value.name}' of shape {dims} has {size:,} values, above the "
+                    f"limit of {limits.max_parameters:,}; {LIMITS_HINT}"
+                )
+
+
+@functools.cache
+def runtime_ir_version() -> int:
+    """The newest ONNX IR version the installed onnxruntime runs (probed once with a one-node model)."""
+    import onnxruntime as ort
+
+    graph = onnx.helper.make_graph(
+        [onnx.helper.make_node("Relu", ["x"], ["y"])],
+        "probe",
+        [onnx.helper.make_tensor_value_info("x", onnx.TensorProto.FLOAT, [1])],
+        [onnx.helper.make_tensor_value_info("y", onnx.TensorProto.FLOAT, [1])],
+    )
+    for version in range(onnx.IR_VERSION, 3, -1):
+        model = onnx.helper.make_model(
+            graph, opset_imports=[onnx.helper.make_opsetid("", 13)], ir_version=version
+        )
+        try:
+            ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        except Exception:  # noqa: BLE001 (onnxruntime's own error types: any refusal means "too new")
+            continue
+        return version
+    return 3
 
 
 def _attr(attribute: onnx.AttributeProto) -> AttrValue | np.ndarray:

@@ -208,7 +208,7 @@ class Loaded:
 
     model: onnx.ModelProto
     onnx_path: Path
-    """``staging/policy.onnx`` for an SB3 source (written by :func:`_lower`), else the source itself."""
+    """``staging/policy.onnx`` once :func:`_lower` has written it (an ONNX source: the source until then)."""
     loaded: LoadedPolicy | None
     vecnormalize: Path | None
     files: dict[str, Path]
@@ -323,18 +323,16 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     if clamp:  # the policy's actions can leave the action space: bound them in the graph itself
         loaded.model = append_clamp(loaded.model, act_space.low, act_space.high)
         graph = to_ir(loaded.model)
-        if loaded.loaded is None:  # an ONNX source: the export carries the clamped graph
-            loaded.onnx_path = staging / "policy.onnx"
-            loaded.files["policy.onnx"] = loaded.onnx_path
-            onnx.save(loaded.model, str(loaded.onnx_path))
     if interface is not None:
         interface = interface.with_safe_action(opts.safe_action)
         (staging / INTERFACE_FILE).write_text(interface.dumps())
         loaded.files[INTERFACE_FILE] = staging / INTERFACE_FILE
-    if loaded.loaded is not None:
-        if interface is not None:
-            _set_metadata(loaded.model, INTERFACE_METADATA_KEY, interface.dumps())
-        onnx.save(loaded.model, str(loaded.onnx_path))
+        _set_metadata(loaded.model, INTERFACE_METADATA_KEY, interface.dumps())
+    # Every export carries its ONNX (an ONNX source's too, weights inline): the folder is self-contained
+    # and can be moved; nothing refers back to the source's path.
+    loaded.onnx_path = staging / "policy.onnx"
+    loaded.files["policy.onnx"] = loaded.onnx_path
+    onnx.save(loaded.model, str(loaded.onnx_path))
     reference = loaded.loaded.predict if loaded.loaded is not None else _ort_policy(loaded.model)
     return Lowered(
         graph, obs_space, interface, interface_problem, action_clamp, reference, _ort_policy(loaded.model)
@@ -533,7 +531,7 @@ def _write_report(
     report: dict[str, Any] = {
         "tool": f"embedrl {tool_version()}",
         "source": {
-            "path": str(source),
+            "path": str(source.resolve()),
             "sha256": sha256(source),
             "kind": "sb3" if loaded.loaded is not None else "onnx",
             "policy_class": loaded.loaded.kind if loaded.loaded is not None else None,

@@ -54,6 +54,8 @@ class Reshape(Alias):
             raise _fail(node, f"shape '{node.inputs[1]}' must be a constant (static shapes only)")
         source = shapes[node.inputs[0]]
         target = [int(d) for d in constants[node.inputs[1]].reshape(-1)]
+        if any(d == 0 and i >= len(source) for i, d in enumerate(target)):
+            raise _fail(node, f"cannot reshape {list(source)} to {target}: a 0 copies an input dimension")
         target = [source[i] if d == 0 else d for i, d in enumerate(target)]
         if target.count(-1) > 1 or any(d < -1 for d in target):
             raise _fail(node, f"invalid target shape {target}")
