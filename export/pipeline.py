@@ -282,7 +282,9 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
         return Loaded(load_onnx(source, opts.limits), source, None, None, {})
     log(f"[1/5] loading {source}")
     try:
-        loaded = load_sb3(source, opts.vecnormalize, opts.trust_pickle, opts.limits.max_bytes)
+        loaded = load_sb3(
+            source, opts.vecnormalize, opts.trust_pickle, opts.limits.max_bytes, opts.limits.max_parameters
+        )
     except UnsupportedModelFileError as exc:
         raise UnsupportedModelError(str(exc)) from None
     except InvalidModelFileError as exc:

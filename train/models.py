@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import pickle
 import zipfile
 from dataclasses import dataclass
@@ -136,11 +137,19 @@ class LoadedPolicy:
 
 
 MAX_MODEL_BYTES = 64 * 2**20
+MAX_PARAMETERS = 4_000_000
+"""The most weights a model's networks may declare (actor, critics and value net together)."""
+MAX_WIDTH = 65_536
+"""The widest layer a model may declare."""
 """The largest uncompressed archive entry read by default (a control policy is far smaller)."""
 
 
 def load_sb3(
-    path: Path, vecnormalize: Path | None = None, trust_pickle: bool = False, max_bytes: int = MAX_MODEL_BYTES
+    path: Path,
+    vecnormalize: Path | None = None,
+    trust_pickle: bool = False,
+    max_bytes: int = MAX_MODEL_BYTES,
+    max_parameters: int = MAX_PARAMETERS,
 ) -> LoadedPolicy:
     """Load the policy of an SB3 ``.zip`` (any algorithm) without its algorithm or environment.
 
@@ -185,6 +194,7 @@ def load_sb3(
     assert isinstance(obs_space, spaces.Box) and isinstance(act_space, spaces.Box)
     if data.get("use_sde") or kwargs.get("use_sde"):
         raise UnsupportedModelFileError(f"{path}: policies with gSDE (use_sde=True) are not supported")
+    _check_architecture(path, kwargs, obs_space.shape[0], act_space.shape[0], max_parameters)
     try:
         policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
     except TypeError as exc:
@@ -196,6 +206,45 @@ def load_sb3(
     policy.set_training_mode(False)
     stats_file, normalization = _matching_normalization(path, vecnormalize, obs_space, trust_pickle)
     return LoadedPolicy(policy, obs_space, act_space, normalization, stats_file)
+
+
+def _check_architecture(
+    path: Path, kwargs: dict[str, Any], obs_dim: int, act_dim: int, max_parameters: int
+) -> None:
+    """Refuse, before a single weight is allocated, layer widths that are not 1..MAX_WIDTH and networks
+    whose weights would exceed ``max_parameters`` (the actor, every critic and the value net, counted
+    from ``net_arch`` and the spaces)."""
+    for role, dim in (("observation", obs_dim), ("action", act_dim)):
+        if not 1 <= dim <= MAX_WIDTH:
+            raise InvalidModelFileError(f"{path}: an {role} space of {dim:,} values is not supported")
+    arch = kwargs.get("net_arch", [64, 64])
+    nets = arch if isinstance(arch, dict) else {"pi": arch, "qf": arch, "vf": arch}
+    if not isinstance(nets, dict) or not all(isinstance(w, list | tuple) for w in nets.values()):
+        raise InvalidModelFileError(
+            f"{path}: net_arch {arch!r} is not a list of layer widths or a dict of them"
+        )
+    widths = [w for layers in nets.values() for w in layers]
+    if not all(isinstance(w, int) and not isinstance(w, bool) and 1 <= w <= MAX_WIDTH for w in widths):
+        raise InvalidModelFileError(
+            f"{path}: net_arch {arch!r}: layer widths must be integers in 1..{MAX_WIDTH:,}"
+        )
+    n_critics = kwargs.get("n_critics", 2)
+    if not isinstance(n_critics, int) or not 1 <= n_critics <= 16:
+        raise InvalidModelFileError(f"{path}: n_critics {n_critics!r} is not within 1..16")
+
+    def chain(sizes: list[int]) -> int:
+        return sum(a * b + b for a, b in zip(sizes, sizes[1:], strict=False))
+
+    parameters = (
+        chain([obs_dim, *nets.get("pi", []), 2 * act_dim])
+        + n_critics * chain([obs_dim + act_dim, *nets.get("qf", []), 1])
+        + chain([obs_dim, *nets.get("vf", []), 1])
+    )
+    if parameters > max_parameters:
+        raise InvalidModelFileError(
+            f"{path}: net_arch {arch!r} declares about {parameters:,} parameters; they exceed the limit of "
+            f"{max_parameters:,} (--max-params raises it)"
+        )
 
 
 def _check_archive_size(path: Path, max_bytes: int) -> None:
@@ -272,10 +321,11 @@ def load_normalization(
         raise InvalidModelFileError(f"{path}: no such file (normalisation statistics)")
     if path.suffix == ".npz":
         try:
+            _check_npz_headers(path, obs_space.shape[0])
             with np.load(path, allow_pickle=False) as f:
                 mean, var = np.asarray(f["mean"], np.float64), np.asarray(f["var"], np.float64)
                 epsilon, clip, enabled = float(f["epsilon"]), float(f["clip_obs"]), bool(f["norm_obs"])
-        except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as exc:
             raise InvalidModelFileError(
                 f"{path}: not normalisation statistics written by embedrl ({exc})"
             ) from None
@@ -302,6 +352,31 @@ def load_normalization(
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(var)) and np.all(var >= 0)):
         raise InvalidModelFileError(f"{path}: statistics contain non-finite or negative values")
     return ObsNormalization(mean, var, epsilon, clip)
+
+
+NPZ_SHAPES = {"mean": 1, "var": 1, "epsilon": 0, "clip_obs": 0, "norm_obs": 0}
+"""The arrays of an embedrl statistics file and their ranks."""
+
+
+def _check_npz_headers(path: Path, obs_dim: int) -> None:
+    """Each array's shape and type from its ``.npy`` header, before any array is read: numbers only,
+    the vectors of ``obs_dim`` values, the others scalars (ValueError otherwise)."""
+    with zipfile.ZipFile(path) as zf:
+        for name, rank in NPZ_SHAPES.items():
+            with zf.open(f"{name}.npy") as member:
+                version = np.lib.format.read_magic(member)
+                read_header = (
+                    np.lib.format.read_array_header_1_0
+                    if version == (1, 0)
+                    else np.lib.format.read_array_header_2_0
+                )
+                shape, _, dtype = read_header(member)
+            expected = (obs_dim,) if rank else ()
+            if dtype.kind not in "fiub":
+                raise ValueError(f"{name} has dtype {dtype}; numbers are expected")
+            if tuple(shape) != expected:
+                values = math.prod(shape)
+                raise ValueError(f"{name} has shape {tuple(shape)} ({values:,} values); expected {expected}")
 
 
 class _Refused(pickle.UnpicklingError):

@@ -149,7 +149,7 @@ def box(path: Path, data: dict[str, Any], role: str) -> spaces.Box:
             int(v) for v in (ast.literal_eval(raw_shape) if isinstance(raw_shape, str) else raw_shape)
         )
         dtype = np.dtype(str(field["dtype"]))
-    except (KeyError, ValueError, SyntaxError, TypeError) as exc:
+    except (KeyError, ValueError, SyntaxError, TypeError, RecursionError, MemoryError) as exc:
         raise UnsupportedModelFileError(
             f"{path}: the {role} space is not readable ({exc}); {TRUST_HINT}"
         ) from None
@@ -173,7 +173,7 @@ def _kwarg(path: Path, key: str, value: Any) -> Any:
         )
     try:
         return ast.literal_eval(value)
-    except (ValueError, SyntaxError):
+    except (ValueError, SyntaxError, RecursionError, MemoryError):
         raise UnsupportedModelFileError(
             f"{path}: policy_kwargs {key}={value} is not a literal; {TRUST_HINT}"
         ) from None
