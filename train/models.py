@@ -10,6 +10,7 @@ from the :class:`LoadedPolicy` this module returns.
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import math
 import pickle
@@ -233,7 +234,7 @@ def _check_architecture(
         raise InvalidModelFileError(f"{path}: n_critics {n_critics!r} is not within 1..16")
 
     def chain(sizes: list[int]) -> int:
-        return sum(a * b + b for a, b in zip(sizes, sizes[1:], strict=False))
+        return sum(a * b + b for a, b in itertools.pairwise(sizes))
 
     parameters = (
         chain([obs_dim, *nets.get("pi", []), 2 * act_dim])
