@@ -6,12 +6,14 @@ every step passed: on any failure the output folder is untouched (absent, or as 
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import os
 import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
@@ -137,18 +139,55 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
         )
     if opts.episodes < 0:
         raise ExportError(f"closed-loop episodes must be >= 0, got {opts.episodes}")
+    if opts.out.is_symlink():  # written through: the link stays, its target folder is replaced
+        opts = replace(opts, out=opts.out.resolve())
     _check_output_folder(opts.out, opts.force)
     try:
         opts.out.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f".{opts.out.name}.partial-", dir=opts.out.parent))
     except OSError as exc:
         raise ExportError(f"cannot create the output folder {opts.out}: {exc.strerror or exc}") from None
-    try:
-        report = _export_into(staging, opts, log)
-        _replace_folder(staging, opts.out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+    with _locked(opts.out):
+        _check_output_folder(opts.out, opts.force)  # again: an export that held the lock may have written it
+        try:
+            staging = Path(tempfile.mkdtemp(prefix=f".{opts.out.name}.partial-", dir=opts.out.parent))
+        except OSError as exc:
+            raise ExportError(f"cannot create the output folder {opts.out}: {exc.strerror or exc}") from None
+        try:
+            report = _export_into(staging, opts, log)
+            _replace_folder(staging, opts.out)
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
     return report
+
+
+@contextlib.contextmanager
+def _locked(out: Path) -> Iterator[None]:
+    """Hold ``.<out>.lock`` beside ``out`` for the whole export: a second export into the same folder
+    refuses at once instead of silently replacing the first one's result. The lock file is removed at
+    the end (a waiter that opened it before checks that it still is the file on disk)."""
+    lock = out.with_name(f".{out.name}.lock")
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_RDWR, 0o644)
+        except OSError as exc:
+            raise ExportError(f"cannot create the lock {lock}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise ExportError(f"another export is writing {out} (it holds {lock}); wait for it") from None
+        try:
+            same = os.stat(lock).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the holder removed the file after we opened it: take the new one
+    try:
+        yield
+    finally:
+        lock.unlink(missing_ok=True)
+        os.close(fd)
 
 
 def _verify_target(

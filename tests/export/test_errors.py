@@ -178,7 +178,7 @@ def test_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.Cap
     assert "not empty; use --force" in err
     assert (out / "keep.txt").read_text() == "precious"
     assert main(["export", str(src), "--out", str(out), "--episodes", "0", "--force"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json", "interface.json", "test"]
+    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json", "interface.json", "policy.onnx", "test"]
 
 
 def test_cli_failed_verification_leaves_the_previous_export(
@@ -263,3 +263,28 @@ def test_failed_closed_loop_fails_the_export_and_writes_nothing(
     err = _cli_error(["export", str(src), "--out", str(tmp_path / "out"), "--episodes", "4"], capsys)
     assert "closed loop: 3 of 4 episodes end differently" in err and "an export error" in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["mlp.onnx"]
+
+
+def test_a_second_export_into_a_folder_being_written_refuses(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from embedrl.export.pipeline import _locked
+
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    out = tmp_path / "out"
+    with _locked(out):  # as a first export running in another process holds it
+        err = _cli_error(["export", str(src), "--out", str(out), "--episodes", "0"], capsys)
+    assert err.startswith("error: another export is writing") and not out.exists()
+    assert main(["export", str(src), "--out", str(out), "--episodes", "0"]) == 0  # released
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mlp.onnx", "out"]  # no lock file left
+
+
+def test_an_output_folder_given_as_a_symbolic_link_is_written_through(tmp_path: Path) -> None:
+    src = _save(_mlp(), tmp_path / "mlp.onnx")
+    (tmp_path / "real").mkdir()
+    (tmp_path / "real" / "old.txt").write_text("an earlier export")
+    link = tmp_path / "link out"
+    link.symlink_to(tmp_path / "real")
+    assert main(["export", str(src), "--out", str(link), "--episodes", "0", "--force"]) == 0
+    assert link.is_symlink() and (link / "policy.onnx").is_file() and not (link / "old.txt").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link out", "mlp.onnx", "real"]
