@@ -193,9 +193,34 @@ def test_a_resumed_run_trains_on_past_its_budget_and_records_it(tmp_path: Path) 
     assert len((run / "curve.csv").read_text().splitlines()) > episodes  # the same curve, continued
     config = json.loads((run / "config.json").read_text())
     assert config["budget"]["max_steps"] == 700
-    assert config["extensions"] == [{"from_max_steps": 400, "to_max_steps": 700}]
+    assert config["extensions"] == [
+        {"from_max_steps": 400, "to_max_steps": 700, "from_stop": config["budget"]["stop"],
+         "to_stop": config["budget"]["stop"]}
+    ]  # fmt: skip
     assert main(["train", "--resume", str(run)]) == 0  # the new budget is the run's own now
     assert json.loads((run / "summary.json").read_text())["total_steps"] == 700
+
+
+def test_resuming_a_run_that_stopped_at_its_stop_rule_needs_keep_training(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    _short_run(run)
+    state_file = run / "checkpoint" / "state.json"
+    state = json.loads(state_file.read_text())
+    rule = json.loads((run / "config.json").read_text())["budget"]["stop"]
+    state["target_step" if rule == "validation" else "criterion_step"] = state["steps"]  # as if it fired
+    state_file.write_text(json.dumps(state))
+    config = (run / "config.json").read_text()
+    capsys.readouterr()
+    assert main(["train", "--resume", str(run), "--max-steps", "700"]) == 2
+    err = capsys.readouterr().err
+    assert f"stopped at its stop rule (--stop {rule}) at step 400; add --keep-training" in err
+    assert len(err.strip().splitlines()) == 1 and (run / "config.json").read_text() == config  # unchanged
+    assert main(["train", "--resume", str(run), "--max-steps", "700", "--keep-training"]) == 0
+    assert json.loads((run / "summary.json").read_text())["total_steps"] == 700
+    extension = json.loads((run / "config.json").read_text())["extensions"][-1]
+    assert extension == {"from_max_steps": 400, "to_max_steps": 700, "from_stop": rule, "to_stop": "budget"}
 
 
 def test_checkpoints_are_swapped_atomically_and_a_bad_one_is_a_clear_error(

@@ -235,16 +235,19 @@ def cmd_train(args: argparse.Namespace) -> int:
             "stop": saved["budget"].get("stop", "validation"),
         }
         longer = given.get("max_steps", 0) > own["max_steps"]  # training on past the budget is allowed
+        # training on past the budget, and past the stop rule to it (--keep-training), is allowed
         conflicts = [
             f"--{k.replace('_', '-')} {v} (the run has {own[k]})"
             for k, v in given.items()
-            if own[k] != v and not (k == "max_steps" and longer)
+            if own[k] != v and not (longer and (k == "max_steps" or (k == "stop" and v == "budget")))
         ]
         if conflicts:
             raise UsageError(
                 f"--resume continues {args.resume} as it was configured; drop " + ", ".join(conflicts)
             )
         values = {**own, "max_steps": max(own["max_steps"], given.get("max_steps", 0))}
+        if longer and given.get("stop") == "budget":
+            values["stop"] = "budget"
     else:
         values = {**TRAIN_DEFAULTS, **given}
     budget = Budget(

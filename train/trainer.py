@@ -320,6 +320,12 @@ def q0(model: BaseAlgorithm, obs: np.ndarray) -> float:
         return float(min(q[0, 0] for q in policy.critic(x, action)))
 
 
+def stop_rule_fired(rule: str, state: dict[str, Any]) -> int | None:
+    """The step at which stop rule ``rule`` fired in a run's ``state`` (None: it has not)."""
+    key = {"study": "criterion_step", "validation": "target_step"}.get(rule)
+    return None if key is None else state.get(key)
+
+
 class RunMonitor(BaseCallback):
     """Episode log, stop criterion, deterministic evaluations, checkpoints and the progress bar."""
 
@@ -395,10 +401,7 @@ class RunMonitor(BaseCallback):
 
     def stop_now(self) -> bool:
         """Whether the run's stop rule has fired."""
-        rule = self.budget.stop
-        return (rule == "study" and self.state.get("criterion_step") is not None) or (
-            rule == "validation" and self.state.get("target_step") is not None
-        )
+        return stop_rule_fired(self.budget.stop, self.state) is not None
 
     def evaluation(self, steps: int) -> None:
         """A validation evaluation: logged, the best one kept, the deployable criterion recorded."""
@@ -469,6 +472,7 @@ def train(
     torch.set_num_threads(1)  # reproducible, and parallel runs do not fight over cores
     if resume:
         saved = read_run_config(out)
+        _refuse_a_fired_stop_rule(out, budget)
         _extend_budget(out, saved, budget)
         algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
         overrides = saved.get("overrides", [])
@@ -486,6 +490,7 @@ def train(
     generators: dict[str, Any] = {}
     if resume:
         model, env, state, generators = _load_checkpoint(_complete_checkpoint(out), algo, out / "tb")
+
         _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
         if (out / EVALUATIONS_FILE).exists():
             _truncate_curve(out / EVALUATIONS_FILE, state.get("evaluations", 0))
@@ -602,18 +607,40 @@ def read_run_config(out: Path) -> dict[str, Any]:
     return saved
 
 
+def _refuse_a_fired_stop_rule(out: Path, budget: Budget) -> None:
+    """A run that stopped at its stop rule would stop again at once: resuming it to a larger budget
+    under the same rule is refused, naming the option that trains on (before anything is changed)."""
+    try:
+        state = parse_json((_complete_checkpoint(out) / "state.json").read_text())
+        steps = int(state.get("steps", 0))
+    except (OSError, ValueError, AttributeError, TypeError):
+        return  # a damaged checkpoint: the checkpoint loader says what is wrong
+    fired = stop_rule_fired(budget.stop, state)
+    if fired is not None and budget.max_steps > steps:
+        raise UsageError(
+            f"{out} stopped at its stop rule (--stop {budget.stop}) at step {fired:,}; add --keep-training "
+            f"to train on to {budget.max_steps:,} steps"
+        )
+
+
 def _extend_budget(out: Path, saved: dict[str, Any], budget: Budget) -> None:
     """A resumed run may train on past its step budget (recorded in config.json's ``budget`` and
     ``extensions``); a smaller budget than the run's is refused."""
     old = int(saved["budget"].get("max_steps", 0))
     if budget.max_steps < old:
         raise UsageError(f"{out} has a budget of {old} steps; resume it with at least that many")
-    if budget.max_steps == old:
+    old_stop = saved["budget"].get("stop", "validation")
+    if budget.max_steps == old and budget.stop == old_stop:
         return
-    saved["budget"] = {**saved["budget"], "max_steps": budget.max_steps}
+    saved["budget"] = {**saved["budget"], "max_steps": budget.max_steps, "stop": budget.stop}
     saved["extensions"] = [
         *saved.get("extensions", []),
-        {"from_max_steps": old, "to_max_steps": budget.max_steps},
+        {
+            "from_max_steps": old,
+            "to_max_steps": budget.max_steps,
+            "from_stop": old_stop,
+            "to_stop": budget.stop,
+        },
     ]
     text = json.dumps(saved, indent=2)
     atomic_write(out / "config.json", lambda tmp: tmp.write_text(text))

@@ -178,7 +178,13 @@ def test_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.Cap
     assert "not empty; use --force" in err
     assert (out / "keep.txt").read_text() == "precious"
     assert main(["export", str(src), "--out", str(out), "--episodes", "0", "--force"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["c", "export_report.json", "interface.json", "policy.onnx", "test"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "c",
+        "export_report.json",
+        "interface.json",
+        "policy.onnx",
+        "test",
+    ]
 
 
 def test_cli_failed_verification_leaves_the_previous_export(
