@@ -62,6 +62,16 @@ def _param_count(text: str) -> int:
     return value
 
 
+def _tolerance(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0 < value <= 1e-2:
+        raise argparse.ArgumentTypeError(f"expected a tolerance within (0, 0.01], got {text!r}")
+    return value
+
+
 def _names(path: Path | None) -> dict[str, Any] | None:
     if path is None:
         return None
@@ -105,6 +115,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         act_range=args.act_range,
         sample_time=args.sample_time,
         names=_names(args.names),
+        tolerance=args.tolerance,
     )
     report = run_export(opts)
     _print_summary(report)
@@ -215,6 +226,12 @@ def register(sub: Any) -> None:
         "(default obs0.., act0.. for envs without a spec)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument(
+        "--tolerance",
+        type=_tolerance,
+        default=1e-5,
+        help="allowed error between export steps, times max(1, |output|) (default 1e-5)",
+    )
     p.add_argument(
         "--max-model-mb",
         type=_model_mb,

@@ -73,6 +73,8 @@ class ExportOptions:
     """Without an env: the control period in seconds (the node's timing)."""
     names: dict[str, Any] | None = None
     """``{"observation": [...], "action": [...]}``: names for the interface's fields."""
+    tolerance: float = verify.TOLERANCE
+    """Allowed error between two export steps, x max(1, |output|) (:data:`export.verify.TOLERANCE`)."""
 
 
 def _set_metadata(model: onnx.ModelProto, key: str, value: str) -> None:
@@ -485,14 +487,18 @@ def _verify(
     checks: dict[str, Any] = {
         "samples": len(samples),
         "samples_from_rollouts": int(generated.from_rollouts),
-        "tolerance": verify.TOLERANCE,
+        "tolerance": opts.tolerance,
+        "tolerance_rule": "|error| <= tolerance x max(1, |output|) for every output",
         "onnx_vs_sb3_max_abs_error": None,
     }
     if loaded.loaded is not None:
-        err = verify.max_abs_error(onnx_actions, loaded.loaded.predict(samples))
-        checks["onnx_vs_sb3_max_abs_error"] = err
-        if err > verify.TOLERANCE:
-            raise VerificationError(f"ONNX differs from SB3 predict() by {err:.3g} > {verify.TOLERANCE}")
+        sb3_actions = loaded.loaded.predict(samples)
+        checks["onnx_vs_sb3_max_abs_error"] = verify.max_abs_error(onnx_actions, sb3_actions)
+        failure = verify.tolerance_failure(
+            onnx_actions, sb3_actions, samples, opts.tolerance, "the ONNX differs from SB3's predict()"
+        )
+        if failure:
+            raise VerificationError(failure)
     c_actions, codes = compiled.batch(samples)
     if np.any(codes != 0):
         raise VerificationError(
@@ -514,8 +520,12 @@ def _verify(
                 f"the {opts.quantize} C differs from the Python model of its arithmetic "
                 f"on {mismatches} samples"
             )
-    elif err > verify.TOLERANCE:
-        raise VerificationError(f"the generated C differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}")
+    else:
+        failure = verify.tolerance_failure(
+            c_actions, onnx_actions, samples, opts.tolerance, "the generated C differs from onnxruntime"
+        )
+        if failure:
+            raise VerificationError(failure)
     vectors = target.pick_test_vectors(samples, generated.from_rollouts)
     vectors_path = staging / "test" / "test_vectors.c"
     vectors_path.parent.mkdir()

@@ -7,6 +7,7 @@ policy and the reference policy drive the warehouse env from the same seeded sta
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -20,7 +21,11 @@ from embedrl.train.interface import NO_ENV
 from embedrl.train.scenarios import BY_ENV_ID
 
 TOLERANCE = 1e-5
-"""Max abs action error allowed between two export steps."""
+"""Error allowed between two export steps, per output value: ``TOLERANCE x max(1, |output|)`` (absolute
+for outputs up to 1, such as wheel forces; relative above, where float32 rounding grows with the
+value). ``embedrl export --tolerance`` sets another."""
+ROUNDING_RELATIVE_ERROR = 1e-3
+"""Above this relative error a difference is not float32 rounding but an export error."""
 UNIFORM_SAMPLES = 5_000
 ROLLOUT_SAMPLES = 5_000
 MIN_SAMPLES = 10_000
@@ -69,6 +74,33 @@ def max_abs_error(a: np.ndarray, b: np.ndarray) -> float:
     if a.shape != b.shape:
         raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
     return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64))))
+
+
+def tolerance_failure(
+    actual: np.ndarray, expected: np.ndarray, samples: np.ndarray, tolerance: float, what: str
+) -> str | None:
+    """None if every output of ``actual`` is within ``tolerance x max(1, |expected|)``; else the error
+    message: the worst observation, the output there, the errors and what to do."""
+    a, e = actual.astype(np.float64), expected.astype(np.float64)
+    excess = np.abs(a - e) / np.maximum(1.0, np.abs(e))
+    if not np.any(excess > tolerance) and np.all(np.isfinite(excess)):
+        return None
+    excess = np.where(np.isfinite(excess), excess, np.inf)
+    row, col = np.unravel_index(int(np.argmax(excess)), excess.shape)
+    error = abs(a[row, col] - e[row, col])
+    relative = error / max(abs(e[row, col]), 1e-30)
+    observation = np.array2string(samples[row], precision=4, max_line_width=10_000)
+    where = (
+        f"{what} by {error:.3g} at output {col} of the observation {observation}, where the output is "
+        f"{e[row, col]:.6g} (relative error {relative:.2g}); allowed: {tolerance:g} x max(1, |output|)"
+    )
+    if relative > ROUNDING_RELATIVE_ERROR or not np.isfinite(error):
+        return f"{where}. This is more than float32 rounding: an export error"
+    suggested = 10.0 ** math.ceil(math.log10(float(excess[row, col])))
+    return (
+        f"{where}. That is float32 rounding on outputs this large: pass --tolerance {suggested:.0e}, or a "
+        "narrower --obs-range if the policy never sees such observations"
+    )
 
 
 def supports_closed_loop(env_id: str) -> bool:

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import onnx
 import pytest
-from onnx import helper
+from onnx import TensorProto, helper, numpy_helper
 
 from embedrl.cli import main
 from embedrl.export.codegen import generate
@@ -294,3 +295,46 @@ def test_an_output_folder_given_as_a_symbolic_link_is_written_through(tmp_path: 
     assert main(["export", str(src), "--out", str(link), "--episodes", "0", "--force"]) == 0
     assert link.is_symlink() and (link / "policy.onnx").is_file() and not (link / "old.txt").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link out", "mlp.onnx", "real"]
+
+
+def _large_output_mlp(path: Path) -> Path:
+    """6 -> 64 -> 2 with weights of order 1: outputs of order 100 over observations in [-10, 10]."""
+    rng = np.random.default_rng(3)
+    w1 = numpy_helper.from_array(rng.normal(size=(64, 6)).astype(np.float32), "W1")
+    w2 = numpy_helper.from_array(rng.normal(size=(2, 64)).astype(np.float32), "W2")
+    graph = helper.make_graph(
+        [
+            helper.make_node("Gemm", ["x", "W1"], ["h"], transB=1),
+            helper.make_node("Relu", ["h"], ["r"]),
+            helper.make_node("Gemm", ["r", "W2"], ["y"], transB=1),
+        ],
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["batch", 6])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["batch", 2])],
+        [w1, w2],
+    )
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), path)
+    return path
+
+
+def test_the_readme_generic_onnx_example_verifies_with_outputs_of_any_size(tmp_path: Path) -> None:
+    src = _large_output_mlp(tmp_path / "model.onnx")
+    out = tmp_path / "out"
+    argv = ["export", str(src), "--out", str(out), "--obs-range=-10:10", "--act-range=-1:1",
+            "--sample-time", "0.02"]  # fmt: skip
+    assert main(argv) == 2  # large sums cancelling near the clamp: rounding beyond 1e-5
+    assert main([*argv, "--tolerance", "1e-4"]) == 0  # as the README's example and the error say
+    checks = json.loads((out / "export_report.json").read_text())["verification"]
+    assert checks["tolerance"] == 1e-4 and 1e-5 < checks["c_vs_onnxruntime_max_abs_error"] <= 1e-4
+
+
+def test_a_verification_failure_names_the_worst_input_and_what_to_do(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    src = _large_output_mlp(tmp_path / "model.onnx")
+    argv = ["export", str(src), "--out", str(tmp_path / "out"), "--obs-range=-10:10", "--act-range=-1:1",
+            "--sample-time", "0.02", "--tolerance", "1e-9"]  # fmt: skip
+    err = _cli_error(argv, capsys)
+    assert "the generated C differs from onnxruntime by" in err and "at output" in err
+    assert "of the observation [" in err and "relative error" in err and "pass --tolerance 1e-" in err
+    assert not (tmp_path / "out").exists()
