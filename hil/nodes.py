@@ -127,6 +127,13 @@ class PythonNode(Node):
     def _start(self) -> None:
         """All state from the beginning, a new bus and thread (as a freshly started node)."""
         self.bus = self.open_bus()
+        try:
+            self._prepare()
+        except BaseException:  # interrupted while starting: the bus is not left open
+            self.bus.shutdown()
+            raise
+
+    def _prepare(self) -> None:
         self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in self.obs_ids])
         self.rx = {frame_id: e2e.Receiver() for frame_id in self.obs_ids}
         self.tx_counters: dict[int, int] = {}

@@ -523,7 +523,9 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     episodes: list[dict[str, Any]] = []
     with ExitStack() as cleanup:  # whatever was started is stopped, even when interrupted while starting
         codec = Codec(interface, fd=cfg.fd)
-        link = Link(_open_bus(cfg, codec), codec, stats, cfg.iface, cfg.log)
+        bus = _open_bus(cfg, codec)
+        cleanup.callback(bus.shutdown)  # at once: an interrupt may land before the link owns it
+        link = Link(bus, codec, stats, cfg.iface, cfg.log)
         cleanup.callback(link.close)
         node = _start_node(cfg, interface)
         cleanup.callback(node.stop)

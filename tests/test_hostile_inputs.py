@@ -134,7 +134,7 @@ def _deep_json() -> bytes:
     return b"[" * DEEP + b"]" * DEEP
 
 
-def _npz(**arrays: np.ndarray) -> bytes:
+def _npz(**arrays: object) -> bytes:
     buffer = io.BytesIO()
     np.savez(buffer, **arrays)  # type: ignore[arg-type]
     return buffer.getvalue()

@@ -17,6 +17,7 @@ import pytest
 from embedrl.cli import build_parser, main
 from embedrl.hil import candb
 from embedrl.hil.candb import load_interface
+from embedrl.hil.codec import decode_fields
 from embedrl.hil.cli import cmd_run
 from embedrl.hil.faults import CATALOGUE, INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import Guest
@@ -238,7 +239,7 @@ class HilContract:
         db = candb.database(interface)
         action = db.get_message_by_name("Action")
         answers = [
-            action.decode(bytes.fromhex(line.split()[2].split("#")[1]))
+            decode_fields(action, bytes.fromhex(line.split()[2].split("#")[1]))
             for line in log.read_text().splitlines()
             if line.endswith(" R") and line.split()[2].startswith(f"{action.frame_id:03X}#")
         ]
