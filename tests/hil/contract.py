@@ -17,8 +17,8 @@ import pytest
 from embedrl.cli import build_parser, main
 from embedrl.hil import candb
 from embedrl.hil.candb import load_interface
-from embedrl.hil.codec import decode_fields
 from embedrl.hil.cli import cmd_run
+from embedrl.hil.codec import decode_fields
 from embedrl.hil.faults import CATALOGUE, INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import Guest
 from embedrl.train.evaluate import REPORT_KEYS
