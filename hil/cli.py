@@ -28,6 +28,8 @@ REPO = Path(__file__).resolve().parents[1]
 SESSION_TIMEOUT_S = 3600.0
 """A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
 DEFAULT_TIMEOUT_MS = candb.WATCHDOG_MS
+ACTION_TIMEOUT_S = 2.0
+"""How long the simulator waits for the node's answer to a step (on the host; stretched in slow guests)."""
 TWO_ROBOT_NODES = 2
 """The two-robot scenario runs one node per robot."""
 
@@ -83,9 +85,10 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
     if args.kill_node is not None and args.kill_node[0] >= args.nodes:
         raise HilError(f"--kill-node {args.kill_node[0]}: the run has nodes 0..{args.nodes - 1}")
     period_ms = interface.sample_time_s * 1000
-    if args.realtime and args.timeout_ms <= period_ms:
+    if args.realtime and (args.timeout_ms or DEFAULT_TIMEOUT_MS) <= period_ms:
         raise HilError(
-            f"--timeout-ms {args.timeout_ms} would trip the node's watchdog between real-time steps: "
+            f"--timeout-ms {args.timeout_ms or DEFAULT_TIMEOUT_MS} would trip the node's watchdog between "
+            "real-time steps: "
             f"it must exceed the policy's sample time ({period_ms:.0f} ms)"
         )
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
@@ -104,7 +107,11 @@ def run_hil(args: argparse.Namespace, guest: Guest | None = None) -> dict[str, A
     return results
 
 
-def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **where: Any) -> SessionConfig:
+def _session_config(
+    args: argparse.Namespace, onnx: Path, export_dir: Path, slowdown: float = 1.0, **where: Any
+) -> SessionConfig:
+    """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the default
+    watchdog and the wait for an answer."""
     from embedrl.export.pipeline import OBSERVATIONS_FILE
     from embedrl.hil.session import SessionConfig
 
@@ -129,7 +136,8 @@ def _session_config(args: argparse.Namespace, onnx: Path, export_dir: Path, **wh
         node=args.node,
         episodes=args.episodes,
         seed=args.seed,
-        node_timeout_ms=args.timeout_ms,
+        node_timeout_ms=round(args.timeout_ms or DEFAULT_TIMEOUT_MS * slowdown),
+        action_timeout_s=ACTION_TIMEOUT_S * slowdown,
         realtime=args.realtime,
         inject=tuple(args.inject),
         nodes=args.nodes,
@@ -171,11 +179,16 @@ def _build_and_run(
     except BuildError as exc:
         raise HilError(str(exc)) from None
     with nullcontext(guest) if guest else sandbox.opened(args.sandbox, work / "sandbox") as where:
+        if args.timeout_ms is None and where.slowdown > 1:
+            print(
+                f"node watchdog {DEFAULT_TIMEOUT_MS * where.slowdown:.0f} ms: {where.provider} runs the "
+                f"simulator ~{where.slowdown:.0f}x slower than the host (--timeout-ms sets another)"
+            )
         scratch = where.scratch()  # the session's results and log: writable from inside the guest
         log = scratch / f"frames{args.log.suffix}" if args.log else None
         cfg = _session_config(
             args, onnx, export_dir, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
-            log=str(log) if log else None, results=str(scratch / "results.json"),
+            log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
         )  # fmt: skip
         config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
@@ -344,7 +357,7 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
 
     if args.episodes < 1:
         raise HilError(f"--episodes must be at least 1, got {args.episodes}")
-    if not 1 <= args.timeout_ms <= 60_000:
+    if args.timeout_ms is not None and not 1 <= args.timeout_ms <= 60_000:
         raise HilError(f"--timeout-ms must be within 1..60000, got {args.timeout_ms}")
     try:
         schedule = parse_schedule(args.inject)
@@ -412,9 +425,11 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
         ("steps, max |node - ONNX|", f"{data['steps']}, {'-' if diff is None else f'{diff:.3g}'}"),
         ("frames tx / rx", f"{data['frames_tx']} / {data['frames_rx']}"),
         (
-            "node CRC / sequence errors, rx timeouts",
-            f"{data['crc_errors']} / {data['sequence_errors']}, {data['rx_timeouts']}",
+            "node CRC / sequence errors / watchdog timeouts",
+            f"{data['crc_errors']} / {data['sequence_errors']} / {_node_count(data, 'timeouts')}",
         ),
+        ("node action faults (refused policy outputs)", str(_node_count(data, "action_faults"))),
+        ("steps the node left unanswered", str(data["rx_timeouts"])),
         ("round trip p50 / p99 / max [us]", f"{lat['p50']:.0f} / {lat['p99']:.0f} / {lat['max']:.0f}"),
     ]
     if data["jitter_us"]:
@@ -444,6 +459,12 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
     return 0 if not failures else 1
 
 
+def _node_count(data: dict[str, Any], name: str) -> int:
+    """A counter of the nodes' last NodeStatus or NodeDiag, summed over the nodes (as the nodes sent it)."""
+    nodes = data.get("nodes") or [{"status": data.get("node_status"), "diag": data.get("node_diag")}]
+    return sum(int({**(n["status"] or {}), **(n["diag"] or {})}.get(name, 0)) for n in nodes)
+
+
 def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
     """Whether the run passed: no episode ended in a fault, none ended differently from the
     simulation, the node refused no policy output, and the node's actions matched the exported ONNX
@@ -470,8 +491,7 @@ def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
         failures.append(
             f"{len(differing)} episode(s) ended differently from the simulation (seeds {differing})"
         )
-    diags = [n["diag"] for n in data.get("nodes") or [] if n["diag"]] or [data.get("node_diag") or {}]
-    refused = sum(int(d.get("action_faults", 0)) for d in diags)
+    refused = _node_count(data, "action_faults")
     if refused:
         failures.append(
             f"the node refused {refused} policy output(s) (non-finite, outside the action range or an "
@@ -541,8 +561,8 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--timeout-ms",
         type=int,
-        default=DEFAULT_TIMEOUT_MS,
-        help=f"the node's watchdog (default {candb.WATCHDOG_MS}); must exceed the policy's sample time",
+        help=f"the node's watchdog (default {candb.WATCHDOG_MS}, times the sandbox's slowdown: 10 under QEMU "
+        "emulation); must exceed the policy's sample time",
     )
     r.add_argument(
         "--inject",

@@ -70,6 +70,9 @@ class Guest(ABC):
     boot_s: float
     iface: str = IFACE
     python: str = sys.executable
+    slowdown: float = 1.0
+    """How many times slower than the host a Python program runs in the guest: the node's default
+    watchdog and the simulator's wait for an answer are stretched by it (pure emulation: ~10)."""
 
     @abstractmethod
     def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:

@@ -121,3 +121,20 @@ def test_a_fault_whose_episode_ends_before_its_step_fails_the_run(export_dir: Pa
     assert report["verdict"]["failures"] == [
         "fault corrupt@0:150 never fired: its episode ended before that step"
     ]
+
+
+def test_the_summary_prints_the_nodes_own_counters(
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A delayed step trips the node's watchdog once: the summary says so, as the node's status does.
+    out = tmp_path / "x.json"
+    argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), "--node", "python"]
+    assert main([*argv, "--inject", "delay", "--allow-faults", "--timeout-ms", "200"]) == 0
+    report = json.loads(out.read_text())
+    rows = dict(line.split("  ", 1) for line in capsys.readouterr().out.splitlines() if "  " in line)
+    status = report["node_status"]
+    assert status["timeouts"] == 1
+    assert rows["node CRC / sequence errors / watchdog timeouts"].strip() == (
+        f"{status['crc_errors']} / {status['sequence_errors']} / {status['timeouts']}"
+    )
+    assert rows["steps the node left unanswered"].strip() == str(report["rx_timeouts"])

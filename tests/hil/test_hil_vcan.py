@@ -20,7 +20,7 @@ from embedrl.hil.errors import HilError
 from embedrl.hil.sandbox import Guest
 from embedrl.hil.sandbox.base import JobResult
 from tests.hil.contract import NODE_TIMEOUT_MS, HilContract
-from tests.hil.helpers import hil
+from tests.hil.helpers import REQUIRED, hil
 from tests.test_user_errors import run_and_interrupt
 
 pytestmark = pytest.mark.slow
@@ -127,3 +127,20 @@ def test_two_signals_2_s_apart_end_the_guest_and_everything_it_started(
     assert _processes_mentioning(str(tmp_path)) == []
     assert not [p for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")]
     assert not (tmp_path / "h.json").exists()
+
+
+def test_under_qemu_emulation_the_default_timing_passes_five_episodes(
+    export_dir: Path, tmp_path: Path
+) -> None:
+    # Python runs ~10x slower under pure emulation: the default watchdog and answer wait stretch with it.
+    from embedrl.hil.sandbox.qemu import QemuProvider
+
+    reason = QemuProvider().missing()
+    if reason:
+        if "qemu" in REQUIRED:
+            pytest.fail(f"qemu is required here but unavailable: {reason}")
+        pytest.skip(f"qemu unavailable: {reason}")
+    report = hil(None, export_dir, tmp_path, "--sandbox", "qemu", "--episodes", "5", "--seed", "0")
+    assert report["sandbox"] == "qemu" and report["verdict"]["passed"], report["verdict"]
+    assert report["node_status"]["timeouts"] == 0 and report["rx_timeouts"] == 0
+    assert report["node_diag"]["action_faults"] == 0
