@@ -33,6 +33,7 @@ from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedMod
 from embedrl.export.fixed_point import FixedSection
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import Limits, load_onnx, to_ir
+from embedrl.export.reference import OBSERVATIONS_FILE
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface, InterfaceError, from_spaces, with_names
@@ -121,10 +122,6 @@ def _check_output_folder(out: Path, force: bool) -> None:
         raise ExportError(f"output {out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise ExportError(f"output folder {out} is not empty; use --force to replace it")
-
-
-OBSERVATIONS_FILE = "observations.npy"
-"""The verification observations (float32), in the export's ``test/``."""
 
 
 def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[str, Any]:

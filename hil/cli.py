@@ -112,7 +112,7 @@ def _session_config(
 ) -> SessionConfig:
     """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the default
     watchdog and the wait for an answer."""
-    from embedrl.export.pipeline import OBSERVATIONS_FILE
+    from embedrl.export.reference import OBSERVATIONS_FILE
     from embedrl.hil.session import SessionConfig
 
     observations = export_dir / "test" / OBSERVATIONS_FILE
@@ -132,6 +132,7 @@ def _session_config(
     )
     return SessionConfig(
         onnx=str(onnx),
+        export_dir=str(export_dir),
         interface=str(export_dir / INTERFACE_FILE),
         node=args.node,
         episodes=args.episodes,
@@ -211,7 +212,6 @@ def _build_and_run(
 def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]:
     """The evaluation report format plus the HIL keys, and the simulation on the same seeds."""
     import numpy as np
-    import onnxruntime as ort
 
     from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
 
@@ -228,20 +228,18 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         for e in results["episodes"]
     ]
     report = EvalReport.from_results(episodes, args.seed, f"HIL {args.export_dir}")
+    from embedrl.export.reference import precision_of, reference_policy
     from embedrl.hil.nodes import action_ok
 
-    session = ort.InferenceSession(
-        str(_onnx_of(args.export_dir.resolve())), providers=["CPUExecutionProvider"]
-    )
-    input_name = session.get_inputs()[0].name
+    reference = reference_policy(args.export_dir.resolve())  # the export's precision: float, int8, q15
+    precision = precision_of(args.export_dir.resolve())
     interface = candb.load_interface(args.export_dir.resolve() / INTERFACE_FILE)
     safe = np.asarray(interface.safe_action, dtype=np.float32)
 
     def simulated(obs: np.ndarray) -> np.ndarray:
-        """The ONNX in the simulation, with the node's rule: an action it would refuse is the safe action."""
-        out = np.asarray(session.run(None, {input_name: obs.reshape(1, -1).astype(np.float32)})[0]).reshape(
-            -1
-        )
+        """The export's policy in the simulation, with the node's rule: an action it would refuse is the
+        safe action."""
+        out = reference(obs.reshape(1, -1)).reshape(-1)
         return out if action_ok(out, interface) else safe
 
     pairs = None
@@ -320,6 +318,7 @@ def _report(args: argparse.Namespace, results: dict[str, Any]) -> dict[str, Any]
         else None
     )
     extra["open_loop"] = sim is None
+    extra["precision"] = precision  # what the node's actions were compared with
     extra["two_robots"] = pairs
     extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
     data = report.to_json(extra)
@@ -422,7 +421,10 @@ def cmd_run(args: argparse.Namespace, guest: Guest | None = None) -> int:
             ("episodes ending differently", str(len(data["outcomes_differing_from_simulation"]))),
         ]
     rows += [
-        ("steps, max |node - ONNX|", f"{data['steps']}, {'-' if diff is None else f'{diff:.3g}'}"),
+        (
+            f"steps, max |node - {data['precision']} reference|",
+            f"{data['steps']}, {'-' if diff is None else f'{diff:.3g}'}",
+        ),
         ("frames tx / rx", f"{data['frames_tx']} / {data['frames_rx']}"),
         (
             "node CRC / sequence errors / watchdog timeouts",
@@ -498,7 +500,10 @@ def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
             "error status) and sent the safe action instead"
         )
     if diffs and max(diffs) > TOLERANCE:
-        failures.append(f"the node's actions differ from the ONNX by {max(diffs):.3g} > {TOLERANCE}")
+        failures.append(
+            f"the node's actions differ from the export's {data.get('precision', 'float32')} reference by "
+            f"{max(diffs):.3g} > {TOLERANCE}"
+        )
     for where in data.get("injections_not_fired", []):
         failures.append(f"fault {where} never fired: its episode ended before that step")
     for record in data["injections"] or []:

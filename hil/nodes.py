@@ -5,7 +5,8 @@
 one step, steps that do not go forward never answered, the watchdog with the interface's safe action,
 recovery after K valid observations, NodeStatus and NodeDiag every
 :data:`~embedrl.hil.candb.STATUS_PERIOD_MS`, a bus filter for its own IDs. Its policy is the exported
-ONNX under onnxruntime. It runs in a thread on any python-can bus, so the session logic is tested on
+export's policy at its precision (the ONNX under onnxruntime, or the model of the int8 or q15 arithmetic
+the C equals bit for bit). It runs in a thread on any python-can bus, so the session logic is tested on
 python-can's virtual bus in milliseconds; the C node over SocketCAN gives the verdict.
 """
 
@@ -20,7 +21,6 @@ from collections.abc import Callable
 
 import can
 import numpy as np
-import onnxruntime as ort
 from cantools.database.can.c_source import camel_to_snake_case
 
 from embedrl.hil import candb, e2e
@@ -106,7 +106,7 @@ class PythonNode(Node):
         self,
         open_bus: Callable[[], can.BusABC],
         interface: Interface,
-        onnx: str,
+        policy: Callable[[np.ndarray], np.ndarray],
         timeout_ms: int,
         recover: int,
         node_id: int = 0,
@@ -116,8 +116,7 @@ class PythonNode(Node):
         self.interface = interface
         self.db = candb.database(interface, node_id, fd)
         self.plan = candb.layout(interface, node_id, fd)
-        self.session = ort.InferenceSession(onnx, providers=["CPUExecutionProvider"])
-        self.input = self.session.get_inputs()[0].name
+        self.policy = policy
         self.timeout_s = timeout_ms / 1000
         self.recover = recover
         self.safe = np.asarray(interface.safe_action, dtype=np.float32)
@@ -299,9 +298,7 @@ class PythonNode(Node):
             action = self.safe
         else:
             start = time.perf_counter_ns()
-            out = np.asarray(
-                self.session.run(None, {self.input: self.pending_obs.reshape(1, -1)})[0]
-            ).reshape(-1)
+            out = np.asarray(self.policy(self.pending_obs.reshape(1, -1))).reshape(-1)
             self.inference_us = (time.perf_counter_ns() - start) // 1000
             action = out.astype(np.float32)
             if not self._action_ok(action):

@@ -32,6 +32,7 @@ import gymnasium as gym
 import numpy as np
 import onnxruntime as ort
 
+from embedrl.export.reference import reference_policy
 from embedrl.hil import candb
 from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
@@ -59,6 +60,9 @@ class SessionConfig:
     onnx: str
     interface: str
     """The export's interface.json: the env, the CAN layout, the sample time and the safe action."""
+    export_dir: str | None = None
+    """The export folder: the node's actions are compared with its reference for the export's precision
+    (:func:`embedrl.export.reference.reference_policy`); None: with ``onnx`` under onnxruntime."""
     node_binary: str | None = None
     """The compiled ``policy_node`` (``node="c"``)."""
     node: str = "c"
@@ -88,6 +92,15 @@ class SessionConfig:
     stops, the safe action; the other nodes go on)."""
 
 
+def _session_policy(cfg: SessionConfig) -> Callable[[np.ndarray], np.ndarray]:
+    """The batch policy the node must reproduce: the export's reference for its precision, or the ONNX."""
+    if cfg.export_dir is not None:
+        return reference_policy(Path(cfg.export_dir))
+    session = ort.InferenceSession(cfg.onnx, providers=["CPUExecutionProvider"])
+    name = session.get_inputs()[0].name
+    return lambda obs: np.asarray(session.run(None, {name: np.asarray(obs, np.float32)})[0])
+
+
 class NodeFault(Exception):
     """The node did not answer a step (or a fault was injected): the episode ends as a fault."""
 
@@ -110,8 +123,7 @@ class BusPolicy:
 
     def __init__(self, cfg: SessionConfig, interface: Interface, link: Link, node: Node) -> None:
         self.cfg, self.interface, self.link, self.node = cfg, interface, link, node
-        self.session = ort.InferenceSession(cfg.onnx, providers=["CPUExecutionProvider"])
-        self.input = self.session.get_inputs()[0].name
+        self.reference = _session_policy(cfg)
         self.step = 0
         """Global step counter: the ``Step`` signal (mod 4096)."""
         self.episode = -1
@@ -178,7 +190,7 @@ class BusPolicy:
             stats.rx_timeouts += 1
             raise NodeFault(self._silence_reason(sent_at))
         stats.latencies_us.append((time.perf_counter_ns() - start) / 1000.0)
-        reference = np.asarray(self.session.run(None, {self.input: decoded.reshape(1, -1)})[0]).reshape(-1)
+        reference = np.asarray(self.reference(decoded.reshape(1, -1).astype(np.float32))).reshape(-1)
         if not action_ok(reference, self.interface):  # what a correct node sends instead
             reference = np.asarray(self.interface.safe_action, dtype=np.float32)
         diff = float(np.max(np.abs(action.action.astype(np.float64) - reference)))
@@ -414,7 +426,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
     if cfg.node == "python":
         return PythonNode(
             lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False, fd=cfg.fd),
-            interface, cfg.onnx, cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.fd,
+            interface, _session_policy(cfg), cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.fd,
         )  # fmt: skip
     if cfg.node_binary is None:
         raise ValueError("the C node needs node_binary")
