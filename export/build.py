@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import re
+import shutil
 import subprocess
 import sys
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -26,25 +30,48 @@ def make(
     """
     if not (RUNTIME_C / "Makefile").is_file():
         raise BuildError(f"{RUNTIME_C}/Makefile not found: the installation is incomplete")
-    cmd = [
-        "make",
-        "--no-print-directory",
-        "-C",
-        str(RUNTIME_C),
-        target,
-        f"POLICY_DIR={c_dir.resolve()}",
-        f"BUILD_DIR={build_dir.resolve()}",
-        f"PYTHON={sys.executable}",  # generates the node's CAN code with this installation
-    ]
-    if opt is not None:
-        cmd.append(f"OPT={opt}")
-    cmd += [f"{k}={v}" for k, v in (extra or {}).items()]
-    result = subprocess.run(cmd, capture_output=True, text=True)
+    build_dir.mkdir(parents=True, exist_ok=True)
+    with _without_spaces(c_dir.resolve(), build_dir.resolve()) as (policy_dir, out_dir):
+        cmd = [
+            "make",
+            "--no-print-directory",
+            "-C",
+            str(RUNTIME_C),
+            target,
+            f"POLICY_DIR={policy_dir}",
+            f"BUILD_DIR={out_dir}",
+            f"PYTHON={sys.executable}",  # generates the node's CAN code with this installation
+        ]
+        if opt is not None:
+            cmd.append(f"OPT={opt}")
+        cmd += [f"{k}={v}" for k, v in (extra or {}).items()]
+        result = subprocess.run(cmd, capture_output=True, text=True)
     if result.returncode != 0:
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])
         if "overflowed by" in result.stderr or "RAM overflow" in result.stderr:
             tail = result.stderr  # the linker names the region: keep every line
         raise BuildError(f"building the generated C failed (make {target}):\n{tail}")
+
+
+@contextlib.contextmanager
+def _without_spaces(*folders: Path) -> Iterator[list[Path]]:
+    """``folders`` as make can take them: a folder whose path has whitespace (make splits words on it)
+    is reached through a symbolic link in a temporary folder without any; ``..`` from a link resolves
+    in the real folder, so the export's layout (``c/../interface.json``) still holds."""
+    if not any(any(c.isspace() for c in str(f)) for f in folders):
+        yield list(folders)
+        return
+    base = tempfile.gettempdir()
+    links = Path(tempfile.mkdtemp(prefix="embedrl-make-", dir=base if " " not in base else "/tmp"))
+    try:
+        aliases = []
+        for index, folder in enumerate(folders):
+            alias = links / f"f{index}"
+            alias.symlink_to(folder, target_is_directory=True)
+            aliases.append(alias)
+        yield aliases
+    finally:
+        shutil.rmtree(links, ignore_errors=True)
 
 
 def compiler() -> dict[str, str]:
