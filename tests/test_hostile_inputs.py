@@ -236,28 +236,41 @@ ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
 }
 
 
+LAUNCHER = """
+import os, sys
+pid = os.fork()
+if pid == 0:
+    os.execv(sys.argv[2], sys.argv[2:])
+_, status, usage = os.wait4(pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(str(usage.ru_maxrss))
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+"""Runs a command and writes its peak resident memory (kB). Linux counts a forked child's peak from its
+parent's memory at the fork, so the command is forked from this small launcher, not from pytest."""
+
+
 def run_measured(
     argv: list[str], env: dict[str, str]
 ) -> tuple[subprocess.CompletedProcess[str], float, float]:
-    """``embedrl ARGV`` in a child: the result, its wall time in s and its peak resident memory in MB
-    (``wait4`` on the child itself, so no other process counts)."""
-    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+    """``embedrl ARGV`` in a child: the result, its wall time in s and its peak resident memory in MB."""
+    with tempfile.TemporaryDirectory() as scratch:
+        peak = Path(scratch) / "maxrss"
         start = time.monotonic()
-        proc = subprocess.Popen([sys.executable, "-m", "embedrl.cli", *argv], stdout=out, stderr=err, env=env)
-        deadline = start + 120
-        while True:
-            pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
-            if pid:
-                break
-            if time.monotonic() > deadline:
-                proc.kill()
-            time.sleep(0.02)
+        result = subprocess.run(
+            [sys.executable, "-c", LAUNCHER, str(peak), sys.executable, "-m", "embedrl.cli", *argv],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
         elapsed = time.monotonic() - start
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        out.seek(0)
-        err.seek(0)
-        result = subprocess.CompletedProcess(argv, proc.returncode, out.read(), err.read())
-    return result, elapsed, usage.ru_maxrss / 1024
+        peak_mb = int(peak.read_text()) / 1024
+    return (
+        subprocess.CompletedProcess(argv, result.returncode, result.stdout, result.stderr),
+        elapsed,
+        peak_mb,
+    )
 
 
 @pytest.mark.parametrize("row", list(ROWS))

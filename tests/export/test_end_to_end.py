@@ -211,6 +211,7 @@ def test_onnx_source_and_name_prefix(models: dict[str, Path], tmp_path: Path) ->
         "c/drive.c",
         "c/drive.h",
         "interface.json",
+        "policy.onnx",  # the export carries its ONNX (an ONNX source's too): the folder stands alone
         "test/observations.npy",
         "test/test_vectors.c",
     ]
