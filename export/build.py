@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import os
 import re
 import shutil
 import subprocess
@@ -45,12 +46,21 @@ def make(
         if opt is not None:
             cmd.append(f"OPT={opt}")
         cmd += [f"{k}={v}" for k, v in (extra or {}).items()]
-        result = subprocess.run(cmd, capture_output=True, text=True)
+        result = subprocess.run(cmd, capture_output=True, text=True, env=_own_make_env())
     if result.returncode != 0:
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])
         if "overflowed by" in result.stderr or "RAM overflow" in result.stderr:
             tail = result.stderr  # the linker names the region: keep every line
         raise BuildError(f"building the generated C failed (make {target}):\n{tail}")
+
+
+def _own_make_env() -> dict[str, str]:
+    """This environment without a calling make's variables: run from a Makefile target (``make
+    targets-example OUT=x``), the caller's command-line variables would reach runtime_c's own make
+    through MAKEFLAGS and override its variables of the same name."""
+    return {
+        k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES")
+    }
 
 
 @contextlib.contextmanager
@@ -78,6 +88,7 @@ def compiler() -> dict[str, str]:
     """The compiler command and flags the Makefile uses, and the compiler's version line."""
     flags = subprocess.run(
         ["make", "--no-print-directory", "-s", "-C", str(RUNTIME_C), "flags"],
+        env=_own_make_env(),
         capture_output=True,
         text=True,
         check=True,
