@@ -545,12 +545,40 @@ def write(
     return written
 
 
+def markdown_table(interface: Interface) -> str:
+    """The CAN frames and signals of ``interface`` (node 0) as a Markdown table: ID, message, sender,
+    and each signal with its bits, scale, range and unit, from the same database the node is built from."""
+    db = database(interface)
+    plan = layout(interface)
+    fields = {s.signal: s for _, _, slots in (*plan.observation, *plan.action) for s in slots}
+    rows = [
+        "| ID | message | sent by | signals: name (start bit, bits, scale, range, unit) |",
+        "|---|---|---|---|",
+    ]
+    for message in sorted(db.messages, key=lambda m: m.frame_id):
+        parts = []
+        for signal in message.signals:
+            slot = fields.get(signal.name)
+            if slot is not None:
+                unit = f" {slot.field.unit}" if slot.field.unit else ""
+                parts.append(
+                    f"{signal.name} ({signal.start}, {signal.length}, 2^{int(math.log2(slot.scale))}, "
+                    f"[{slot.field.low:g}, {slot.field.high:g}]{unit})"
+                )
+            else:
+                parts.append(f"{signal.name} ({signal.start}, {signal.length})")
+        sender = ", ".join(message.senders)
+        rows.append(f"| 0x{message.frame_id:03X} | {message.name} | {sender} | {'; '.join(parts)} |")
+    return "\n".join(rows) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m embedrl.hil.candb", description=__doc__.split("\n")[0])
     source = parser.add_mutually_exclusive_group(required=True)
     source.add_argument("--scenario", choices=sorted(SCENARIOS))
     source.add_argument("--interface", type=Path, help="an export's interface.json")
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--out", type=Path, help="write the DBC and the node's C here")
+    parser.add_argument("--markdown", action="store_true", help="print the frames and signals as a table")
     parser.add_argument("--dbc-only", action="store_true")
     parser.add_argument("--nodes", type=int, default=1, help=f"nodes on one bus (1..{MAX_NODES})")
     parser.add_argument(
@@ -562,7 +590,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         interface = SCENARIOS[args.scenario] if args.scenario else load_interface(args.interface)
-        write(interface, args.out, args.dbc_only, args.use_float, args.nodes, args.fd)
+        if args.markdown:
+            print(markdown_table(interface), end="")
+        if args.out is not None:
+            write(interface, args.out, args.dbc_only, args.use_float, args.nodes, args.fd)
+        elif not args.markdown:
+            parser.error("give --out DIR, --markdown or both")
     except (HilError, InterfaceError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

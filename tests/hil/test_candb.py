@@ -29,6 +29,24 @@ def test_the_shipped_dbc_is_the_generated_one(request: pytest.FixtureRequest) ->
     )
 
 
+README = Path(__file__).resolve().parents[2] / "README.md"
+TABLE_START, TABLE_END = (
+    "<!-- can-table static: python -m embedrl.hil.candb --scenario static --markdown -->",
+    ("<!-- /can-table -->"),
+)
+
+
+def test_the_readmes_can_table_is_the_generated_one(request: pytest.FixtureRequest) -> None:
+    text = README.read_text()
+    before, rest = text.split(TABLE_START + "\n", 1)
+    table, after = rest.split(TABLE_END, 1)
+    generated = candb.markdown_table(STATIC)
+    if request.config.getoption("--regen-golden"):
+        README.write_text(before + TABLE_START + "\n" + generated + TABLE_END + after)
+        table = generated
+    assert table == generated, "the README's CAN table is generated: --regen-golden rewrites it"
+
+
 def test_the_generated_database_decodes_recorded_logs_as_the_hand_written_one_did() -> None:
     # frames_static.log: 120 frames of a HIL run with the hand-written DBC this generator replaced;
     # frames_static_decoded.json: every frame's signals as that DBC decoded them.
