@@ -14,9 +14,11 @@ import itertools
 import json
 import math
 import pickle
+import re
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from tokenize import TokenError
 from typing import Any
 
 import numpy as np
@@ -167,7 +169,9 @@ def load_sb3(
             path, load_data=trust_pickle, device="cpu", print_system_info=False
         )
     except (zipfile.BadZipFile, KeyError, ValueError, EOFError, RuntimeError, pickle.UnpicklingError) as exc:
-        raise InvalidModelFileError(f"{path}: not a readable Stable-Baselines3 model ({exc})") from None
+        raise InvalidModelFileError(
+            f"{path}: not a readable Stable-Baselines3 model ({_one_line(exc)})"
+        ) from None
     if params is None or "policy" not in params:
         raise InvalidModelFileError(f"{path}: the archive has no policy parameters")
     if trust_pickle:
@@ -207,6 +211,19 @@ def load_sb3(
     policy.set_training_mode(False)
     stats_file, normalization = _matching_normalization(path, vecnormalize, obs_space, trust_pickle)
     return LoadedPolicy(policy, obs_space, act_space, normalization, stats_file)
+
+
+WEIGHTS_ONLY_DETAIL = re.compile(r"WeightsUnpickler error:\s*(.*?)\s*(Check the documentation|$)", re.S)
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error from torch or zipfile as one line: torch's weights-only refusal (a page of advice about
+    ``weights_only=False``, which embedrl never uses on untrusted files) becomes its cause."""
+    text = str(exc)
+    found = WEIGHTS_ONLY_DETAIL.search(text)
+    if found:
+        text = f"policy.pth holds more than tensors: {found.group(1)}"
+    return " ".join(text.split())
 
 
 def _check_architecture(
@@ -326,7 +343,17 @@ def load_normalization(
             with np.load(path, allow_pickle=False) as f:
                 mean, var = np.asarray(f["mean"], np.float64), np.asarray(f["var"], np.float64)
                 epsilon, clip, enabled = float(f["epsilon"]), float(f["clip_obs"]), bool(f["norm_obs"])
-        except (OSError, KeyError, ValueError, TypeError, zipfile.BadZipFile) as exc:
+        except (
+            OSError,
+            KeyError,
+            ValueError,
+            TypeError,
+            EOFError,
+            SyntaxError,
+            TokenError,
+            zipfile.BadZipFile,
+        ) as exc:
+            # a damaged .npy header fails in numpy's parser of it: SyntaxError or TokenError
             raise InvalidModelFileError(
                 f"{path}: not normalisation statistics written by embedrl ({exc})"
             ) from None
