@@ -182,3 +182,24 @@ def test_one_table_gives_the_linker_script_and_the_report_their_memory(tmp_path:
             text=True,
         ).stdout
         assert t.cpu_flags in flags
+
+
+def test_make_reads_a_relative_policy_dir_from_where_it_was_started_and_refuses_a_space(
+    tmp_path: Path,
+) -> None:
+    (tmp_path / "out").mkdir()
+    code, source = _export(tmp_path / "out", [6, 8, 2])
+    assert code == 0
+    lib = tmp_path / "build"
+    # as a user types it from the folder that holds out/: make -C changes folder, the path does not move
+    command = f"make -C {RUNTIME_C} lib POLICY_DIR={source.relative_to(tmp_path)}/c BUILD_DIR={lib}"
+    result = subprocess.run(["bash", "-c", command], cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert (lib / "libpolicy.so").is_file()
+    spaced = tmp_path / "with space"
+    source.rename(spaced)
+    result = subprocess.run(
+        ["make", "-C", str(RUNTIME_C), "lib", f"POLICY_DIR={spaced}/c", f"BUILD_DIR={lib}"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert result.returncode == 2 and "contains a space, which make cannot handle" in result.stderr
