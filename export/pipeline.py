@@ -479,7 +479,7 @@ def _verify(
 ) -> Verified:
     graph, samples, section, compiled = lowered.graph, generated.samples, generated.section, built.compiled
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
-    log("[4/5] verifying: ONNX vs SB3, C vs onnxruntime")
+    log("[4/5] verifying: " + ("ONNX vs SB3, " if loaded.loaded is not None else "") + "C vs onnxruntime")
     onnx_actions = lowered.onnx_policy(samples)
     checks: dict[str, Any] = {
         "samples": len(samples),
