@@ -104,7 +104,7 @@ def test_every_readme_command_runs_as_written(tmp_path: Path) -> None:
         assert result.returncode == 0, f"`{run}` failed:\n{(result.stdout + result.stderr)[-3000:]}"
         assert "Traceback" not in result.stderr, run
         ran.append(command)
-    assert len(ran) == len(readme_commands()) - len(NOT_RUN)
+    assert len(ran) == sum(c not in NOT_RUN for c in readme_commands()) > 25
     assert (work / "out" / "td3-hil" / "hil.json").is_file() and (
         work / "out" / "td3-m4" / "policy.onnx"
     ).is_file()
