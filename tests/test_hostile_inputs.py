@@ -11,10 +11,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import subprocess
-import sys
-import tempfile
-import time
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
@@ -24,7 +20,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from tests.test_user_errors import TD3, _external, _gemm_model
+from tests.test_user_errors import TD3, _external, _gemm_model, assert_refused, run_measured
 
 TIME_BUDGET_S = 10.0
 """Wall time of a refusal, on a loaded 2-core machine (importing torch alone takes ~2 s)."""
@@ -236,59 +232,12 @@ ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
 }
 
 
-LAUNCHER = """
-import os, sys
-pid = os.fork()
-if pid == 0:
-    os.execv(sys.argv[2], sys.argv[2:])
-_, status, usage = os.wait4(pid, 0)
-with open(sys.argv[1], "w") as f:
-    f.write(str(usage.ru_maxrss))
-sys.exit(os.waitstatus_to_exitcode(status))
-"""
-"""Runs a command and writes its peak resident memory (kB). Linux counts a forked child's peak from its
-parent's memory at the fork, so the command is forked from this small launcher, not from pytest."""
-
-
-def run_measured(
-    argv: list[str], env: dict[str, str]
-) -> tuple[subprocess.CompletedProcess[str], float, float]:
-    """``embedrl ARGV`` in a child: the result, its wall time in s and its peak resident memory in MB."""
-    with tempfile.TemporaryDirectory() as scratch:
-        peak = Path(scratch) / "maxrss"
-        start = time.monotonic()
-        result = subprocess.run(
-            [sys.executable, "-c", LAUNCHER, str(peak), sys.executable, "-m", "embedrl.cli", *argv],
-            capture_output=True,
-            text=True,
-            env=env,
-            timeout=120,
-        )
-        elapsed = time.monotonic() - start
-        peak_mb = int(peak.read_text()) / 1024
-    return (
-        subprocess.CompletedProcess(argv, result.returncode, result.stdout, result.stderr),
-        elapsed,
-        peak_mb,
-    )
-
-
 @pytest.mark.parametrize("row", list(ROWS))
 def test_a_hostile_input_is_refused_in_one_line_before_it_costs(row: str, tmp_path: Path) -> None:
     make_argv, said = ROWS[row]
-    argv = make_argv(tmp_path)
-    temporary = tmp_path / "tmp"
-    temporary.mkdir()
-    before = sorted(p.name for p in tmp_path.iterdir())
-    env = {**os.environ, "TMPDIR": str(temporary)}
-    result, elapsed, peak_mb = run_measured(argv, env)
-    lines = result.stderr.strip().splitlines()
-    assert result.returncode == 2, result.stderr[-2000:]
-    assert len(lines) == 1 and said in lines[0] and "Traceback" not in result.stderr, result.stderr[-2000:]
+    elapsed, peak_mb = assert_refused(make_argv(tmp_path), said, tmp_path)
     assert elapsed < TIME_BUDGET_S, f"{elapsed:.1f} s"
     assert peak_mb < MEMORY_BUDGET_MB, f"{peak_mb:.0f} MB"
-    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no staging folder
-    assert not [p for p in temporary.iterdir() if p.name.startswith("embedrl")]
 
 
 def test_external_data_without_a_length_reads_only_what_its_shape_needs(tmp_path: Path) -> None:

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -108,22 +109,62 @@ ROWS = {
 }
 
 
-@pytest.mark.parametrize("row", list(ROWS))
-def test_a_user_error_is_one_line_exit_2_and_writes_nothing(row: str, tmp_path: Path) -> None:
-    make_argv, said = ROWS[row]
-    argv = make_argv(tmp_path)
+LAUNCHER = """
+import os, sys
+pid = os.fork()
+if pid == 0:
+    os.execv(sys.argv[2], sys.argv[2:])
+_, status, usage = os.wait4(pid, 0)
+with open(sys.argv[1], "w") as f:
+    f.write(str(usage.ru_maxrss))
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+"""Runs a command and writes its peak resident memory (kB). Linux counts a forked child's peak from its
+parent's memory at the fork, so the command is forked from this small launcher, not from pytest."""
+
+
+def run_measured(
+    argv: list[str], env: dict[str, str]
+) -> tuple[subprocess.CompletedProcess[str], float, float]:
+    """``embedrl ARGV`` in a child: the result, its wall time in s and its peak resident memory in MB."""
+    with tempfile.TemporaryDirectory() as scratch:
+        peak = Path(scratch) / "maxrss"
+        start = time.monotonic()
+        result = subprocess.run(
+            [sys.executable, "-c", LAUNCHER, str(peak), sys.executable, "-m", "embedrl.cli", *argv],
+            capture_output=True,
+            text=True,
+            env=env,
+            timeout=120,
+        )
+        elapsed = time.monotonic() - start
+        peak_mb = int(peak.read_text()) / 1024
+    return (
+        subprocess.CompletedProcess(argv, result.returncode, result.stdout, result.stderr),
+        elapsed,
+        peak_mb,
+    )
+
+
+def assert_refused(argv: list[str], said: str, tmp_path: Path) -> tuple[float, float]:
+    """Run ``embedrl ARGV`` (TMPDIR inside ``tmp_path``): one line on stderr containing ``said``, exit
+    status 2, nothing written to ``tmp_path``, no temporary folder left; its wall time and peak memory."""
     temporary = tmp_path / "tmp"
     temporary.mkdir()
     before = sorted(p.name for p in tmp_path.iterdir())
-    env = {**os.environ, "TMPDIR": str(temporary)}
-    result = subprocess.run(
-        [sys.executable, "-m", "embedrl.cli", *argv], capture_output=True, text=True, env=env, timeout=300
-    )
+    result, elapsed, peak_mb = run_measured(argv, {**os.environ, "TMPDIR": str(temporary)})
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2, result.stderr[-2000:]
-    assert len(lines) == 1 and said in lines[0] and "Traceback" not in result.stderr, result.stderr
+    assert len(lines) == 1 and said in lines[0] and "Traceback" not in result.stderr, result.stderr[-2000:]
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # no output, no staging folder
     assert not [p for p in temporary.iterdir() if p.name.startswith("embedrl")]  # no temporary folder
+    return elapsed, peak_mb
+
+
+@pytest.mark.parametrize("row", list(ROWS))
+def test_a_user_error_is_one_line_exit_2_and_writes_nothing(row: str, tmp_path: Path) -> None:
+    make_argv, said = ROWS[row]
+    assert_refused(make_argv(tmp_path), said, tmp_path)
 
 
 def run_and_interrupt(
