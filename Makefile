@@ -17,8 +17,8 @@ setup: $(STAMP)
 # which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision; no network once cached).
 APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
     patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang
-deps: apt-packages
-	$(PYTHON) -m embedrl.hil.sandbox.provision
+deps: apt-packages $(STAMP)
+	$(PY) -m embedrl.hil.sandbox.provision
 
 apt-packages:
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
@@ -78,7 +78,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff format --check .
 
 type: $(STAMP)
-	$(VENV)/bin/mypy
+	$(PY) -m tests.typecheck
 
 format: $(STAMP)
 	$(VENV)/bin/ruff format .

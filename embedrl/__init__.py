@@ -6,8 +6,8 @@ The pipeline's packages, bottom to top: :mod:`embedrl.common` (shared utilities)
 Lower layers never import upper ones.
 
 In the source repository the packages are its top-level folders (``train/``, ``export/``, ``hil/``, and
-the C runtime ``runtime_c/``, shipped as package data), reached through symbolic links in ``embedrl/``; a
-wheel holds them as ordinary folders inside this package.
+the C runtime ``runtime_c/``, shipped as package data), mapped onto these names by pyproject.toml's
+``package-dir``; a wheel holds them as ordinary folders inside this package.
 """
 
 from __future__ import annotations

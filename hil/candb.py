@@ -534,14 +534,17 @@ def write(
     fd: bool = False,
 ) -> list[Path]:
     """Write ``policy.dbc`` (``nodes`` nodes on one bus) and unless ``dbc_only`` the node's generated C
-    (the same for every node: a node offsets its IDs by its ``--node-id`` at run time) into ``out``."""
+    (the same for every node: a node offsets its IDs by its ``--node-id`` at run time) into ``out``. A file
+    whose text is unchanged is left alone, so make rebuilds nothing when nothing changed."""
     out.mkdir(parents=True, exist_ok=True)
     dbc = dbc_text(interface, fd) if nodes == 1 else str(bus_database(interface, nodes, fd).as_dbc_string())
     files = {"policy.dbc": dbc} | ({} if dbc_only else c_sources(interface, use_float, fd))
     written = []
     for name, text in files.items():
-        (out / name).write_text(text)
-        written.append(out / name)
+        path = out / name
+        if not path.is_file() or path.read_text() != text:
+            path.write_text(text)
+        written.append(path)
     return written
 
 
