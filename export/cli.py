@@ -10,8 +10,7 @@ from typing import Any
 
 from embedrl.common import parse_json, table
 from embedrl.export.errors import ExportError
-from embedrl.train.cli import add_model_file_arguments
-from embedrl.train.config import SCENARIO_NAMES
+from embedrl.train.arguments import add_model_file_arguments, add_scenario_argument
 
 
 def _safe_action(text: str) -> tuple[float, ...]:
@@ -195,12 +194,7 @@ def register(sub: Any) -> None:
         "--env",
         help="gymnasium environment for samples and closed loop (default: the --scenario's env)",
     )
-    p.add_argument(
-        "--scenario",
-        choices=SCENARIO_NAMES,
-        help="a warehouse scenario for samples and closed loop: static (default), moving-shelf, two-robots "
-        "(the policy drives both robots)",
-    )
+    add_scenario_argument(p, default=None)  # None: static, unless --env names another env
     p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
     p.add_argument("--seed", type=int, default=0)
     add_model_file_arguments(p)

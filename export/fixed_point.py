@@ -89,6 +89,10 @@ class FixedSection:
     """Names of the IR nodes the section replaces."""
     first_node: str
 
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """:func:`run` of this section."""
+        return run(self, x)
+
 
 def _frac_for(peak: float) -> int:
     if peak <= 0 or not math.isfinite(peak):

@@ -8,7 +8,7 @@ model (:func:`embedrl.export.fixed_point.run`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
@@ -17,12 +17,26 @@ from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
 from embedrl.export.ops.base import PRECISIONS
 
-if TYPE_CHECKING:
-    from embedrl.export.fixed_point import FixedSection
+
+class Section(Protocol):
+    """Nodes of the graph evaluated together by their own model (q15's :class:`~embedrl.export.fixed_point.
+    FixedSection`): from the value ``input`` to the value ``output``."""
+
+    @property
+    def input(self) -> str: ...
+    @property
+    def output(self) -> str: ...
+    @property
+    def nodes(self) -> frozenset[str]: ...
+    @property
+    def first_node(self) -> str: ...
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """The section's output for a batch of inputs."""
+        ...
 
 
 def run(
-    graph: Graph, obs: np.ndarray, precision: str, section: FixedSection | None = None
+    graph: Graph, obs: np.ndarray, precision: str, section: Section | None = None
 ) -> dict[str, np.ndarray]:
     """Every value of ``graph`` for the observations ``obs`` [B, obs_dim], rows independent."""
     if precision not in PRECISIONS:
@@ -36,9 +50,7 @@ def run(
     for node in graph.nodes:
         if section is not None and node.name in section.nodes:
             if node.name == section.first_node:
-                from embedrl.export.fixed_point import run as run_section
-
-                values[section.output] = run_section(section, get(section.input))
+                values[section.output] = section.run(get(section.input))
             continue
         emitter = EMITTERS[node.op]
         if precision == "int8" and not emitter.quantizable:

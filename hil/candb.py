@@ -43,6 +43,7 @@ from cantools.database.conversion import BaseConversion
 
 from embedrl.common import parse_json
 from embedrl.export.ops.base import c_float
+from embedrl.hil import e2e
 from embedrl.hil.errors import HilError
 from embedrl.train.interface import Field, Interface, InterfaceError
 from embedrl.train.scenarios import SCENARIOS
@@ -360,6 +361,7 @@ def c_sources(interface: Interface, use_float: bool = False, fd: bool = False) -
         f"{DATABASE_NAME}.c": source,
         "policy_io.h": io_h,
         "policy_io.c": io_c,
+        e2e.PARAMS_HEADER: e2e.params_header(),
     }
 
 

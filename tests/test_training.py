@@ -16,8 +16,8 @@ import pytest
 from stable_baselines3 import PPO, TD3
 
 from embedrl.cli import main
-from embedrl.train.cli import load_model_policy
 from embedrl.train.config import ALGOS, Budget
+from embedrl.train.models import load_model_policy
 from embedrl.train.trainer import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor, train
 
 SHORT = Budget(max_steps=600, checkpoint_every=300, eval_every=10_000)

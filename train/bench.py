@@ -85,7 +85,7 @@ study's criterion for ``thesis``, the deployable one for ``tuned``)."""
 def one_run(job: Job) -> dict[str, Any]:
     """Train one run (or take it as it finished, or resume it) and evaluate its selected model."""
     algo, preset, seed, out, max_steps, eval_episodes, scenario, overrides, stop = job
-    from embedrl.train.cli import load_model_policy
+    from embedrl.train.models import load_model_policy
     from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.trainer import train
 

@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from embedrl.train.arguments import PORTABLE_HELP, add_model_file_arguments, add_scenario_argument
 from embedrl.train.errors import TrainError, UsageError
 
 CONTROLLERS = ("potential-field",)
@@ -27,45 +28,14 @@ def _controller(name: str, scenario: str = "static"):  # type: ignore[no-untyped
 
 def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     if args.model is not None:
+        from embedrl.train.models import load_model_policy
+
         policy = load_model_policy(args.model, args.trust_pickle, args.vecnormalize)
         _check_model_scenario(args)
         return policy
     if args.vecnormalize is not None:
         raise UsageError("--vecnormalize goes with a model, not with --controller")
     return _controller(args.controller, args.scenario)
-
-
-def load_model_policy(  # type: ignore[no-untyped-def]
-    path: Path, trust_pickle: bool = False, vecnormalize: Path | None = None
-):
-    """A trained SB3 model as a deterministic policy, with its normalisation statistics (``vecnormalize``,
-    else found beside it; refused if they are missing or not the model's own).
-
-    Nothing is unpickled unless ``trust_pickle`` (see :mod:`embedrl.train.sb3_archive`)."""
-    if path.suffix != ".zip":
-        raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
-    from embedrl.train.models import load_sb3
-
-    loaded = load_sb3(path, vecnormalize, trust_pickle)
-
-    def act(obs):  # type: ignore[no-untyped-def]
-        return loaded.predict(obs.reshape(1, -1))[0]
-
-    return act
-
-
-PORTABLE_HELP = (
-    "the same result on any x86-64 CPU (MKL's compatible code path, PyTorch's generic kernels; about 1.6x "
-    "slower); without it the same seed repeats on the same kind of CPU"
-)
-SCENARIO_HELP = "static (default), moving-shelf or two-robots (one policy drives both robots)"
-
-
-def add_scenario_argument(p: argparse.ArgumentParser) -> None:
-    """``--scenario``: which of the study's scenarios (train, eval, render, bench, export's closed loop)."""
-    from embedrl.train.config import SCENARIO_NAMES
-
-    p.add_argument("--scenario", choices=SCENARIO_NAMES, default="static", help=SCENARIO_HELP)
 
 
 def _env_id(args: argparse.Namespace) -> str:
@@ -99,23 +69,6 @@ def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
     src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
     add_model_file_arguments(p)
-
-
-def add_model_file_arguments(p: argparse.ArgumentParser) -> None:
-    """``--trust-pickle`` and ``--vecnormalize``: how an SB3 model file and its statistics are opened
-    (eval, render and export)."""
-    p.add_argument(
-        "--trust-pickle",
-        action="store_true",
-        help="open pickles inside or beside the model (SB3 fields, .pkl statistics): this runs code "
-        "from them, so only for files you trust",
-    )
-    p.add_argument(
-        "--vecnormalize",
-        type=Path,
-        help="the model's normalisation statistics (.npz, or SB3's .pkl read without running code); "
-        "default: found beside the model, RL Zoo's <env>/vecnormalize.pkl included",
-    )
 
 
 def _positive(text: str) -> int:
@@ -351,11 +304,11 @@ def register(sub: Any) -> None:
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
 
-    from embedrl.train.config import ALGOS, PRESETS, SCENARIO_NAMES, STOP_RULES
+    from embedrl.train.config import ALGOS, PRESETS, STOP_RULES
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
     p.add_argument("--algo", choices=ALGOS, help=f"default {TRAIN_DEFAULTS['algo']}")
-    p.add_argument("--scenario", choices=SCENARIO_NAMES, help=SCENARIO_HELP)
+    add_scenario_argument(p, default=None)
     p.add_argument("--preset", choices=PRESETS, help=f"default {TRAIN_DEFAULTS['preset']}")
     p.add_argument(
         "--set",

@@ -17,6 +17,8 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
+from embedrl.train.scenarios import SCENARIOS
+
 ALGOS = ("ddpg", "td3", "sac", "ppo")
 PRESETS = ("thesis", "tuned")
 NET_ARCH = (100, 100)
@@ -187,7 +189,7 @@ class RunConfig:
     """``--set NAME=VALUE`` assignments applied to the preset (already in ``hyperparameters``)."""
 
 
-SCENARIO_NAMES = ("static", "moving-shelf", "two-robots")
+SCENARIO_NAMES = tuple(SCENARIOS)
 
 
 def preset(algo: str, name: str, scenario: str = "static") -> AlgoConfig:

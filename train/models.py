@@ -30,7 +30,7 @@ from stable_baselines3.td3.policies import TD3Policy
 
 from embedrl.common import parse_json
 from embedrl.train import sb3_archive as archive
-from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
+from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError, UsageError
 
 NORMALIZATION_STEM = "vecnormalize"
 """Statistics next to a model with this name are used unless told otherwise: ``.npz`` (safe), else SB3's
@@ -475,3 +475,20 @@ if __name__ == "__main__":
     import sys
 
     sys.exit(_convert(sys.argv[1:]))
+
+
+def load_model_policy(  # type: ignore[no-untyped-def]
+    path: Path, trust_pickle: bool = False, vecnormalize: Path | None = None
+):
+    """A trained SB3 model as a deterministic policy, with its normalisation statistics (``vecnormalize``,
+    else found beside it; refused if they are missing or not the model's own).
+
+    Nothing is unpickled unless ``trust_pickle`` (see :mod:`embedrl.train.sb3_archive`)."""
+    if path.suffix != ".zip":
+        raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
+    loaded = load_sb3(path, vecnormalize, trust_pickle)
+
+    def act(obs):  # type: ignore[no-untyped-def]
+        return loaded.predict(obs.reshape(1, -1))[0]
+
+    return act

@@ -28,8 +28,9 @@ import numpy as np
 
 from embedrl.train import layout
 from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
+from embedrl.train.scenarios import SCENARIOS
 
-SCENARIO_OBSERVATIONS = {"static": 6, "moving-shelf": 9, "two-robots": 12}
+SCENARIO_OBSERVATIONS = {name: len(spec.observation) for name, spec in SCENARIOS.items()}
 """How many values each scenario's controller reads."""
 _AISLE_END = layout.UPPER_SHELF_WIDTH / 2
 """|x| beyond which the robot is beside the shelves, not in the aisle between them [m]."""

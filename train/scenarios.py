@@ -96,7 +96,24 @@ TWO_ROBOTS = Interface(
 the policy, on its own node)."""
 
 SCENARIOS = {spec.name: spec for spec in (STATIC, MOVING_SHELF, TWO_ROBOTS)}
+"""Every scenario by name, the first the default; names, observation sizes and help come from here."""
 BY_ENV_ID = {spec.env_id: spec for spec in SCENARIOS.values()}
+DEFAULT_SCENARIO = STATIC.name
+SUMMARIES = {
+    STATIC.name: "one robot, three fixed shelves",
+    MOVING_SHELF.name: "the upper shelf moves along the aisle",
+    TWO_ROBOTS.name: "two robots through one gap, one policy drives both",
+}
+"""One line per scenario, for help texts and plot titles (a test ties the keys to :data:`SCENARIOS`)."""
+
+
+def scenario_help() -> str:
+    """The scenarios as a command's help lists them: name, observation size and what happens."""
+    return "; ".join(
+        f"{name}{' (default)' if name == DEFAULT_SCENARIO else ''}: {SUMMARIES[name]}, "
+        f"{len(spec.observation)} observations"
+        for name, spec in SCENARIOS.items()
+    )
 
 
 def interface_of(env_id: str, env: Any) -> Interface:

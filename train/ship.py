@@ -15,8 +15,8 @@ import sys
 from pathlib import Path
 
 from embedrl.common import SHIP_TEST_SEED, provenance
-from embedrl.train.cli import load_model_policy
 from embedrl.train.evaluate import evaluate
+from embedrl.train.models import load_model_policy
 from embedrl.train.scenarios import SCENARIOS
 
 POLICIES = Path(__file__).resolve().parents[1] / "policies"

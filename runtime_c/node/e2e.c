@@ -1,27 +1,23 @@
 #include "e2e.h"
 
-#define CRC8_POLY 0x1Du
-#define CRC8_INIT 0xFFu
-#define CRC8_XOR_OUT 0xFFu
-
 static uint8_t crc8_update(uint8_t crc, uint8_t byte)
 {
     crc ^= byte;
     for (int bit = 0; bit < 8; ++bit) {
-        crc = (uint8_t)((crc & 0x80u) ? (uint8_t)(crc << 1) ^ CRC8_POLY : (uint8_t)(crc << 1));
+        crc = (uint8_t)((crc & 0x80u) ? (uint8_t)(crc << 1) ^ E2E_CRC8_POLY : (uint8_t)(crc << 1));
     }
     return crc;
 }
 
 uint8_t e2e_crc8(uint32_t data_id, const uint8_t *data, unsigned len)
 {
-    uint8_t crc = CRC8_INIT;
+    uint8_t crc = E2E_CRC8_INIT;
     crc = crc8_update(crc, (uint8_t)(data_id & 0xFFu));
     crc = crc8_update(crc, (uint8_t)((data_id >> 8) & 0xFFu));
     for (unsigned i = 1; i < len && i < E2E_MAX_FRAME_BYTES; ++i) {
         crc = crc8_update(crc, data[i]);
     }
-    return (uint8_t)(crc ^ CRC8_XOR_OUT);
+    return (uint8_t)(crc ^ E2E_CRC8_XOR_OUT);
 }
 
 void e2e_protect(uint32_t data_id, uint8_t *data, unsigned len)

@@ -12,9 +12,10 @@
 
 #define E2E_FRAME_BYTES 8u   /* classic CAN; a CAN FD frame protects all of its len bytes */
 #define E2E_MAX_FRAME_BYTES 64u
-#define E2E_COUNTER_MODULO 16u
-#define E2E_MAX_FORWARD_JUMP 7u /* larger "forward" deltas are treated as old frames */
-#define E2E_RESYNC_FRAMES 2u    /* consecutive counters that re-establish a sequence the receiver lost */
+/* E2E_CRC8_POLY, E2E_CRC8_INIT, E2E_CRC8_XOR_OUT, E2E_COUNTER_MODULO, E2E_MAX_FORWARD_JUMP (larger "forward"
+ * deltas are old frames), E2E_RESYNC_FRAMES (consecutive counters that re-establish a lost sequence):
+ * generated from the simulator's side (hil/e2e.py) beside the CAN codec. */
+#include "e2e_params.h"
 
 typedef enum {
     E2E_OK = 0,

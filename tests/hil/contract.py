@@ -7,22 +7,20 @@ over SocketCAN vcan0 in a sandbox (the verdict). The assertions are the same for
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Any, ClassVar
 
 import pytest
 
-from embedrl.cli import build_parser, main
+from embedrl.cli import main
 from embedrl.hil import candb
 from embedrl.hil.candb import load_interface
-from embedrl.hil.cli import cmd_run
 from embedrl.hil.codec import decode_fields
 from embedrl.hil.faults import CATALOGUE, INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import Guest
 from embedrl.train.evaluate import REPORT_KEYS
-from tests.hil.helpers import hil
+from tests.hil.helpers import hil, hil_report
 
 NODE_TIMEOUT_MS = 200
 SAFE_MARGIN_MS = 200
@@ -191,12 +189,8 @@ class HilContract:
     def test_a_fault_fails_the_run_unless_faults_are_allowed(
         self, where: Guest | None, export_dir: Path, tmp_path: Path
     ) -> None:
-        out = tmp_path / "hil.json"
-        argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), "--node", self.node]
-        args = build_parser().parse_args([*argv, "--episodes", "2", "--inject", "kill"])
-        assert cmd_run(args, where) == 1  # a script or CI can tell a failed HIL run from a good one
-        report = json.loads(out.read_text())
-        assert report["verdict"]["passed"] is False
+        report = hil_report(where, export_dir, "--node", self.node, "--episodes", "2", "--inject", "kill")
+        assert report["verdict"]["passed"] is False  # `embedrl hil run` exits 1 (test_hil_python.py)
         assert report["verdict"]["failures"][0].startswith("1 episode(s) ended in a fault (seeds [0])")
 
     def test_realtime_mode_reports_latency_jitter_and_deadline_misses(
@@ -226,13 +220,9 @@ class HilContract:
     ) -> None:
         # The node checks the numbers, not the status: never (-1, -1) (NaN saturated), only (0.1, 0).
         lying = self.lying_export(safe_export_dir, tmp_path)
-        out, log = tmp_path / "hil.json", tmp_path / "frames.log"
-        argv = ["hil", "run", "--export-dir", str(lying), "--json", str(out), "--log", str(log)]
-        args = build_parser().parse_args(
-            [*argv, "--node", self.node, "--episodes", "1", "--timeout-ms", "500"]
-        )
-        assert cmd_run(args, where) == 1
-        report = json.loads(out.read_text())
+        log = tmp_path / "frames.log"
+        argv = ["--log", str(log), "--node", self.node, "--episodes", "1", "--timeout-ms", "500"]
+        report = hil_report(where, lying, *argv)
         assert report["verdict"]["passed"] is False
         assert report["node_diag"]["action_faults"] >= report["steps"] // 3  # SAFE, then K = 3 to recover
         interface = load_interface(lying / "interface.json")

@@ -15,7 +15,8 @@ import pytest
 
 import embedrl.hil.sandbox as sandbox
 from embedrl.cli import build_parser
-from embedrl.hil.cli import cmd_run
+from embedrl.hil.options import RunOptions
+from embedrl.hil.run import run
 from embedrl.hil.sandbox import Guest, Provider, SandboxError
 
 REQUIRED = {p for p in os.environ.get("EMBEDRL_REQUIRE_SANDBOXES", "").split(",") if p}
@@ -36,12 +37,21 @@ def boot_or_skip(provider: Provider, workdir: Path) -> Guest:
         raise
 
 
+def run_options(export_dir: Path, *argv: str) -> RunOptions:
+    """The options ``embedrl hil run --export-dir export_dir *argv`` stands for."""
+    args = build_parser().parse_args(["hil", "run", "--export-dir", str(export_dir), *argv])
+    return RunOptions.of(vars(args))
+
+
+def hil_report(guest: Guest | None, export_dir: Path, *argv: str) -> dict[str, Any]:
+    """The report of ``embedrl hil run`` on ``guest`` (None: the run boots its own sandbox), as its
+    ``--json`` file holds it."""
+    report: dict[str, Any] = json.loads(json.dumps(run(run_options(export_dir, *argv), guest)))
+    return report
+
+
 def hil(guest: Guest | None, export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
-    """``embedrl hil run`` on ``guest`` (None: the command boots its own sandbox); the JSON report."""
-    out = tmp_path / "hil.json"
-    args = build_parser().parse_args(
-        ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), *extra]
-    )
-    assert cmd_run(args, guest) == 0
-    report: dict[str, Any] = json.loads(out.read_text())
+    """:func:`hil_report` of a run that must pass."""
+    report = hil_report(guest, export_dir, *extra)
+    assert report["verdict"]["passed"], report["verdict"]["failures"]
     return report

@@ -130,7 +130,14 @@ def test_the_generator_cli_writes_the_node_sources(tmp_path: Path) -> None:
     (tmp_path / "i.json").write_text(STATIC.dumps())
     assert candb.main(["--interface", str(tmp_path / "i.json"), "--out", str(tmp_path / "can")]) == 0
     names = sorted(p.name for p in (tmp_path / "can").iterdir())
-    assert names == ["policy.dbc", "policy_dbc.c", "policy_dbc.h", "policy_io.c", "policy_io.h"]
+    assert names == [
+        "e2e_params.h",
+        "policy.dbc",
+        "policy_dbc.c",
+        "policy_dbc.h",
+        "policy_io.c",
+        "policy_io.h",
+    ]
     (tmp_path / "bad.json").write_text('{"format": 1, "name": "x"}')
     assert candb.main(["--interface", str(tmp_path / "bad.json"), "--out", str(tmp_path / "b")]) == 2
     assert not (tmp_path / "b").exists()

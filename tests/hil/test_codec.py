@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -9,6 +10,7 @@ from pathlib import Path
 import can
 import numpy as np
 import pytest
+from crccheck.crc import Crc8SaeJ1850
 
 from embedrl.export.build import RUNTIME_C
 from embedrl.hil import e2e
@@ -19,6 +21,36 @@ from embedrl.train.scenarios import STATIC
 def test_crc8_reference_vector_matches_the_c_node() -> None:
     # CRC-8 SAE J1850 of "123456789" is 0x4B; the C unit tests check the same vector.
     assert e2e.crc8(ord("1") | ord("2") << 8, b"\x003456789") == 0x4B
+
+
+@pytest.mark.parametrize("length", [2, 8, 64])
+def test_crc8_equals_a_library_crc8_sae_j1850_over_the_data_id_and_payload(length: int) -> None:
+    rng = np.random.default_rng(length)
+    for _ in range(200):
+        data_id = int(rng.integers(0, 0x800))
+        data = bytes(rng.integers(0, 256, length, dtype=np.uint8))
+        oracle = Crc8SaeJ1850.calc(bytes([data_id & 0xFF, data_id >> 8]) + data[1:])
+        assert e2e.crc8(data_id, data) == oracle
+
+
+def test_the_c_node_takes_its_e2e_constants_from_the_generated_header() -> None:
+    generated = dict(
+        (name, int(value.rstrip("u"), 16))
+        for name, value in re.findall(r"#define E2E_(\w+) (0x[0-9A-F]+u)", e2e.params_header())
+    )
+    assert generated == {
+        "CRC8_POLY": e2e.CRC8_POLY, "CRC8_INIT": e2e.CRC8_INIT, "CRC8_XOR_OUT": e2e.CRC8_XOR_OUT,
+        "COUNTER_MODULO": e2e.COUNTER_MODULO, "MAX_FORWARD_JUMP": e2e.MAX_FORWARD_JUMP,
+        "RESYNC_FRAMES": e2e.RESYNC_FRAMES,
+    }  # fmt: skip
+    assert (
+        Crc8SaeJ1850._poly,
+        Crc8SaeJ1850._initvalue,
+        Crc8SaeJ1850._xor_output,
+    ) == (e2e.CRC8_POLY, e2e.CRC8_INIT, e2e.CRC8_XOR_OUT)
+    for source in ("e2e.h", "e2e.c", "node.c", "node.h"):  # typed nowhere else
+        text = (RUNTIME_C / "node" / source).read_text()
+        assert not re.search(r"#define\s+\w*(POLY|COUNTER_MODULO|FORWARD_JUMP|RESYNC_FRAMES)\b", text), source
 
 
 def test_receiver_accepts_increments_and_rejects_repeats_and_old_frames() -> None:

@@ -1,19 +1,18 @@
 """Write the fuzz harness's seed corpus (runtime_c/tests/fuzz_corpus/): valid observation sequences of the
 static scenario, so libFuzzer starts from frames that pass the CRC, counter and range checks.
 
-Run as ``python runtime_c/tests/fuzz_corpus.py``; the files are deterministic and committed.
+Run as ``python -m tests.hil.fuzz_corpus``; the files are deterministic and committed.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
+from embedrl.export.build import RUNTIME_C
 from embedrl.hil.codec import Codec
 from embedrl.train.scenarios import STATIC
 
-OUT = Path(__file__).with_name("fuzz_corpus")
+OUT = RUNTIME_C / "tests" / "fuzz_corpus"
 FRAME, CLOCK, BUS, LINK = 0, 1, 2, 3
 
 

@@ -1,0 +1,174 @@
+"""A HIL run's report: the evaluation format plus the HIL keys, beside the simulation of the same seeds.
+
+The simulation drives the export's own precision (float32 ONNX, or the bit-exact int8/q15 model) with the
+node's rule (an action the node would refuse is the safe action), so an episode that ends differently
+ended so because of the bus, the node or the C, not because of the policy.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from embedrl.hil import candb
+from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
+from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
+from embedrl.train.scenarios import TWO_ROBOTS
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from embedrl.hil.options import RunOptions
+
+SIMULATION = "simulation (onnxruntime)"
+COPIED_KEYS = (
+    "steps", "max_action_abs_diff", "first_divergent_step", "frames_tx", "frames_rx", "crc_errors",
+    "sequence_errors", "rx_timeouts", "sandbox", "sandbox_detail", "latency_us", "deadline_misses",
+    "jitter_us", "node_status", "node_diag", "retries", "injections", "fault_catalogue", "nodes",
+)  # fmt: skip
+"""The session's results that the report carries as they are."""
+
+
+def robot_outcome(outcome: str) -> str:
+    """A robot's outcome in the report's terms: ``stopped`` (the other robot crashed) counts as a timeout."""
+    return "timeout" if outcome == "stopped" else outcome
+
+
+def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
+    """The report of a session's ``results``, the simulation on the same seeds, the plots asked for."""
+    from embedrl.export.reference import precision_of
+
+    episodes = [
+        EpisodeResult(
+            e["seed"], robot_outcome(e["outcome"]), e["steps"], e["episode_return"], e["time_s"],
+            e.get("collided_with"), [tuple(p) for p in e["trajectory"]],
+        )
+        for e in results["episodes"]
+    ]  # fmt: skip
+    report = EvalReport.from_results(episodes, options.seed, f"HIL {options.export_dir}")
+    interface = candb.load_interface(options.export_dir / INTERFACE_FILE)
+    sim, pairs = _simulation(options, interface, results, episodes)
+    sim_results = sim.results if sim else [None] * len(episodes)
+    differing = [h.seed for h, s in zip(episodes, sim_results, strict=True) if s and h.outcome != s.outcome]
+    extra = {k: results.get(k) for k in COPIED_KEYS}
+    extra["faults"] = sum(e.outcome == "fault" for e in episodes)
+    extra["simulation"] = {k: getattr(sim, k) for k in REPORT_KEYS} if sim else None
+    extra["outcomes_differing_from_simulation"] = differing
+    extra["max_return_abs_diff"] = (
+        max(abs(h.episode_return - s.episode_return) for h, s in zip(episodes, sim.results, strict=True))
+        if sim
+        else None
+    )
+    extra["open_loop"] = sim is None
+    extra["precision"] = precision_of(options.export_dir)  # what the node's actions were compared with
+    extra["two_robots"] = pairs
+    extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
+    data = report.to_json(extra)
+    for row, e, s in zip(data["per_episode"], results["episodes"], sim_results, strict=True):
+        row["fault"] = e["fault"]
+        row["simulation_return"] = s.episode_return if s else None  # lock-step: equal up to quantisation
+        row["injected"] = e["injected"]
+        row["max_action_abs_diff"] = e["max_action_abs_diff"]
+        row["node"] = e.get("node", 0)
+    data["per_node"] = _per_node(data["per_episode"], options.nodes, differing)
+    if options.plot:
+        _plot(options, report, episodes, results)
+    return data
+
+
+def _simulated_policy(options: RunOptions, interface: Interface) -> Callable[[np.ndarray], np.ndarray]:
+    """The export's policy in the simulation, with the node's rule: an action it would refuse is the safe
+    action."""
+    from embedrl.export.reference import reference_policy
+    from embedrl.hil.nodes import action_ok
+
+    reference = reference_policy(options.export_dir)  # the export's precision: float, int8, q15
+    safe = np.asarray(interface.safe_action, dtype=np.float32)
+
+    def simulated(obs: np.ndarray) -> np.ndarray:
+        out = reference(obs.reshape(1, -1)).reshape(-1)
+        return out if action_ok(out, interface) else safe
+
+    return simulated
+
+
+def _simulation(
+    options: RunOptions, interface: Interface, results: dict[str, Any], episodes: list[EpisodeResult]
+) -> tuple[EvalReport | None, dict[str, int] | None]:
+    """The simulation's report, one row per HIL row (None in open loop: no plant to simulate; the actions
+    are compared per step), and for two robots the count of episodes both robots got through."""
+    if interface.env_id == NO_ENV:
+        return None, None
+    simulated = _simulated_policy(options, interface)
+    if interface.env_id == TWO_ROBOTS.env_id:
+        return _two_robot_simulation(options, interface, results, episodes, simulated)
+    from embedrl.hil.session import NODE_SEED_STRIDE
+
+    # each node's robot on its own seeds (node_seed), in the order the HIL rows have
+    per_episode = -(-len(episodes) // options.nodes)
+    by_seed = {
+        r.seed: r
+        for k in range(options.nodes)
+        for r in evaluate(
+            simulated, per_episode, options.seed + k * NODE_SEED_STRIDE, SIMULATION, False,
+            interface.env_id, interface.sample_time_s,
+        ).results
+    }  # fmt: skip
+    return EvalReport.from_results([by_seed[h.seed] for h in episodes], options.seed, SIMULATION), None
+
+
+def _two_robot_simulation(
+    options: RunOptions,
+    interface: Interface,
+    results: dict[str, Any],
+    episodes: list[EpisodeResult],
+    simulated: Callable[[np.ndarray], np.ndarray],
+) -> tuple[EvalReport, dict[str, int]]:
+    """One row per robot; the simulation drives both robots."""
+    pairs = evaluate(simulated, options.episodes, options.seed, SIMULATION, False, interface.env_id).results
+    by_seed = {r.seed: r for r in pairs}
+    robot_rows = [
+        EpisodeResult(
+            h.seed, robot_outcome(by_seed[h.seed].robots[k]), h.steps, by_seed[h.seed].robot_returns[k],
+            h.time_s, None,
+        )
+        for h, k in zip(episodes, (e["node"] for e in results["episodes"]), strict=True)
+    ]  # fmt: skip
+    hil_pairs: dict[int, list[str]] = {}
+    for e in results["episodes"]:
+        hil_pairs.setdefault(e["seed"], []).append(e["outcome"])
+    counts = {
+        "episodes": len(hil_pairs),
+        "hil_both_through": sum(o == ["success", "success"] for o in hil_pairs.values()),
+        "simulation_both_through": sum(r.outcome == "success" for r in pairs),
+    }
+    return EvalReport.from_results(robot_rows, options.seed, SIMULATION), counts
+
+
+def _per_node(rows: list[dict[str, Any]], nodes: int, differing: list[int]) -> dict[int, dict[str, Any]]:
+    return {
+        k: {
+            "episodes": sum(r["node"] == k for r in rows),
+            "successes": sum(r["node"] == k and r["outcome"] == "success" for r in rows),
+            "faults": sum(r["node"] == k and r["outcome"] == "fault" for r in rows),
+            "differing_from_simulation": [
+                r["seed"] for r in rows if r["node"] == k and r["seed"] in differing
+            ],
+        }
+        for k in range(nodes)
+    }
+
+
+def _plot(
+    options: RunOptions, report: EvalReport, episodes: list[EpisodeResult], results: dict[str, Any]
+) -> None:
+    from embedrl.hil.plots import plot_latency
+    from embedrl.train.plots import plot_trajectories
+
+    assert options.plot is not None
+    if any(e.trajectory for e in episodes):  # envs with a map (the warehouse scenarios)
+        plot_trajectories(report, options.plot / "hil_trajectories.png")
+    plot_latency(
+        results["latencies_us"], options.plot / "hil_latency.png", results["sandbox"], options.realtime
+    )

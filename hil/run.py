@@ -1,0 +1,279 @@
+"""One HIL run: the options checked against the export, the node built, the session run in a sandbox (or in
+this process for the Python node), then the report and its verdict (:func:`run`).
+
+The steps, each a function: :func:`check` (options alone, before any cost), :func:`_check_export` (options
+against the export's interface), :func:`_build_and_run` (node build, sandbox, session), then
+:func:`embedrl.hil.report.hil_report` and :func:`embedrl.hil.verdict.verdict`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from contextlib import nullcontext
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from embedrl.common import parse_json
+from embedrl.hil import candb
+from embedrl.hil.errors import HilError
+from embedrl.hil.faults import Scheduled, parse_schedule
+from embedrl.hil.options import DEFAULT_TIMEOUT_MS, MAX_TIMEOUT_MS, RunOptions
+from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
+from embedrl.train.scenarios import TWO_ROBOTS
+
+if TYPE_CHECKING:
+    from embedrl.hil.sandbox import Guest
+    from embedrl.hil.session import SessionConfig
+
+REPO = Path(__file__).resolve().parents[1]
+SESSION_TIMEOUT_S = 3600.0
+"""A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
+ACTION_TIMEOUT_S = 2.0
+"""How long the simulator waits for the node's answer to a step (on the host; stretched in slow guests)."""
+TWO_ROBOT_NODES = 2
+"""The two-robot scenario runs one node per robot."""
+
+
+def check(options: RunOptions) -> list[Scheduled]:
+    """The options on their own (before anything is built); the fault schedule."""
+    if options.episodes < 1:
+        raise HilError(f"--episodes must be at least 1, got {options.episodes}")
+    if options.timeout_ms is not None and not 1 <= options.timeout_ms <= MAX_TIMEOUT_MS:
+        raise HilError(f"--timeout-ms must be within 1..{MAX_TIMEOUT_MS}, got {options.timeout_ms}")
+    try:
+        schedule = parse_schedule(list(options.inject))
+    except ValueError as exc:
+        raise HilError(str(exc)) from None
+    if not 1 <= options.nodes <= candb.MAX_NODES:
+        raise HilError(f"--nodes must be within 1..{candb.MAX_NODES}, got {options.nodes}")
+    if options.nodes > 1 and (schedule or options.realtime):
+        raise HilError("--nodes > 1 runs in lock-step without fault injection: drop --inject and --realtime")
+    if options.kill_node is not None and options.kill_node[1] >= options.episodes:
+        node, episode, step = options.kill_node
+        raise HilError(f"--kill-node {node}@{episode}:{step}: the run has {options.episodes} episode(s)")
+    for s in schedule:
+        if s.episode >= options.episodes:
+            raise HilError(
+                f"--inject {s.injector.name}@{s.episode}:{s.step}: the run has {options.episodes} episode(s)"
+            )
+        if s.injector.needs_socketcan and options.node == "python":
+            raise HilError(f"--inject {s.injector.name} acts on the kernel's CAN interface: use --node c")
+    return schedule
+
+
+def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
+    """The whole run: the report (the evaluation format plus the HIL keys) with ``verdict``, on ``guest``
+    (None: the sandbox ``options.sandbox`` selects is booted and stopped)."""
+    from embedrl.hil.report import hil_report
+    from embedrl.hil.verdict import verdict
+
+    schedule = check(options)
+    if schedule and not options.allow_faults:
+        print("note: injected faults change their episodes; without --allow-faults the run fails")
+    options = _check_export(options, schedule)
+    data = hil_report(options, _in_work_folder(options, guest))
+    fired = {(r["kind"], r["episode"], r["step"]) for r in data["injections"] or []}
+    data["injections_not_fired"] = [
+        f"{s.injector.name}@{s.episode}:{s.step}"
+        for s in schedule
+        if (s.injector.name, s.episode, s.step) not in fired
+    ]
+    data["verdict"] = verdict(data, options.allow_faults)
+    return data
+
+
+def onnx_of(export_dir: Path) -> Path:
+    """The export's ONNX (``policy.onnx``; an older export's ONNX source)."""
+    onnx = export_dir / "policy.onnx"
+    if onnx.is_file():
+        return onnx
+    report = export_dir / "export_report.json"
+    if report.is_file():
+        source = Path(parse_json(report.read_text())["source"]["path"])
+        if source.suffix == ".onnx" and source.is_file():
+            return source
+    raise HilError(f"{export_dir}: no policy.onnx (is it an `embedrl export` folder?)")
+
+
+def _export_interface(export_dir: Path) -> Interface:
+    if not (export_dir / "c" / "policy.c").is_file():
+        raise HilError(
+            f"{export_dir}: no c/policy.c (is it an `embedrl export` folder with the default --name?)"
+        )
+    onnx_of(export_dir)
+    if not (export_dir / INTERFACE_FILE).is_file():
+        raise HilError(
+            f"{export_dir}: no {INTERFACE_FILE} (the policy's interface, from which the CAN database is "
+            "generated): export it again with `embedrl export`"
+        )
+    return candb.load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
+
+
+def _check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
+    """The options against the export's interface; the options to run (the export folder resolved, two
+    nodes for the two-robot scenario)."""
+    options = replace(options, export_dir=options.export_dir.resolve())
+    interface = _export_interface(options.export_dir)
+    if options.nodes > 1 and interface.env_id == NO_ENV:
+        raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
+    if interface.env_id == TWO_ROBOTS.env_id:  # one node per robot
+        if options.nodes not in (1, TWO_ROBOT_NODES):
+            raise HilError(f"the two-robot scenario runs one node per robot: drop --nodes {options.nodes}")
+        options = replace(options, nodes=TWO_ROBOT_NODES)
+        if options.inject or options.realtime:
+            raise HilError(
+                "the two-robot scenario runs its two nodes in lock-step: drop --inject and --realtime "
+                "(--kill-node takes a node down)"
+            )
+    for s in schedule:
+        if s.step > interface.max_steps:
+            raise HilError(
+                f"--inject {s.injector.name}@{s.episode}:{s.step}: episodes of {interface.name!r} end by "
+                f"step {interface.max_steps}, so the fault could never fire"
+            )
+    if options.kill_node is not None and options.nodes < 2:
+        raise HilError("--kill-node takes one of several nodes down; with one node use --inject kill")
+    if options.kill_node is not None and options.kill_node[0] >= options.nodes:
+        raise HilError(f"--kill-node {options.kill_node[0]}: the run has nodes 0..{options.nodes - 1}")
+    period_ms = interface.sample_time_s * 1000
+    timeout_ms = options.timeout_ms or DEFAULT_TIMEOUT_MS
+    if options.realtime and timeout_ms <= period_ms:
+        raise HilError(
+            f"--timeout-ms {timeout_ms} would trip the node's watchdog between real-time steps: "
+            f"it must exceed the policy's sample time ({period_ms:.0f} ms)"
+        )
+    return options
+
+
+def _in_work_folder(options: RunOptions, guest: Guest | None) -> dict[str, Any]:
+    """The session's results, run from a temporary work folder: removed after a successful run, kept and
+    named after a failure."""
+    work = Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
+    try:
+        results = _build_and_run(options, guest, work)
+    except HilError as exc:
+        raise HilError(f"{exc} [node build and guest console kept in {work}]") from None
+    except BaseException:  # interrupted (SIGINT, SIGTERM): nothing to diagnose, nothing left behind
+        if not options.keep_work:
+            shutil.rmtree(work, ignore_errors=True)
+        raise
+    if options.keep_work:
+        print(f"kept the node build and guest files in {work}")
+    else:
+        shutil.rmtree(work, ignore_errors=True)
+    return results
+
+
+def _session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) -> SessionConfig:
+    """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the default
+    watchdog and the wait for an answer."""
+    from embedrl.export.reference import OBSERVATIONS_FILE
+    from embedrl.hil.session import SessionConfig
+
+    export_dir = options.export_dir
+    observations = export_dir / "test" / OBSERVATIONS_FILE
+    env_id = candb.load_interface(export_dir / INTERFACE_FILE).env_id
+    if env_id == TWO_ROBOTS.env_id:
+        nodes = "of two robots, one node each, "
+    elif options.nodes > 1:
+        nodes = f"on each of {options.nodes} nodes "
+    else:
+        nodes = ""
+    mode = (
+        "in open loop (no env)"
+        if env_id == NO_ENV
+        else "in real time"
+        if options.realtime
+        else "in lock-step"
+    )
+    injecting = f", injecting {', '.join(options.inject)}" if options.inject else ""
+    print(f"running {options.episodes} episode(s) {nodes}{mode}{injecting}")
+    return SessionConfig(
+        onnx=str(onnx_of(export_dir)),
+        export_dir=str(export_dir),
+        interface=str(export_dir / INTERFACE_FILE),
+        node=options.node,
+        episodes=options.episodes,
+        seed=options.seed,
+        node_timeout_ms=round(options.timeout_ms or DEFAULT_TIMEOUT_MS * slowdown),
+        action_timeout_s=ACTION_TIMEOUT_S * slowdown,
+        realtime=options.realtime,
+        inject=options.inject,
+        nodes=options.nodes,
+        kill_node=options.kill_node,
+        fd=options.fd,
+        observations=str(observations) if observations.is_file() else None,
+        **where,
+    )
+
+
+def _build_and_run(options: RunOptions, guest: Guest | None, work: Path) -> dict[str, Any]:
+    if options.node == "python":
+        return _python_session(options, work)
+    from embedrl.export import build
+    from embedrl.export.errors import BuildError
+
+    print(f"building the node: make -C runtime_c node POLICY_DIR={options.export_dir / 'c'}")
+    try:
+        build.make(
+            "node", options.export_dir / "c", work / "build", extra={"FD": "1"} if options.fd else None
+        )
+    except BuildError as exc:
+        raise HilError(str(exc)) from None
+    return _guest_session(options, guest, work)
+
+
+def _python_session(options: RunOptions, work: Path) -> dict[str, Any]:
+    """The reference node on python-can's virtual bus, in this process: no kernel, no build."""
+    from embedrl.hil.session import run as run_session
+
+    log = work / f"frames{options.log.suffix}" if options.log else None
+    cfg = _session_config(
+        options, bus="virtual", iface=f"embedrl-{os.getpid()}-{work.name}", log=str(log) if log else None,
+        results=str(work / "results.json"),
+    )  # fmt: skip
+    results = run_session(cfg)
+    _move_log(log, options.log)
+    return {**results, "sandbox": "none", "sandbox_detail": "python-can virtual bus (Python reference node)"}
+
+
+def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict[str, Any]:
+    """The C node built in ``work`` and the session, both in ``guest`` (or the selected sandbox)."""
+    from embedrl.hil import sandbox
+
+    with nullcontext(guest) if guest else sandbox.opened(options.sandbox, work / "sandbox") as where:
+        if options.timeout_ms is None and where.slowdown > 1:
+            print(
+                f"node watchdog {DEFAULT_TIMEOUT_MS * where.slowdown:.0f} ms: {where.provider} runs the "
+                f"simulator ~{where.slowdown:.0f}x slower than the host (--timeout-ms sets another)"
+            )
+        scratch = where.scratch()  # the session's results and log: writable from inside the guest
+        log = scratch / f"frames{options.log.suffix}" if options.log else None
+        cfg = _session_config(
+            options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
+            log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
+        )  # fmt: skip
+        config_file = scratch / "session.json"
+        config_file.write_text(json.dumps(asdict(cfg)))
+        job = where.run(
+            [where.python, "-m", "embedrl.hil.session", str(config_file)], REPO, timeout_s=SESSION_TIMEOUT_S
+        )
+        if job.status != 0 or not Path(cfg.results).is_file():
+            why = where.diagnose(f"the HIL session failed (status {job.status}): {job.last_lines()}")
+            raise HilError(str(why))
+        results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
+        _move_log(log, options.log)
+        results["sandbox"] = where.provider
+        results["sandbox_detail"] = where.description
+        shutil.rmtree(scratch, ignore_errors=True)
+    return results
+
+
+def _move_log(written: Path | None, wanted: Path | None) -> None:
+    if written is not None and wanted is not None:
+        wanted.parent.mkdir(parents=True, exist_ok=True)
+        shutil.move(written, wanted)

@@ -1,0 +1,128 @@
+"""The house's structure, read from the source: the import graph (every import, function-level ones too),
+the layers' direction, thin command modules and short functions.
+
+The modules come under their import names from pyproject.toml's package map (``tests/source_tree.py``),
+so the graph holds every file of ``train/``, ``export/`` and ``hil/``.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from tests.source_tree import REPO, modules
+
+LAYERS = ("embedrl.common", "embedrl.train", "embedrl.export", "embedrl.hil", "embedrl.cli")
+"""Bottom to top: a module imports only from its own layer or the ones below."""
+MAX_FUNCTION_LINES = 80
+
+
+def _imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """The project's modules ``name`` imports, anywhere in the file (a ``from package import module``
+    counts as the module)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+            module = ".".join([*base, node.module] if node.module else base)
+            found |= {f"{module}.{a.name}" if f"{module}.{a.name}" in known else module for a in node.names}
+    return {m for m in found if m in known and m != name}
+
+
+def import_graph() -> dict[str, set[str]]:
+    """Module -> the project's modules it imports, for the library (not the tests)."""
+    files = modules(with_tests=False)
+    return {name: _imports(name, path, set(files)) for name, path in files.items()}
+
+
+def _layer(module: str) -> int:
+    return max(i for i, layer in enumerate(LAYERS) if module == layer or module.startswith(layer + "."))
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    found = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                found.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_the_graph_sees_every_file_of_every_package() -> None:
+    graph = import_graph()
+    for folder, package in (("train", "embedrl.train"), ("export", "embedrl.export"), ("hil", "embedrl.hil")):
+        files = sorted((REPO / folder).rglob("*.py"))
+        assert len([m for m in graph if m.startswith(package + ".") or m == package]) == len(files), folder
+    assert "embedrl.export.ops.linear" in graph and "embedrl.hil.sandbox.uml" in graph
+    assert "embedrl.export.ir" in graph["embedrl.export.interpret"]  # arrows inside a package too
+    assert not list((REPO / "embedrl").glob("*/")), "embedrl/ holds modules only: the packages are mapped"
+
+
+def test_no_import_cycles() -> None:
+    assert _cycles(import_graph()) == []
+
+
+def test_the_cycle_finder_finds_a_cycle() -> None:
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_lower_layers_never_import_upper_ones() -> None:
+    upward = [
+        f"{module} -> {target}"
+        for module, targets in import_graph().items()
+        for target in targets
+        if _layer(target) > _layer(module)
+    ]
+    assert upward == []
+
+
+def test_no_library_module_imports_a_command_module() -> None:
+    graph = import_graph()
+    commands = {m for m in graph if m.rpartition(".")[2] == "cli"}
+    offenders = {m: sorted(graph[m] & commands) for m in graph if m != "embedrl.cli" and graph[m] & commands}
+    assert offenders == {}
+    assert commands >= {"embedrl.train.cli", "embedrl.export.cli", "embedrl.hil.cli"}
+
+
+def _long_functions(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text())
+    return [
+        f"{path.relative_to(REPO)}:{node.lineno} {node.name} ({node.end_lineno - node.lineno + 1} lines)"
+        for node in ast.walk(tree)
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.end_lineno is not None
+        and node.end_lineno - node.lineno + 1 > MAX_FUNCTION_LINES
+    ]
+
+
+@pytest.mark.parametrize("folder", ["train", "export", "hil", "embedrl"])
+def test_no_function_is_longer_than_80_lines(folder: str) -> None:
+    assert [f for path in sorted((REPO / folder).rglob("*.py")) for f in _long_functions(path)] == []
