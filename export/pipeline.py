@@ -477,9 +477,31 @@ def _verify(
     opts: ExportOptions,
     log: Callable[[str], None],
 ) -> Verified:
-    graph, samples, section, compiled = lowered.graph, generated.samples, generated.section, built.compiled
-    obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
+    """Stage 4 and 5: the numbers (ONNX vs SB3, C vs onnxruntime or its integer model), the targets, the
+    safe action on NaN, then the closed loop; each failure raises :class:`VerificationError`."""
     log("[4/5] verifying: " + ("ONNX vs SB3, " if loaded.loaded is not None else "") + "C vs onnxruntime")
+    checks = _numerical_checks(loaded, lowered, generated, built, opts)
+    vectors, vectors_path = _write_test_data(loaded, generated, staging)
+    targets = {}
+    for name in opts.targets:
+        log(f"[4/5] {name}: building firmware, running it on QEMU")
+        expected = (
+            quantize.evaluate(lowered.graph, vectors, generated.section)
+            if opts.quantize
+            else lowered.onnx_policy(vectors)
+        )
+        targets[name] = _verify_target(
+            target.TARGETS[name], generated.c_dir, vectors_path, vectors, expected, built.build_dir,
+            lowered.graph.size(lowered.graph.output), opts.quantize,
+        )  # fmt: skip
+    checks["non_finite_observation"] = _safe_on_nan(built.compiled, lowered.graph.size(lowered.graph.input))
+    return Verified(checks, targets, _closed_loop(lowered, built, opts, log))
+
+
+def _numerical_checks(
+    loaded: Loaded, lowered: Lowered, generated: Generated, built: Built, opts: ExportOptions
+) -> dict[str, Any]:
+    graph, samples, section = lowered.graph, generated.samples, generated.section
     onnx_actions = lowered.onnx_policy(samples)
     checks: dict[str, Any] = {
         "samples": len(samples),
@@ -496,7 +518,7 @@ def _verify(
         )
         if failure:
             raise VerificationError(failure)
-    c_actions, codes = compiled.batch(samples)
+    c_actions, codes = built.compiled.batch(samples)
     if np.any(codes != 0):
         raise VerificationError(
             f"the generated C returned an error code on {int(np.sum(codes != 0))} samples"
@@ -523,52 +545,52 @@ def _verify(
         )
         if failure:
             raise VerificationError(failure)
-    vectors = target.pick_test_vectors(samples, generated.from_rollouts)
+    return checks
+
+
+def _write_test_data(loaded: Loaded, generated: Generated, staging: Path) -> tuple[np.ndarray, Path]:
+    """The firmware's test vectors (``test/test_vectors.c``) and the observations the HIL replays in open
+    loop; the vectors and their file."""
+    vectors = target.pick_test_vectors(generated.samples, generated.from_rollouts)
     vectors_path = staging / "test" / "test_vectors.c"
     vectors_path.parent.mkdir()
     vectors_path.write_text(target.test_vectors_source(vectors))
     loaded.files["test/test_vectors.c"] = vectors_path
-    np.save(staging / "test" / OBSERVATIONS_FILE, samples)  # what the HIL replays in open loop
+    np.save(staging / "test" / OBSERVATIONS_FILE, generated.samples)
     loaded.files[f"test/{OBSERVATIONS_FILE}"] = staging / "test" / OBSERVATIONS_FILE
-    targets = {}
-    for name in opts.targets:
-        log(f"[4/5] {name}: building firmware, running it on QEMU")
-        expected = (
-            quantize.evaluate(graph, vectors, section) if opts.quantize else lowered.onnx_policy(vectors)
-        )
-        targets[name] = _verify_target(
-            target.TARGETS[name], generated.c_dir, vectors_path, vectors, expected, built.build_dir, act_dim,
-            opts.quantize,
-        )  # fmt: skip
+    return vectors, vectors_path
 
+
+def _safe_on_nan(compiled: build.CPolicy, obs_dim: int) -> dict[str, Any]:
     nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
     safe = compiled(nan_obs)
-    checks["non_finite_observation"] = {"return_code": compiled.status, "action": safe.tolist()}
     if compiled.status != 1 or not np.all(np.isfinite(safe)):
         raise VerificationError("the generated C did not reject a NaN observation with the safe action")
+    return {"return_code": compiled.status, "action": safe.tolist()}
 
+
+def _closed_loop(
+    lowered: Lowered, built: Built, opts: ExportOptions, log: Callable[[str], None]
+) -> dict[str, Any]:
     if opts.episodes and verify.supports_closed_loop(opts.env_id):
         log(f"[5/5] closed loop: {opts.episodes} episodes, reference and generated C")
         loop: dict[str, Any] = verify.closed_loop(
-            lowered.reference, compiled, opts.episodes, opts.seed, opts.progress, opts.env_id
+            lowered.reference, built.compiled, opts.episodes, opts.seed, opts.progress, opts.env_id
         )
         failure = (
             verify.quantized_closed_loop_failure(loop) if opts.quantize else verify.closed_loop_failure(loop)
         )
         if failure:
             raise VerificationError(failure)
+        return loop
+    if opts.env_id == NO_ENV:
+        reason = "no env: the C is verified against onnxruntime on observations sampled from the given ranges"
+    elif not opts.episodes:
+        reason = "episodes=0"
     else:
-        if opts.env_id == NO_ENV:
-            reason = (
-                "no env: the C is verified against onnxruntime on observations sampled from the given ranges"
-            )
-        elif not opts.episodes:
-            reason = "episodes=0"
-        else:
-            reason = f"{opts.env_id} reports no success/collision outcomes"
-        log(f"[5/5] closed loop skipped ({reason})")
-        loop = {"skipped": reason}
-    return Verified(checks, targets, loop)
+        reason = f"{opts.env_id} reports no success/collision outcomes"
+    log(f"[5/5] closed loop skipped ({reason})")
+    return {"skipped": reason}
 
 
 def _write_report(

@@ -376,7 +376,11 @@ def _glue(interface: Interface, plan: Layout) -> tuple[str, str]:
         f"({interface.env_id}):\n * do not edit. Maps CAN frames to the policy's observation and action "
         "vectors. */\n"
     )
-    h = f"""{banner}#ifndef POLICY_IO_H
+    return _glue_header(banner, interface, plan), _glue_source(banner, plan)
+
+
+def _glue_header(banner: str, interface: Interface, plan: Layout) -> str:
+    return f"""{banner}#ifndef POLICY_IO_H
 #define POLICY_IO_H
 
 #include <stdbool.h>
@@ -421,6 +425,10 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
 
 #endif /* POLICY_IO_H */
 """
+
+
+def _decode_cases(plan: Layout) -> list[str]:
+    """One ``case`` per observation frame: unpack, range-check every field, then store them."""
     db = DATABASE_NAME
     decode_cases = []
     for k, (name, _, slots) in enumerate(plan.observation):
@@ -443,6 +451,12 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
 {stores}
         return POLICY_IO_OK;
     }}""")
+    return decode_cases
+
+
+def _encode_cases(plan: Layout) -> list[str]:
+    """One ``case`` per action frame: every field saturated to its range, then packed."""
+    db = DATABASE_NAME
     encode_cases = []
     for k, (name, _, slots) in enumerate(plan.action):
         m = _c_name(name)
@@ -460,12 +474,18 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
         (void){db}_{m}_pack(data, &msg, POLICY_IO_FRAME_BYTES);
         return saturated;
     }}""")
+    return encode_cases
+
+
+def _glue_source(banner: str, plan: Layout) -> str:
+    db = DATABASE_NAME
+    decode_cases, encode_cases = _decode_cases(plan), _encode_cases(plan)
     bounds = " &&\n           ".join(
         f"is_finite(act[{s.index}]) && act[{s.index}] >= {c_float(s.field.low - s.scale / 2)} && "
         f"act[{s.index}] <= {c_float(s.field.high + s.scale / 2)}"
         for s in plan.action_slots
     )
-    c = f"""{banner}#include "policy_io.h"
+    return f"""{banner}#include "policy_io.h"
 
 #include <string.h>
 
@@ -516,7 +536,6 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
     }}
 }}
 """
-    return h, c
 
 
 def load_interface(path: Path) -> Interface:

@@ -41,7 +41,10 @@ def import_graph() -> dict[str, set[str]]:
 
 
 def _layer(module: str) -> int:
-    return max(i for i, layer in enumerate(LAYERS) if module == layer or module.startswith(layer + "."))
+    """The module's layer (``embedrl`` itself, the version, sits at the bottom)."""
+    return max(
+        (i for i, layer in enumerate(LAYERS) if module == layer or module.startswith(layer + ".")), default=0
+    )
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:

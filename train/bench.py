@@ -198,6 +198,7 @@ def run_bench(
 ) -> str:
     """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm on ``scenario``; the table,
     also written."""
+    from embedrl.train.potential_field import PotentialFieldController
     from embedrl.train.scenarios import SCENARIOS
 
     study = STUDY_BY_SCENARIO[scenario]
@@ -218,83 +219,11 @@ def run_bench(
         for s in seed_list
     ]
     runs = run_jobs(jobs, workers)
-    from embedrl.train.potential_field import PotentialFieldController
-
     pf = evaluate(
-        PotentialFieldController(scenario=scenario),
-        eval_episodes,
-        BENCH_TEST_SEED,
-        "potential-field",
+        PotentialFieldController(scenario=scenario), eval_episodes, BENCH_TEST_SEED, "potential-field",
         env_id=SCENARIOS[scenario].env_id,
-    )
-    rows: dict[str, dict[str, str]] = {}
-    for algo in algos:
-        mine = [r for r in runs if r["algo"] == algo]
-        reached = [r for r in mine if r["criterion_reached"]]
-        ev = [r["evaluation"] for r in mine]
-        rows[algo] = {
-            "reached": f"{len(reached)} / {len(mine)}",
-            "episodes": _cell(
-                [r["episodes_to_criterion"] + r["demonstration_episodes"] for r in reached], ".0f"
-            ),
-            "episodes_learning": _cell(
-                [r["episodes_to_criterion"] - r["warmup_episodes"] for r in reached], ".0f"
-            ),
-            "steps": _cell([r["steps_to_criterion"] for r in reached], ".0f"),
-            "average_reward": _cell(
-                [r["average50_at_stop"] for r in mine if r["average50_at_stop"] is not None], ".3f"
-            ),
-            "evaluation_return": _cell([e["mean_return"] for e in ev], ".3f"),
-            "outcomes": " ; ".join(f"{e['successes']} / {e['collisions']} / {e['timeouts']}" for e in ev),
-            "mean_time_s": _cell([e["mean_time_s"] for e in ev if e["mean_time_s"] is not None], ".2f"),
-            "reliability": _cell([100 * e["success_rate"] for e in ev], ".1f"),
-            "reliability_range": " / ".join(
-                f"{q:.1f}" for q in np.percentile([100 * e["success_rate"] for e in ev], [0, 50, 100])
-            ),
-            "reliability_per_seed": " ; ".join(
-                f"{r['seed']}: {100 * r['evaluation']['success_rate']:.1f}" for r in mine
-            ),
-            "cloning_alone": _cell(
-                [
-                    100 * r["warm_start_evaluation"]["success_rate"]
-                    for r in mine
-                    if r.get("warm_start_evaluation")
-                ],
-                ".1f",
-            ),
-            "validated": f"{sum(r['validation_target_step'] is not None for r in mine)} / {len(mine)}",
-            "validation_steps": _cell(
-                [r["validation_target_step"] for r in mine if r["validation_target_step"] is not None], ".0f"
-            ),
-            "updates": _cell([r["updates"] for r in mine], ".0f"),
-            "wall_clock_s": _cell([r["wall_clock_s"] for r in mine], ".0f"),
-        }
-    labels = [
-        ("reached", "runs reaching the stop criterion"),
-        ("episodes", "episodes to the study's criterion, all (demonstrations and random warm-up included)"),
-        ("episodes_learning", "episodes to the study's criterion, learning only (without those)"),
-        ("steps", "env steps to the study's criterion"),
-        ("average_reward", "average reward at the stop (training, last 50 episodes)"),
-        ("evaluation_return", f"average reward of the selected policy ({eval_episodes} test runs)"),
-        ("outcomes", "successful / collisions / no result"),
-        ("mean_time_s", "mean time (s)"),
-        ("reliability", "reliability (%)"),
-        ("reliability_range", "reliability worst / median / best seed (%)"),
-        ("reliability_per_seed", "reliability per seed (%)"),
-        ("cloning_alone", "reliability of behaviour cloning alone, before any PPO update (%)"),
-        ("validated", "runs reaching the deployable criterion (97% of 100 validation runs)"),
-        ("validation_steps", "env steps to the deployable criterion"),
-        ("updates", "policy updates by the algorithm (SB3 _n_updates; a warm start does not count)"),
-        ("wall_clock_s", "wall-clock time (s)"),
-    ]
-    header = "| | " + " | ".join(f"{a.upper()} (ours) | {a.upper()} (study)" for a in algos) + " |"
-    lines = [header, "|---" * (1 + 2 * len(algos)) + "|"]
-    for key, label in labels:
-        cells = []
-        for a in algos:
-            value = study.get(a, {}).get(key, "-" if a not in study else "")
-            cells += [rows[a][key], str(value)]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    )  # fmt: skip
+    rows = {algo: _row([r for r in runs if r["algo"] == algo]) for algo in algos}
     pf_line = (
         f"Potential-field controller on the same {eval_episodes} seeds: {pf.successes} / {pf.collisions} / "
         f"{pf.timeouts}, average reward {pf.mean_return:.3f}, reliability {100 * pf.success_rate:.1f}%."
@@ -305,19 +234,12 @@ def run_bench(
         + (f" with {', '.join(overrides)}" if overrides else "")
         + f", budget {max_steps} steps."
     )
-    table = "\n".join(lines) + "\n\n" + pf_line + "\n\n" + note + "\n"
+    table = _markdown(algos, rows, study, eval_episodes) + "\n\n" + pf_line + "\n\n" + note + "\n"
     (out / "bench.md").write_text(table)
     write_json(
         {
-            "algos": algos,
-            "scenario": scenario,
-            "seeds": seed_list,
-            "preset": preset,
-            "overrides": list(overrides),
-            "max_steps": max_steps,
-            "rows": rows,
-            "study": study,
-            "runs": runs,
+            "algos": algos, "scenario": scenario, "seeds": seed_list, "preset": preset,
+            "overrides": list(overrides), "max_steps": max_steps, "rows": rows, "study": study, "runs": runs,
             "potential_field": {
                 k: getattr(pf, k)
                 for k in ("successes", "collisions", "timeouts", "success_rate", "mean_return")
@@ -325,5 +247,83 @@ def run_bench(
             "provenance": provenance(),
         },
         out / "bench.json",
-    )
+    )  # fmt: skip
     return table
+
+
+def _row(mine: list[dict[str, Any]]) -> dict[str, str]:
+    """One algorithm's column of the table, from its runs' summaries."""
+    reached = [r for r in mine if r["criterion_reached"]]
+    ev = [r["evaluation"] for r in mine]
+    return {
+        "reached": f"{len(reached)} / {len(mine)}",
+        "episodes": _cell([r["episodes_to_criterion"] + r["demonstration_episodes"] for r in reached], ".0f"),
+        "episodes_learning": _cell(
+            [r["episodes_to_criterion"] - r["warmup_episodes"] for r in reached], ".0f"
+        ),
+        "steps": _cell([r["steps_to_criterion"] for r in reached], ".0f"),
+        "average_reward": _cell(
+            [r["average50_at_stop"] for r in mine if r["average50_at_stop"] is not None], ".3f"
+        ),
+        "evaluation_return": _cell([e["mean_return"] for e in ev], ".3f"),
+        "outcomes": " ; ".join(f"{e['successes']} / {e['collisions']} / {e['timeouts']}" for e in ev),
+        "mean_time_s": _cell([e["mean_time_s"] for e in ev if e["mean_time_s"] is not None], ".2f"),
+        "reliability": _cell([100 * e["success_rate"] for e in ev], ".1f"),
+        "reliability_range": " / ".join(
+            f"{q:.1f}" for q in np.percentile([100 * e["success_rate"] for e in ev], [0, 50, 100])
+        ),
+        "reliability_per_seed": " ; ".join(
+            f"{r['seed']}: {100 * r['evaluation']['success_rate']:.1f}" for r in mine
+        ),
+        "cloning_alone": _cell(
+            [
+                100 * r["warm_start_evaluation"]["success_rate"]
+                for r in mine
+                if r.get("warm_start_evaluation")
+            ],
+            ".1f",
+        ),
+        "validated": f"{sum(r['validation_target_step'] is not None for r in mine)} / {len(mine)}",
+        "validation_steps": _cell(
+            [r["validation_target_step"] for r in mine if r["validation_target_step"] is not None], ".0f"
+        ),
+        "updates": _cell([r["updates"] for r in mine], ".0f"),
+        "wall_clock_s": _cell([r["wall_clock_s"] for r in mine], ".0f"),
+    }
+
+
+ROW_LABELS = [
+    ("reached", "runs reaching the stop criterion"),
+    ("episodes", "episodes to the study's criterion, all (demonstrations and random warm-up included)"),
+    ("episodes_learning", "episodes to the study's criterion, learning only (without those)"),
+    ("steps", "env steps to the study's criterion"),
+    ("average_reward", "average reward at the stop (training, last 50 episodes)"),
+    ("evaluation_return", "average reward of the selected policy ({eval_episodes} test runs)"),
+    ("outcomes", "successful / collisions / no result"),
+    ("mean_time_s", "mean time (s)"),
+    ("reliability", "reliability (%)"),
+    ("reliability_range", "reliability worst / median / best seed (%)"),
+    ("reliability_per_seed", "reliability per seed (%)"),
+    ("cloning_alone", "reliability of behaviour cloning alone, before any PPO update (%)"),
+    ("validated", "runs reaching the deployable criterion (97% of 100 validation runs)"),
+    ("validation_steps", "env steps to the deployable criterion"),
+    ("updates", "policy updates by the algorithm (SB3 _n_updates; a warm start does not count)"),
+    ("wall_clock_s", "wall-clock time (s)"),
+]
+"""The table's rows, top to bottom: key in :func:`_row`'s column, label."""
+
+
+def _markdown(
+    algos: list[str], rows: dict[str, dict[str, str]], study: dict[str, dict[str, Any]], eval_episodes: int
+) -> str:
+    """Our column beside the study's for each algorithm."""
+    labels = [(key, label.format(eval_episodes=eval_episodes)) for key, label in ROW_LABELS]
+    header = "| | " + " | ".join(f"{a.upper()} (ours) | {a.upper()} (study)" for a in algos) + " |"
+    lines = [header, "|---" * (1 + 2 * len(algos)) + "|"]
+    for key, label in labels:
+        cells = []
+        for a in algos:
+            value = study.get(a, {}).get(key, "-" if a not in study else "")
+            cells += [rows[a][key], str(value)]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)

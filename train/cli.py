@@ -303,7 +303,22 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
+    _register_train(sub)
+    _register_sweeps(sub)
 
+    p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")
+    add_scenario_argument(p)
+    p.add_argument("--out", type=Path, required=True, help="file.png")
+    p.set_defaults(func=cmd_reward_field)
+
+    p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
+    p.add_argument("--steps", type=_positive, default=50_000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the measurement here")
+    p.set_defaults(func=cmd_bench_env)
+
+
+def _register_train(sub: Any) -> None:
     from embedrl.train.config import ALGOS, PRESETS, STOP_RULES
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
@@ -339,6 +354,11 @@ def register(sub: Any) -> None:
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_train)
 
+
+def _register_sweeps(sub: Any) -> None:
+    """``bench`` (the study's table) and ``shaping`` (from scratch, with and without shaping)."""
+    from embedrl.train.config import ALGOS, PRESETS
+
     p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")
     add_scenario_argument(p)
     p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
@@ -367,17 +387,6 @@ def register(sub: Any) -> None:
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
     _add_run_set_arguments(p, 1_000_000)
     p.set_defaults(func=cmd_shaping)
-
-    p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")
-    add_scenario_argument(p)
-    p.add_argument("--out", type=Path, required=True, help="file.png")
-    p.set_defaults(func=cmd_reward_field)
-
-    p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
-    p.add_argument("--steps", type=_positive, default=50_000)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", type=Path, help="write the measurement here")
-    p.set_defaults(func=cmd_bench_env)
 
 
 ERRORS: tuple[type[Exception], ...] = (TrainError,)

@@ -129,6 +129,45 @@ def run_shaping(
     """Train every (algorithm, reward, seed) from scratch on the static scenario; the table, also written
     with the runs (JSON) and the curves (PNG)."""
     seed_list = list(range(seed_offset, seed_offset + seeds))
+    runs = _train_all(algos, seed_list, preset, out, max_steps, eval_episodes, workers, gain, overrides)
+    note = (
+        f"From scratch (preset `{preset}` without demonstrations or a cloned start), static scenario, seeds "
+        f"{seed_list[0]}..{seed_list[-1]}, at most {max_steps} env steps, shaping gain {gain} per metre. "
+        "Both columns count only the eq. 19 return (the shaping term is left out of the criterion)."
+    )
+    table = _markdown(runs, algos, eval_episodes) + "\n\n" + note + "\n"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "shaping.md").write_text(table)
+    write_json(
+        {
+            "algos": algos,
+            "seeds": seed_list,
+            "preset": preset,
+            "max_steps": max_steps,
+            "shaping_gain": gain,
+            "overrides": list(overrides),
+            "runs": runs,
+            "provenance": provenance(),
+        },
+        out / "shaping.json",
+    )
+    plot(runs, algos, max_steps, out / "shaping.png", f"Learning from scratch, shaping gain {gain}/m")
+    return table
+
+
+def _train_all(
+    algos: list[str],
+    seed_list: list[int],
+    preset: str,
+    out: Path,
+    max_steps: int,
+    eval_episodes: int,
+    workers: int,
+    gain: float,
+    overrides: tuple[str, ...],
+) -> list[dict[str, Any]]:
+    """Every (algorithm, reward, seed) trained (or resumed); each run's summary with its reward variant and
+    the mean length of its last 50 episodes."""
     jobs: list[Job] = []
     for algo in algos:
         for reward in REWARD_VARIANTS:
@@ -153,6 +192,11 @@ def run_shaping(
                 "mean_length_last50": float(np.mean(length[-STOP_WINDOW:])) if len(length) else None,
             }
         )
+    return runs
+
+
+def _markdown(runs: list[dict[str, Any]], algos: list[str], eval_episodes: int) -> str:
+    """One column per (algorithm, reward variant)."""
     columns = [(a, r) for a in algos for r in REWARD_VARIANTS]
     rows: list[tuple[str, list[str]]] = []
 
@@ -196,26 +240,4 @@ def run_shaping(
     header = "| | " + " | ".join(f"{a.upper()} {'shaped' if r == 'shaped' else 'eq. 19'}" for a, r in columns)
     lines = [header + " |", "|---" * (1 + len(columns)) + "|"]
     lines += [f"| {label} | " + " | ".join(cells) + " |" for label, cells in rows]
-    note = (
-        f"From scratch (preset `{preset}` without demonstrations or a cloned start), static scenario, seeds "
-        f"{seed_list[0]}..{seed_list[-1]}, at most {max_steps} env steps, shaping gain {gain} per metre. "
-        "Both columns count only the eq. 19 return (the shaping term is left out of the criterion)."
-    )
-    table = "\n".join(lines) + "\n\n" + note + "\n"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "shaping.md").write_text(table)
-    write_json(
-        {
-            "algos": algos,
-            "seeds": seed_list,
-            "preset": preset,
-            "max_steps": max_steps,
-            "shaping_gain": gain,
-            "overrides": list(overrides),
-            "runs": runs,
-            "provenance": provenance(),
-        },
-        out / "shaping.json",
-    )
-    plot(runs, algos, max_steps, out / "shaping.png", f"Learning from scratch, shaping gain {gain}/m")
-    return table
+    return "\n".join(lines)

@@ -484,114 +484,135 @@ def train(
         check_options(cfg.reward, cfg.success_bonus, cfg.shaping_gain)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations
     out.mkdir(parents=True, exist_ok=True)
-    state: dict[str, Any] = {}
-    generators: dict[str, Any] = {}
+    run = _Run(out, RunConfig(
+        algo, preset_name, seed, scenario=scenario, hyperparameters=to_dict(cfg), budget=vars(budget),
+        overrides=list(overrides),
+    ), cfg, budget, resume)  # fmt: skip
+    if not resume and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
+        run.save_model(WARM_START_MODEL)  # behaviour cloning alone, before any PPO update
+    monitor = RunMonitor(
+        out, budget, run.state, run.save, run.validate, progress, lambda: run.save_model(BEST_MODEL)
+    )
+    remaining = budget.max_steps - int(run.state.get("steps", 0))
     if resume:
-        model, env, state, generators = _load_checkpoint(_complete_checkpoint(out), algo, out / "tb")
+        _restore_random(run.generators, run.model)  # last: loading the model drew from them
+    if remaining > 0:
+        run.model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
+    monitor.checkpoint()
+    return run.finish(monitor.returns)
 
-        _truncate_curve(out / "curve.csv", len(state.get("returns", [])))
-        if (out / EVALUATIONS_FILE).exists():
-            _truncate_curve(out / EVALUATIONS_FILE, state.get("evaluations", 0))
-    else:
-        env = make_env(normalize, seed, scenario, cfg)
-        run_config = RunConfig(
-            algo,
-            preset_name,
-            seed,
-            scenario=scenario,
-            hyperparameters=to_dict(cfg),
-            budget=vars(budget),
-            overrides=list(overrides),
-        )
+
+class _Run:
+    """One training run's model, env and state in its folder: started fresh (config.json, curve.csv, a new
+    model seeded with demonstrations) or loaded from its last complete checkpoint."""
+
+    def __init__(self, out: Path, config: RunConfig, cfg: Any, budget: Budget, resume: bool) -> None:
+        self.out, self.config, self.cfg, self.budget = out, config, cfg, budget
+        self.scenario = config.scenario
+        self.normalize = isinstance(cfg, PPOConfig) and cfg.normalize_observations
+        self.state: dict[str, Any] = {}
+        self.generators: dict[str, Any] = {}
+        if resume:
+            self.model, self.env, self.state, self.generators = _load_checkpoint(
+                _complete_checkpoint(out), config.algo, out / "tb"
+            )
+            _truncate_curve(out / "curve.csv", len(self.state.get("returns", [])))
+            if (out / EVALUATIONS_FILE).exists():
+                _truncate_curve(out / EVALUATIONS_FILE, self.state.get("evaluations", 0))
+        else:
+            self._start()
+        self.state.setdefault("wall_clock_s", 0.0)
+        self.started = time.monotonic()
+
+    def _start(self) -> None:
+        cfg, seed, scenario, out = self.cfg, self.config.seed, self.scenario, self.out
+        self.env = make_env(self.normalize, seed, scenario, cfg)
         (out / "config.json").write_text(
-            json.dumps({**vars(run_config), "provenance": provenance(), "machine": machine()}, indent=2)
+            json.dumps({**vars(self.config), "provenance": provenance(), "machine": machine()}, indent=2)
         )
         with (out / "curve.csv").open("w", newline="") as f:
             csv.writer(f).writerow(CURVE_FIELDS)
-        model = build_model(algo, cfg, env, seed, out / "tb")
+        self.model = build_model(self.config.algo, cfg, self.env, seed, out / "tb")
+        model = self.model
         if isinstance(model, OffPolicyAlgorithm) and not isinstance(cfg, PPOConfig) and cfg.demonstrations:
             seed_replay_buffer(model, cfg.demonstrations, cfg.demonstration_noise, seed, scenario, cfg)
         if isinstance(model, PPO) and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
-            warm_start(model, env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed, scenario, cfg)
-    state.setdefault("wall_clock_s", 0.0)
-    started = time.monotonic()
+            warm_start(
+                model, self.env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed, scenario, cfg
+            )
 
-    def save() -> None:
-        _save_checkpoint(
-            out, model, env, {**state, "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started}
-        )
+    def wall_clock_s(self) -> float:
+        return float(self.state["wall_clock_s"]) + time.monotonic() - self.started
 
-    def validate() -> tuple[float, float]:
+    def save(self) -> None:
+        _save_checkpoint(self.out, self.model, self.env, {**self.state, "wall_clock_s": self.wall_clock_s()})
+
+    def validate(self) -> tuple[float, float]:
         report = evaluate(
-            _policy_of(model, env),
-            budget.eval_episodes,
+            _policy_of(self.model, self.env),
+            self.budget.eval_episodes,
             VALIDATION_SEED,
             "validation",
-            env_id=SCENARIOS[scenario].env_id,
-            env_kwargs=env_kwargs(cfg),
+            env_id=SCENARIOS[self.scenario].env_id,
+            env_kwargs=env_kwargs(self.cfg),
         )
         return report.success_rate, report.mean_return
 
-    def save_model(name: str) -> None:
+    def save_model(self, name: str) -> None:
         """The model as ``name``.zip, stamped, with its normalisation statistics as ``name``_vecnormalize."""
-        model.save(out / f"{name}.zip")
+        out = self.out
+        self.model.save(out / f"{name}.zip")
         stamp_model(
             out / f"{name}.zip",
-            normalization_of(env) if normalize else None,
-            scenario,
-            len(SCENARIOS[scenario].observation),
+            normalization_of(self.env) if self.normalize else None,
+            self.scenario,
+            len(SCENARIOS[self.scenario].observation),
         )
-        if normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
-            save_normalization(env, out / f"{name}_vecnormalize.npz")
-            env.save(str(out / f"{name}_vecnormalize.pkl"))  # type: ignore[attr-defined]
+        if self.normalize:  # .npz for embedrl (safe to open), .pkl for SB3's VecNormalize.load
+            save_normalization(self.env, out / f"{name}_vecnormalize.npz")
+            self.env.save(str(out / f"{name}_vecnormalize.pkl"))  # type: ignore[attr-defined]
 
-    if not resume and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
-        save_model(WARM_START_MODEL)  # behaviour cloning alone, before any PPO update
-    monitor = RunMonitor(out, budget, state, save, validate, progress, lambda: save_model(BEST_MODEL))
-    remaining = budget.max_steps - int(state.get("steps", 0))
-    if resume:
-        _restore_random(generators, model)  # last: loading the model drew from them
-    if remaining > 0:
-        model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
-    monitor.checkpoint()
-    save_model(LAST_MODEL)
-    best = state.get("best")
-    selected = BEST_MODEL if budget.select_best and best is not None else LAST_MODEL
-    shutil.copyfile(out / f"{selected}.zip", out / "model.zip")
-    for suffix in (".npz", ".pkl"):
-        if normalize:
-            shutil.copyfile(out / f"{selected}_vecnormalize{suffix}", out / f"vecnormalize{suffix}")
-    summary = {
-        "algo": algo,
-        "scenario": scenario,
-        "preset": preset_name,
-        "seed": seed,
-        "criterion_reached": state.get("criterion_step") is not None,
-        "episodes_to_criterion": state.get("criterion_episode"),
-        "steps_to_criterion": state.get("criterion_step"),
-        "first_deterministic_criterion_step": state.get("first_deterministic_criterion_step"),
-        "validation_target": budget.target_success,
-        "validation_target_step": state.get("target_step"),
-        "selected": "best validation" if selected == BEST_MODEL else "last",
-        "best_validation": best,
-        "total_steps": int(model.num_timesteps),
-        "total_episodes": len(monitor.returns),
-        "average50_at_stop": float(np.mean(monitor.returns[-STOP_WINDOW:])) if monitor.returns else None,
-        "warmup_episodes": _episodes_within(out / "curve.csv", _warmup_steps(cfg)),
-        "demonstration_episodes": _demonstration_episodes(cfg),
-        "updates": int(getattr(model, "_n_updates", 0)),
-        "wall_clock_s": state["wall_clock_s"] + time.monotonic() - started,
-    }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    from embedrl.train.plots import plot_progress, plot_successes
+    def finish(self, returns: list[float]) -> dict[str, Any]:
+        """Save the last model, select the run's model (best validated or last), write summary.json and
+        the plots; the summary."""
+        out, state, config = self.out, self.state, self.config
+        self.save_model(LAST_MODEL)
+        best = state.get("best")
+        selected = BEST_MODEL if self.budget.select_best and best is not None else LAST_MODEL
+        shutil.copyfile(out / f"{selected}.zip", out / "model.zip")
+        for suffix in (".npz", ".pkl"):
+            if self.normalize:
+                shutil.copyfile(out / f"{selected}_vecnormalize{suffix}", out / f"vecnormalize{suffix}")
+        summary = {
+            "algo": config.algo,
+            "scenario": self.scenario,
+            "preset": config.preset,
+            "seed": config.seed,
+            "criterion_reached": state.get("criterion_step") is not None,
+            "episodes_to_criterion": state.get("criterion_episode"),
+            "steps_to_criterion": state.get("criterion_step"),
+            "first_deterministic_criterion_step": state.get("first_deterministic_criterion_step"),
+            "validation_target": self.budget.target_success,
+            "validation_target_step": state.get("target_step"),
+            "selected": "best validation" if selected == BEST_MODEL else "last",
+            "best_validation": best,
+            "total_steps": int(self.model.num_timesteps),
+            "total_episodes": len(returns),
+            "average50_at_stop": float(np.mean(returns[-STOP_WINDOW:])) if returns else None,
+            "warmup_episodes": _episodes_within(out / "curve.csv", _warmup_steps(self.cfg)),
+            "demonstration_episodes": _demonstration_episodes(self.cfg),
+            "updates": int(getattr(self.model, "_n_updates", 0)),
+            "wall_clock_s": self.wall_clock_s(),
+        }
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        from embedrl.train.plots import plot_progress, plot_successes
 
-    title = f"{algo.upper()} ({scenario}, {preset_name}, seed {seed})"
-    plot_progress(out / "curve.csv", out / "progress.png", title)
-    plot_successes(out / "curve.csv", out / EVALUATIONS_FILE, out / "successes.png", title)
-    env.close()
-    return summary
+        title = f"{config.algo.upper()} ({self.scenario}, {config.preset}, seed {config.seed})"
+        plot_progress(out / "curve.csv", out / "progress.png", title)
+        plot_successes(out / "curve.csv", out / EVALUATIONS_FILE, out / "successes.png", title)
+        self.env.close()
+        return summary
 
 
 def read_run_config(out: Path) -> dict[str, Any]:
