@@ -1,10 +1,10 @@
 """Where a policy's actions can go: interval bounds through the graph, and a clamp when they can leave
 the action space.
 
-Every element-wise op here is monotone in its runtime input for a fixed constant operand (increasing or,
-for a negative factor, decreasing), so its output interval is spanned by its reference at the interval's
-two ends. Matrix products with constant weights are bounded row by row. An op with two runtime operands
-gives up (unbounded), which is the safe answer. The bounds start from the observation space's.
+Each op gives its own interval rule (:meth:`Emitter.bounds <embedrl.export.ops.base.Emitter.bounds>`): a
+monotone op from its reference at the interval's two ends, a matrix product row by row, any other op
+unbounded. An op with two runtime operands gives up (unbounded), which is the safe answer. The bounds start
+from the observation space's.
 
 A policy whose bounds leave the action space (an ONNX from elsewhere without tanh or clip at its end,
 for example) gets ``Max(low)`` and ``Min(high)`` appended to its ONNX, so the exported graph, its C and
@@ -17,33 +17,13 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
-from embedrl.export.ir import Graph, Node
+from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.base import Interval
 
-Interval = tuple[np.ndarray, np.ndarray]
 SLACK = 1e-6
 """Relative slack when comparing bounds with the action space (float32 rounding of affine rescaling)."""
 CLAMP_LOW, CLAMP_HIGH = "embedrl_action_low", "embedrl_action_high"
-
-
-def _matmul(node: Node, x: Interval, graph: Graph) -> Interval:
-    w = graph.constants[node.inputs[1]].astype(np.float64)
-    if node.op == "Gemm" and int(node.attr("transB", 0)):
-        w = w.T
-    lo, hi = (v.reshape(-1, 1) for v in x)
-    with np.errstate(invalid="ignore"):
-        a, b = np.where(w == 0, 0.0, lo * w), np.where(w == 0, 0.0, hi * w)
-    out_lo, out_hi = np.minimum(a, b).sum(axis=0), np.maximum(a, b).sum(axis=0)
-    if node.op == "Gemm":
-        alpha, beta = float(node.attr("alpha", 1.0)), float(node.attr("beta", 1.0))
-        out_lo, out_hi = (
-            np.minimum(alpha * out_lo, alpha * out_hi),
-            np.maximum(alpha * out_lo, alpha * out_hi),
-        )
-        if len(node.inputs) > 2 and node.inputs[2]:
-            c = beta * graph.constants[node.inputs[2]].astype(np.float64).reshape(-1)
-            out_lo, out_hi = out_lo + c, out_hi + c
-    return out_lo, out_hi
 
 
 def action_bounds(graph: Graph, obs_low: np.ndarray, obs_high: np.ndarray) -> Interval:
@@ -56,22 +36,11 @@ def action_bounds(graph: Graph, obs_low: np.ndarray, obs_high: np.ndarray) -> In
     }
     for node in graph.nodes:
         runtime = [i for i in node.inputs[1:] if i and i not in graph.constants]
-        x = values[node.inputs[0]]
-        if node.op in ("Gemm", "MatMul"):
-            out = _matmul(node, x, graph)
-        elif runtime:
-            size = graph.shapes[node.outputs[0]]
-            n = int(np.prod(size))
-            out = (np.full(n, -np.inf), np.full(n, np.inf))
+        size = int(np.prod(graph.shapes[node.outputs[0]]))
+        if runtime:  # two runtime operands: no interval rule here
+            out = (np.full(size, -np.inf), np.full(size, np.inf))
         else:
-            emitter = EMITTERS[node.op]
-            ends = [
-                emitter.reference(node, [end.reshape(1, -1)] + [
-                    graph.constants[i].astype(np.float64).reshape(-1) for i in node.inputs[1:] if i
-                ], graph.constants, "float64").reshape(-1)
-                for end in x
-            ]  # fmt: skip
-            out = (np.minimum(*ends), np.maximum(*ends))
+            out = EMITTERS[node.op].bounds(node, values[node.inputs[0]], graph.constants, size)
         lo, hi = out
         bad = np.isnan(lo) | np.isnan(hi)
         values[node.outputs[0]] = (np.where(bad, -np.inf, lo), np.where(bad, np.inf, hi))

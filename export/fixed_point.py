@@ -26,6 +26,7 @@ import numpy as np
 from embedrl.export import interpret
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import Graph, Node
+from embedrl.export.ops import EMITTERS
 
 F = np.float32
 Q_MAX = 32767
@@ -106,7 +107,7 @@ def _consumers(graph: Graph, value: str) -> list[Node]:
 
 def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
     """Find the Gemm chain, calibrate its scales on ``calibration`` observations, quantise it."""
-    gemms = [i for i, n in enumerate(graph.nodes) if n.op in ("Gemm", "MatMul")]
+    gemms = [i for i, n in enumerate(graph.nodes) if EMITTERS[n.op].linear]
     if not gemms:
         raise UnsupportedOpError("--quantize q15 needs at least one Gemm or MatMul")
     first, last = gemms[0], gemms[-1]
@@ -122,8 +123,8 @@ def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
             )
     inner = graph.nodes[first : last + 1]
     for i, node in enumerate(inner):
-        if node.op in ("Gemm", "MatMul"):
-            if i and inner[i - 1].op not in ("Relu", "Gemm", "MatMul"):
+        if EMITTERS[node.op].linear:
+            if i and not (inner[i - 1].op == "Relu" or EMITTERS[inner[i - 1].op].linear):
                 raise UnsupportedOpError(f"q15 layers may only be joined by Relu, found {inner[i - 1].op}")
         elif node.op != "Relu":
             raise UnsupportedOpError(
@@ -138,21 +139,15 @@ def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
     frac = in_frac
     nodes = [n for n in inner if n.op != "Relu"]
     for j, node in enumerate(nodes):
-        b = graph.constants[node.inputs[1]].astype(np.float64)
-        w = (b.T if node.op == "Gemm" and node.attr("transB", 0) else b).T  # output-major [N][K]
-        if node.op == "Gemm" and (
-            float(node.attr("alpha", 1.0)) != 1.0 or float(node.attr("beta", 1.0)) != 1.0
-        ):
+        affine = EMITTERS[node.op].affine(node, graph.constants)
+        if affine.alpha != 1.0 or affine.beta != 1.0:
             raise UnsupportedOpError(f"Gemm node '{node.name}': alpha/beta != 1 are not supported with q15")
+        w = affine.weights  # output-major [N][K]
         w_frac = np.array(
             [_frac_for(float(np.max(np.abs(row))) * 1.0 / HEADROOM) for row in w], dtype=np.int64
         )
         w_q = np.clip(np.rint(w * np.ldexp(1.0, w_frac)[:, None]), -Q_MAX, Q_MAX).astype(np.int16)
-        bias = np.zeros(w.shape[0])
-        if node.op == "Gemm" and len(node.inputs) > 2 and node.inputs[2]:
-            bias = np.broadcast_to(
-                graph.constants[node.inputs[2]].astype(np.float64).reshape(-1), (w.shape[0],)
-            )
+        bias = np.zeros(w.shape[0]) if affine.bias is None else affine.bias
         bias_acc = np.rint(bias * np.ldexp(1.0, frac + w_frac)).astype(np.int64)
         consumers = _consumers(graph, node.outputs[0])
         relu = bool(consumers) and consumers[0].op == "Relu" and j < len(nodes) - 1

@@ -9,6 +9,7 @@ calibration (``float64``) and for the exact model of quantised C (``int8``).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
 import numpy as np
@@ -21,6 +22,20 @@ PRECISIONS = ("float64", "int8")
 """``float64``: the op's mathematical meaning (calibration); ``int8``: bit for bit what the generated
 ``--quantize int8`` C computes (float32 operations in the C's order, deterministic helpers)."""
 F = np.float32
+Interval = tuple[np.ndarray, np.ndarray]
+"""Lower and upper bounds of every element of a value (float64)."""
+
+
+@dataclass(frozen=True)
+class Affine:
+    """A matrix product with constant weights: ``y = alpha * (weights @ x) + beta * bias``."""
+
+    weights: np.ndarray
+    """float64, output-major [N, K]."""
+    bias: np.ndarray | None
+    """float64 [N] (a scalar bias broadcast), or None."""
+    alpha: float = 1.0
+    beta: float = 1.0
 
 
 class EmitContext(Protocol):
@@ -107,6 +122,28 @@ class Emitter:
 
     quantizable: ClassVar[bool] = True
     """Whether ``--quantize int8`` code and its ``int8`` reference exist for this op."""
+    monotone: ClassVar[bool] = False
+    """Whether each output element is monotone in its runtime input for fixed constant operands (then its
+    interval is spanned by the reference at the input interval's two ends); otherwise :meth:`bounds` gives
+    up unless the op overrides it."""
+    linear: ClassVar[bool] = False
+    """A matrix product with constant weights, described by :meth:`affine` (q15 layers, interval bounds)."""
+
+    def affine(self, node: Node, constants: Mapping[str, np.ndarray]) -> Affine:
+        """The op as weights, bias and scales (linear ops only)."""
+        raise _fail(node, "is not a matrix product")
+
+    def bounds(self, node: Node, x: Interval, constants: Mapping[str, np.ndarray], size: int) -> Interval:
+        """Bounds of the output (``size`` elements) for a runtime input within ``x`` and constant other
+        operands: monotone ops from their reference at both ends, others unbounded (the safe answer)."""
+        if not self.monotone:
+            return np.full(size, -np.inf), np.full(size, np.inf)
+        operands = [constants[i].astype(np.float64).reshape(-1) for i in node.inputs[1:] if i]
+        ends = [
+            self.reference(node, [end.reshape(1, -1), *operands], constants, "float64").reshape(-1)
+            for end in x
+        ]
+        return np.minimum(*ends), np.maximum(*ends)
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         """C statements computing ``node.outputs[0]`` (``n`` elements)."""

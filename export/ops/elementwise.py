@@ -15,6 +15,7 @@ from embedrl.export.ops.deterministic import sigmoid_det, tanh_det
 
 
 class Unary(Emitter):
+    monotone = True  # every unary op here is increasing (Clip, Relu, ...) in its input
     in_place = True
     expression = "{x}"
     """C expression of one element ``{x}``; ``{alpha}`` etc. come from attributes."""
@@ -147,6 +148,7 @@ class Clip(Unary):
 
 
 class Binary(Emitter):
+    monotone = True  # with one operand constant: increasing, or decreasing for a negative factor/divisor
     min_inputs = max_inputs = 2
     in_place = True
     operator = "+"

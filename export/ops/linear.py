@@ -16,7 +16,7 @@ import numpy as np
 
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import AttrValue, Node
-from embedrl.export.ops.base import EmitContext, Emitter, F, Shape, _fail
+from embedrl.export.ops.base import Affine, EmitContext, Emitter, F, Interval, Shape, _fail
 
 INT8_MAX = 127
 
@@ -92,7 +92,28 @@ def _quantized_lines(
     ]
 
 
-class Gemm(Emitter):
+class Linear(Emitter):
+    """A matrix product with constant weights: its interval bounds come from :meth:`affine`, row by row."""
+
+    linear = True
+
+    def bounds(self, node: Node, x: Interval, constants: Mapping[str, np.ndarray], size: int) -> Interval:
+        a = self.affine(node, constants)
+        w = a.weights.T  # [K, N]
+        lo, hi = (v.reshape(-1, 1) for v in x)
+        with np.errstate(invalid="ignore"):
+            p, q = np.where(w == 0, 0.0, lo * w), np.where(w == 0, 0.0, hi * w)
+        out_lo, out_hi = np.minimum(p, q).sum(axis=0), np.maximum(p, q).sum(axis=0)
+        out_lo, out_hi = (
+            np.minimum(a.alpha * out_lo, a.alpha * out_hi),
+            np.maximum(a.alpha * out_lo, a.alpha * out_hi),
+        )
+        if a.bias is not None:
+            out_lo, out_hi = out_lo + a.beta * a.bias, out_hi + a.beta * a.bias
+        return out_lo, out_hi
+
+
+class Gemm(Linear):
     """``Y = alpha * A @ op(B) + beta * C`` with A a runtime [1, K] row and B, C constants."""
 
     attrs: ClassVar[Mapping[str, AttrValue]] = {"alpha": 1.0, "beta": 1.0, "transA": 0, "transB": 0}
@@ -122,6 +143,16 @@ class Gemm(Emitter):
             if constants[c_name].size not in (1, n):
                 raise _fail(node, f"C must have 1 or {n} elements, got shape {list(constants[c_name].shape)}")
         return (1, int(n))
+
+    def affine(self, node: Node, constants: Mapping[str, np.ndarray]) -> Affine:
+        b = constants[node.inputs[1]].astype(np.float64)
+        weights = b if int(node.attr("transB", 0)) else b.T
+        bias = None
+        if len(node.inputs) > 2 and node.inputs[2]:
+            bias = np.broadcast_to(
+                constants[node.inputs[2]].astype(np.float64).reshape(-1), (weights.shape[0],)
+            )
+        return Affine(weights, bias, float(node.attr("alpha", 1.0)), float(node.attr("beta", 1.0)))
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         b = ctx.constant(node.inputs[1])
@@ -176,7 +207,7 @@ class Gemm(Emitter):
         return int8_layer(inputs[0], w, c)
 
 
-class MatMul(Emitter):
+class MatMul(Linear):
     """``Y = A @ B`` with A a runtime [1, K] row (or [K] vector) and B a constant [K, N]."""
 
     min_inputs = max_inputs = 2
@@ -191,6 +222,9 @@ class MatMul(Emitter):
         if b.ndim != 2 or b.shape[0] != a[-1]:
             raise _fail(node, f"B must have shape [{a[-1]}, N], got {list(b.shape)}")
         return (*a[:-1], int(b.shape[1]))
+
+    def affine(self, node: Node, constants: Mapping[str, np.ndarray]) -> Affine:
+        return Affine(constants[node.inputs[1]].astype(np.float64).T, None)
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         b = ctx.constant(node.inputs[1])

@@ -14,6 +14,11 @@ import pytest
 from onnx import helper
 from onnx.reference import ReferenceEvaluator
 
+from embedrl.export import interpret
+from embedrl.export.bounds import action_bounds
+from embedrl.export.onnx_import import to_ir
+from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.elementwise import Relu
 from tests.export.helpers import compile_model, make_model
 
 F = np.float32
@@ -154,3 +159,30 @@ def test_the_non_finite_guard_holds_under_fast_math(tmp_path: Path) -> None:
         [sys.executable, "-c", FAST_MATH_CHECK, str(tmp_path)], cwd=repo, capture_output=True, text=True
     )
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stdout + done.stderr
+
+
+def test_every_registered_op_has_a_test_case() -> None:
+    tested = {node.op_type for nodes, _, _ in CASES.values() for node in nodes}
+    assert tested == set(EMITTERS), f"ops without a case: {sorted(set(EMITTERS) - tested)}"
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_interval_bounds_hold_every_output_of_every_op(case: str) -> None:
+    """Each op's own interval rule (monotone ends, matrix rows, or unbounded) contains what it computes."""
+    nodes, inits, out_dim = CASES[case]
+    graph = to_ir(make_model(nodes, inits, N, out_dim))
+    low, high = np.full(N, -3.0), np.full(N, 2.0)
+    lo, hi = action_bounds(graph, low, high)
+    x = RNG.uniform(low, high, size=(500, N))
+    x[:2] = low, high
+    y = interpret.run(graph, x, "float64")[graph.output]
+    assert np.all(y >= lo - 1e-9) and np.all(y <= hi + 1e-9)
+
+
+def test_an_op_that_is_not_monotone_is_not_bounded_by_its_ends() -> None:
+    class Square(Relu):  # x^2: the ends of [-1, 1] both give 1, yet 0 is inside
+        monotone = False
+
+    node = to_ir(make_model([mk("Relu", ["x"], ["y"])], {}, N, N)).nodes[0]
+    lo, hi = Square().bounds(node, (np.full(N, -1.0), np.full(N, 1.0)), {}, N)
+    assert np.all(lo == -np.inf) and np.all(hi == np.inf)
