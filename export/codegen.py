@@ -234,37 +234,8 @@ def _section_lines(section: FixedSection, ctx: _Context) -> tuple[list[str], lis
         "}",
     ]
     for j, layer in enumerate(section.layers):
-        n_out, k_in = layer.weights.shape
-        src = qbufs[j % 2]
-        w = ctx.const(
-            f"{layer.name}#q15", layer.weights, f"{layer.name} weights, int16, output-major [{n_out}][{k_in}]"
-        )
-        b = ctx.const(
-            f"{layer.name}#q15bias", layer.bias, f"{layer.name} bias in accumulator units [{n_out}]"
-        )
-        lines += [
-            f"/* {layer.name}: [{k_in}] -> [{n_out}]{' + ReLU' if layer.relu else ''} */",
-            f"for (int n = 0; n < {n_out}; ++n) {{",
-            f"    int64_t acc = {b}[n];",
-            f"    for (int k = 0; k < {k_in}; ++k) {{",
-            f"        acc += (int32_t){src}[k] * (int32_t){w}[n][k];",
-            "    }",
-        ]
-        if layer.out_frac is None:
-            s = ctx.const(
-                f"{layer.name}#q15scale", layer.out_scale(), f"{layer.name} output scales [{n_out}]"
-            )
-            lines += [f"    {out_ref}[n] = (float)acc * {s}[n];", "}"]
-        else:
-            sh = ctx.const(f"{layer.name}#q15shift", layer.shifts().astype(np.uint8), f"{layer.name} shifts")
-            dst = qbufs[(j + 1) % 2]
-            clamp = "r > 32767 ? 32767 : (r < " + ("0 ? 0" if layer.relu else "-32767 ? -32767") + " : r)"
-            lines += [
-                f"    const int sh = {sh}[n];",
-                "    const int64_t r = (acc + ((int64_t)1 << (sh - 1))) >> sh; /* round, arithmetic shift */",
-                f"    {dst}[n] = (int16_t)({clamp});",
-                "}",
-            ]
+        last = j == len(section.layers) - 1
+        lines += layer.c_lines(ctx, qbufs[j % 2], out_ref if last else qbufs[(j + 1) % 2])
     return lines, decls
 
 

@@ -27,55 +27,13 @@ from embedrl.export import interpret
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import Graph, Node
 from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.linear import Q15_MAX as Q_MAX
+from embedrl.export.ops.linear import Q15Layer
 
 F = np.float32
-Q_MAX = 32767
 HEADROOM = 1.5
 """Calibrated activation ranges are widened by this factor before choosing the scale."""
 MAX_FRAC = 24
-PREFIX_OPS = frozenset({"Sub", "Add", "Mul", "Div", "Clip", "Identity", "Flatten", "Reshape", "Max", "Min"})
-SUFFIX_OPS = frozenset(
-    {
-        "Tanh",
-        "Sigmoid",
-        "Relu",
-        "Add",
-        "Sub",
-        "Mul",
-        "Div",
-        "Clip",
-        "Max",
-        "Min",
-        "Identity",
-        "Flatten",
-        "Reshape",
-    }
-)
-
-
-@dataclass(frozen=True)
-class FixedLayer:
-    """One Gemm in fixed point."""
-
-    name: str
-    weights: np.ndarray
-    """int16 [N][K], output-major."""
-    bias: np.ndarray
-    """int64 [N], in accumulator units (in_frac + w_frac[n] fractional bits)."""
-    w_frac: np.ndarray
-    """Fractional bits of each output channel's weights [N]."""
-    in_frac: int
-    out_frac: int | None
-    """Fractional bits of the int16 output; None for the last layer, whose output is float."""
-    relu: bool
-
-    def shifts(self) -> np.ndarray:
-        assert self.out_frac is not None
-        return (self.in_frac + self.w_frac - self.out_frac).astype(np.int64)
-
-    def out_scale(self) -> np.ndarray:
-        """Last layer: float32 factor 2^-(in_frac + w_frac[n]) turning the accumulator into the output."""
-        return np.ldexp(F(1.0), -(self.in_frac + self.w_frac).astype(np.int32)).astype(F)
 
 
 @dataclass(frozen=True)
@@ -85,7 +43,7 @@ class FixedSection:
     input: str
     output: str
     in_frac: int
-    layers: tuple[FixedLayer, ...]
+    layers: tuple[Q15Layer, ...]
     nodes: frozenset[str]
     """Names of the IR nodes the section replaces."""
     first_node: str
@@ -112,12 +70,12 @@ def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
         raise UnsupportedOpError("--quantize q15 needs at least one Gemm or MatMul")
     first, last = gemms[0], gemms[-1]
     for node in graph.nodes[:first]:
-        if node.op not in PREFIX_OPS:
+        if "before" not in EMITTERS[node.op].q15_float:
             raise UnsupportedOpError(
                 f"{node.op} node '{node.name}' before the first layer is not supported with q15"
             )
     for node in graph.nodes[last + 1 :]:
-        if node.op not in SUFFIX_OPS:
+        if "after" not in EMITTERS[node.op].q15_float:
             raise UnsupportedOpError(
                 f"{node.op} node '{node.name}' after the last layer is not supported with q15"
             )
@@ -156,7 +114,7 @@ def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
             out_frac = min(_frac_for(float(np.max(np.abs(values[out_value])))), frac + int(w_frac.min()) - 1)
         else:
             out_frac = None
-        layers.append(FixedLayer(node.name, w_q, bias_acc, w_frac, frac, out_frac, relu))
+        layers.append(Q15Layer(node.name, w_q, bias_acc, w_frac, frac, out_frac, relu))
         frac = out_frac if out_frac is not None else frac
     return FixedSection(
         section_input,
@@ -178,12 +136,6 @@ def quantize_input(x: np.ndarray, frac: int) -> np.ndarray:
 def run(section: FixedSection, x: np.ndarray) -> np.ndarray:
     """The section on a batch of float32 inputs: int64 model, float32 output."""
     q = quantize_input(x, section.in_frac)
-    for layer in section.layers:
-        acc = q @ layer.weights.astype(np.int64).T + layer.bias
-        if layer.out_frac is None:
-            return np.asarray(acc.astype(F) * layer.out_scale(), dtype=F)
-        s = layer.shifts()
-        r = (acc + (np.int64(1) << (s - 1))) >> s
-        r = np.clip(r, -Q_MAX, Q_MAX)
-        q = np.maximum(r, 0) if layer.relu else r
-    raise AssertionError("a section ends with a float layer")
+    for layer in section.layers[:-1]:
+        q = layer.reference(q)
+    return np.asarray(section.layers[-1].reference(q), dtype=F)

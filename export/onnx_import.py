@@ -24,7 +24,6 @@ from embedrl.export.ops import EMITTERS
 
 MIN_OPSET = 13
 """Oldest default-domain opset accepted (Clip bounds as inputs, Softplus/Gemm semantics fixed)."""
-_COMMUTATIVE = frozenset({"Add", "Mul", "Max", "Min"})
 
 
 @dataclass(frozen=True)
@@ -278,12 +277,7 @@ def to_ir(model: onnx.ModelProto) -> Graph:
         for i in ins:
             if i and i not in shapes:
                 raise UnsupportedOpError(f"node '{name}': input '{i}' is not produced before it is used")
-        if (
-            proto.op_type in _COMMUTATIVE
-            and len(ins) == 2
-            and ins[0] in constants
-            and ins[1] not in constants
-        ):
+        if emitter.commutative and len(ins) == 2 and ins[0] in constants and ins[1] not in constants:
             ins = (ins[1], ins[0])
         node = Node(proto.op_type, name, ins, tuple(proto.output), {k: v for k, v in attrs.items()})  # type: ignore[misc]
         shapes[node.outputs[0]] = emitter.check(node, shapes, constants)

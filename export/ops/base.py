@@ -127,6 +127,11 @@ class Emitter:
     interval is spanned by the reference at the input interval's two ends); otherwise :meth:`bounds` gives
     up unless the op overrides it."""
     linear: ClassVar[bool] = False
+    commutative: ClassVar[bool] = False
+    """Whether the two operands may swap (the importer puts a constant first operand second)."""
+    q15_float: ClassVar[frozenset[str]] = frozenset()
+    """Where the op may run in float32 around a q15 section: "before" (input normalisation), "after"
+    (action post-processing)."""
     """A matrix product with constant weights, described by :meth:`affine` (q15 layers, interval bounds)."""
 
     def affine(self, node: Node, constants: Mapping[str, np.ndarray]) -> Affine:

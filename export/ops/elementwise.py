@@ -50,6 +50,7 @@ class Unary(Emitter):
 
 
 class Relu(Unary):
+    q15_float = frozenset({"after"})  # action post-processing after a q15 section
     expression = "{x} > 0.0f ? {x} : 0.0f"
 
     def exact(self, node: Node, x: np.ndarray) -> np.ndarray:
@@ -74,6 +75,7 @@ class LeakyRelu(Unary):
 
 
 class Tanh(Unary):
+    q15_float = frozenset({"after"})  # action post-processing after a q15 section
     expression = "tanhf({x})"
     helper = "tanh_det"
 
@@ -85,6 +87,7 @@ class Tanh(Unary):
 
 
 class Sigmoid(Unary):
+    q15_float = frozenset({"after"})  # action post-processing after a q15 section
     expression = "1.0f / (1.0f + expf(-{x}))"
     helper = "sigmoid_det"
 
@@ -106,6 +109,8 @@ class Softplus(Unary):
 
 class Clip(Unary):
     """Clip with optional constant scalar ``min`` and ``max`` inputs (opset >= 11)."""
+
+    q15_float = frozenset({"before", "after"})  # normalisation and post-processing around q15
 
     max_inputs = 3
 
@@ -149,6 +154,7 @@ class Clip(Unary):
 
 class Binary(Emitter):
     monotone = True  # with one operand constant: increasing, or decreasing for a negative factor/divisor
+    q15_float = frozenset({"before", "after"})  # normalisation and post-processing around q15
     min_inputs = max_inputs = 2
     in_place = True
     operator = "+"
@@ -195,6 +201,7 @@ class Binary(Emitter):
 
 
 class Add(Binary):
+    commutative = True
     operator = "+"
     numpy = np.add
 
@@ -205,6 +212,7 @@ class Sub(Binary):
 
 
 class Mul(Binary):
+    commutative = True
     operator = "*"
     numpy = np.multiply
 
@@ -215,10 +223,12 @@ class Div(Binary):
 
 
 class Max(Binary):
+    commutative = True
     function = "fmaxf"
     numpy = np.fmax
 
 
 class Min(Binary):
+    commutative = True
     function = "fminf"
     numpy = np.fmin

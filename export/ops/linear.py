@@ -10,6 +10,7 @@ level. ``--quantize int8``: each weight column (one output) is scaled symmetrica
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -92,8 +93,77 @@ def _quantized_lines(
     ]
 
 
+@dataclass(frozen=True)
+class Q15Layer:
+    """One Gemm or MatMul in 16-bit fixed point (planned by :func:`embedrl.export.fixed_point.plan`): its
+    integer model (:meth:`reference`) and its C (:meth:`c_lines`), bit for bit the same arithmetic."""
+
+    name: str
+    weights: np.ndarray
+    """int16 [N][K], output-major."""
+    bias: np.ndarray
+    """int64 [N], in accumulator units (in_frac + w_frac[n] fractional bits)."""
+    w_frac: np.ndarray
+    """Fractional bits of each output channel's weights [N]."""
+    in_frac: int
+    out_frac: int | None
+    """Fractional bits of the int16 output; None for the last layer, whose output is float."""
+    relu: bool
+
+    def shifts(self) -> np.ndarray:
+        assert self.out_frac is not None
+        return (self.in_frac + self.w_frac - self.out_frac).astype(np.int64)
+
+    def out_scale(self) -> np.ndarray:
+        """Last layer: float32 factor 2^-(in_frac + w_frac[n]) turning the accumulator into the output."""
+        return np.ldexp(F(1.0), -(self.in_frac + self.w_frac).astype(np.int32)).astype(F)
+
+    def reference(self, q: np.ndarray) -> np.ndarray:
+        """The layer on a batch of int16 inputs (as int64): int16 outputs (as int64), or float32 for the last
+        layer."""
+        acc = q @ self.weights.astype(np.int64).T + self.bias
+        if self.out_frac is None:
+            return np.asarray(acc.astype(F) * self.out_scale(), dtype=F)
+        s = self.shifts()
+        r = np.clip((acc + (np.int64(1) << (s - 1))) >> s, -Q15_MAX, Q15_MAX)
+        return np.maximum(r, 0) if self.relu else r
+
+    def c_lines(self, ctx: EmitContext, src: str, dst: str) -> list[str]:
+        """C reading the int16 array ``src`` and writing ``dst`` (int16, or the float output if last)."""
+        n_out, k_in = self.weights.shape
+        w = ctx.const(
+            f"{self.name}#q15", self.weights, f"{self.name} weights, int16, output-major [{n_out}][{k_in}]"
+        )
+        b = ctx.const(f"{self.name}#q15bias", self.bias, f"{self.name} bias in accumulator units [{n_out}]")
+        lines = [
+            f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''} */",
+            f"for (int n = 0; n < {n_out}; ++n) {{",
+            f"    int64_t acc = {b}[n];",
+            f"    for (int k = 0; k < {k_in}; ++k) {{",
+            f"        acc += (int32_t){src}[k] * (int32_t){w}[n][k];",
+            "    }",
+        ]
+        if self.out_frac is None:
+            s = ctx.const(f"{self.name}#q15scale", self.out_scale(), f"{self.name} output scales [{n_out}]")
+            return [*lines, f"    {dst}[n] = (float)acc * {s}[n];", "}"]
+        sh = ctx.const(f"{self.name}#q15shift", self.shifts().astype(np.uint8), f"{self.name} shifts")
+        clamp = "r > 32767 ? 32767 : (r < " + ("0 ? 0" if self.relu else "-32767 ? -32767") + " : r)"
+        return [
+            *lines,
+            f"    const int sh = {sh}[n];",
+            "    const int64_t r = (acc + ((int64_t)1 << (sh - 1))) >> sh; /* round, arithmetic shift */",
+            f"    {dst}[n] = (int16_t)({clamp});",
+            "}",
+        ]
+
+
+Q15_MAX = 32767
+"""int16 activations and weights are kept within +-Q15_MAX (symmetric)."""
+
+
 class Linear(Emitter):
-    """A matrix product with constant weights: its interval bounds come from :meth:`affine`, row by row."""
+    """A matrix product with constant weights: its interval bounds come from :meth:`affine`, row by row;
+    in q15 it runs as a :class:`Q15Layer`."""
 
     linear = True
 

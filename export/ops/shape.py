@@ -14,6 +14,7 @@ from embedrl.export.ops.base import EmitContext, Emitter, Shape, _fail, _size
 
 class Alias(Emitter):
     monotone = True  # the same data
+    q15_float = frozenset({"before", "after"})  # normalisation and post-processing around q15
     """An op whose output is its input's data: no code, and the reference passes the values on."""
 
     alias = True
