@@ -126,7 +126,7 @@ class Q15Layer:
             return np.asarray(acc.astype(F) * self.out_scale(), dtype=F)
         s = self.shifts()
         r = np.clip((acc + (np.int64(1) << (s - 1))) >> s, -Q15_MAX, Q15_MAX)
-        return np.maximum(r, 0) if self.relu else r
+        return np.asarray(np.maximum(r, 0) if self.relu else r)
 
     def c_lines(self, ctx: EmitContext, src: str, dst: str) -> list[str]:
         """C reading the int16 array ``src`` and writing ``dst`` (int16, or the float output if last)."""
