@@ -11,6 +11,7 @@ from typing import Any
 from embedrl.common import parse_json, table
 from embedrl.export.errors import ExportError
 from embedrl.train.arguments import add_model_file_arguments, add_scenario_argument
+from embedrl.train.scenarios import DEFAULT_SCENARIO
 
 
 def _safe_action(text: str) -> tuple[float, ...]:
@@ -88,7 +89,7 @@ def _env_id(args: argparse.Namespace) -> str:
 
     if args.env is not None and args.scenario is not None:
         raise ExportError("give --env or --scenario, not both")
-    return args.env or SCENARIOS[args.scenario or "static"].env_id
+    return args.env or SCENARIOS[args.scenario or DEFAULT_SCENARIO].env_id
 
 
 def cmd_export(args: argparse.Namespace) -> int:

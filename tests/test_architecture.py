@@ -8,6 +8,7 @@ so the graph holds every file of ``train/``, ``export/`` and ``hil/``.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -129,3 +130,20 @@ def _long_functions(path: Path) -> list[str]:
 @pytest.mark.parametrize("folder", ["train", "export", "hil", "embedrl"])
 def test_no_function_is_longer_than_80_lines(folder: str) -> None:
     assert [f for path in sorted((REPO / folder).rglob("*.py")) for f in _long_functions(path)] == []
+
+
+SCENARIO_NAME = re.compile(r"""["'](static|moving-shelf|two-robots)["']""")
+
+
+@pytest.mark.parametrize("folder", ["train", "export", "hil", "embedrl"])
+def test_scenario_names_are_typed_only_in_their_specs(folder: str) -> None:
+    """Code names a scenario through its spec (``TWO_ROBOTS.name``, ``DEFAULT_SCENARIO``), so the spec
+    module is the one place a scenario's name is written."""
+    typed = [
+        f"{path.relative_to(REPO)}:{n + 1}"
+        for path in sorted((REPO / folder).rglob("*.py"))
+        if path != REPO / "train" / "scenarios.py"
+        for n, line in enumerate(path.read_text().splitlines())
+        if SCENARIO_NAME.search(line.split("#")[0])
+    ]
+    assert typed == []

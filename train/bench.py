@@ -20,6 +20,7 @@ import numpy as np
 from embedrl.common import BENCH_TEST_SEED, provenance, write_json
 from embedrl.train.config import Budget
 from embedrl.train.evaluate import REPORT_KEYS, evaluate
+from embedrl.train.scenarios import DEFAULT_SCENARIO, MOVING_SHELF, STATIC, TWO_ROBOTS
 
 BOOTSTRAP_SAMPLES = 2000
 
@@ -57,8 +58,8 @@ STUDY = {
 reward" is the training average at the stop, not an evaluation."""
 
 STUDY_BY_SCENARIO: dict[str, dict[str, dict[str, Any]]] = {
-    "static": STUDY,
-    "moving-shelf": {
+    STATIC.name: STUDY,
+    MOVING_SHELF.name: {
         "ddpg": {
             "episodes": "80,000+ (never)",
             "outcomes": "184 / 16 / 0",
@@ -66,7 +67,7 @@ STUDY_BY_SCENARIO: dict[str, dict[str, dict[str, Any]]] = {
             "reliability": 92.0,
         },
     },
-    "two-robots": {
+    TWO_ROBOTS.name: {
         "ddpg": {
             "episodes": "never (+20: peaks of 96 and 83 successes, then 0; +5: never learned)",
             "outcomes": "unstable, then collapse",
@@ -193,7 +194,7 @@ def run_bench(
     eval_episodes: int,
     workers: int,
     seed_offset: int = 0,
-    scenario: str = "static",
+    scenario: str = DEFAULT_SCENARIO,
     overrides: tuple[str, ...] = (),
 ) -> str:
     """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm on ``scenario``; the table,

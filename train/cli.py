@@ -13,12 +13,13 @@ from typing import Any
 
 from embedrl.train.arguments import PORTABLE_HELP, add_model_file_arguments, add_scenario_argument
 from embedrl.train.errors import TrainError, UsageError
+from embedrl.train.scenarios import DEFAULT_SCENARIO, TWO_ROBOTS
 
 CONTROLLERS = ("potential-field",)
 """Built-in scripted controllers, usable wherever a policy is expected."""
 
 
-def _controller(name: str, scenario: str = "static"):  # type: ignore[no-untyped-def]
+def _controller(name: str, scenario: str = DEFAULT_SCENARIO):  # type: ignore[no-untyped-def]
     from embedrl.train.potential_field import PotentialFieldController
 
     if name == "potential-field":
@@ -107,7 +108,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
     policy = _policy(args)
-    extra = {"partner": policy} if args.scenario == "two-robots" else {}  # one policy drives both robots
+    extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
     env = gym.make(_env_id(args), render_mode="rgb_array", **extra)
     obs, info = env.reset(seed=args.seed)
     frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]
@@ -143,7 +144,7 @@ def cmd_bench_env(args: argparse.Namespace) -> int:
 
 TRAIN_DEFAULTS: dict[str, Any] = {
     "algo": "td3",
-    "scenario": "static",
+    "scenario": DEFAULT_SCENARIO,
     "preset": "tuned",
     "seed": 0,
     "max_steps": 300_000,
@@ -179,7 +180,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             raise UsageError(f"{args.resume} was trained with --portable: resume it with --portable")
         own = {
             "algo": saved["algo"],
-            "scenario": saved.get("scenario", "static"),
+            "scenario": saved.get("scenario", DEFAULT_SCENARIO),
             "preset": saved["preset"],
             "seed": saved["seed"],
             **{

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from embedrl.train.scenarios import SCENARIOS
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, STATIC
 
 ALGOS = ("ddpg", "td3", "sac", "ppo")
 PRESETS = ("thesis", "tuned")
@@ -182,7 +182,7 @@ class RunConfig:
     algo: str
     preset: str
     seed: int
-    scenario: str = "static"
+    scenario: str = DEFAULT_SCENARIO
     hyperparameters: dict[str, Any] = field(default_factory=dict)
     budget: dict[str, Any] = field(default_factory=dict)
     overrides: list[str] = field(default_factory=list)
@@ -192,7 +192,7 @@ class RunConfig:
 SCENARIO_NAMES = tuple(SCENARIOS)
 
 
-def preset(algo: str, name: str, scenario: str = "static") -> AlgoConfig:
+def preset(algo: str, name: str, scenario: str = DEFAULT_SCENARIO) -> AlgoConfig:
     """The named preset of an algorithm in a scenario.
 
     In the moving-shelf and two-robot scenarios ``thesis`` trains on the study's potential-field reward
@@ -202,7 +202,7 @@ def preset(algo: str, name: str, scenario: str = "static") -> AlgoConfig:
     if scenario not in SCENARIO_NAMES:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIO_NAMES)}")
     config = _preset(algo, name)
-    if name == "thesis" and scenario != "static":
+    if name == "thesis" and scenario != STATIC.name:
         config = replace(config, reward="potential-field")
     return config
 

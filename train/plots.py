@@ -22,10 +22,10 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
 
     The moving-shelf scenario draws the fixed map and the band the moving shelf sweeps; two robots draw
     the second robot's path dashed."""
-    from embedrl.train.scenarios import MOVING_SHELF
+    from embedrl.train.scenarios import has_moving_shelf
 
     fig, ax = plt.subplots(figsize=(9, 4.8))
-    moving = report.env_id == MOVING_SHELF.env_id
+    moving = has_moving_shelf(report.env_id)
     for rect in layout.FIXED_OBSTACLES if moving else layout.OBSTACLES:
         colour = "saddlebrown" if rect in layout.SHELVES else "dimgray"
         ax.add_patch(Rectangle((rect.x0, rect.y0), rect.x1 - rect.x0, rect.y1 - rect.y0, color=colour))
@@ -146,15 +146,17 @@ def plot_reward_field(scenario: str, path: Path) -> None:
 
     from embedrl.train import rewards
     from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
+    from embedrl.train.scenarios import OTHER_ROBOT_FIELDS, SCENARIOS, field_indices, has_moving_shelf
 
+    moving = has_moving_shelf(SCENARIOS[scenario].env_id)
     obstacles: tuple[layout.Rect, ...] = layout.OBSTACLES
     others: list[tuple[float, float, float]] = []
     note = "static map"
-    if scenario == "moving-shelf":
+    if moving:
         cx, y0, vx = EXAMPLE_SHELF
         obstacles = (*layout.FIXED_OBSTACLES, layout.moving_shelf(cx, y0))
         note = f"moving shelf at x = {cx} m, moving at {vx} m/s (the contours move with it)"
-    elif scenario == "two-robots":
+    elif field_indices(SCENARIOS[scenario], OTHER_ROBOT_FIELDS) is not None:
         others = [EXAMPLE_OTHER_ROBOT]
         note = f"other robot at ({EXAMPLE_OTHER_ROBOT[0]}, {EXAMPLE_OTHER_ROBOT[1]}) m"
     v = layout.VIEW
@@ -173,7 +175,7 @@ def plot_reward_field(scenario: str, path: Path) -> None:
         ax.add_patch(
             Rectangle((rect.x0, rect.y0), rect.x1 - rect.x0, rect.y1 - rect.y0, fill=False, ec="white", lw=1)
         )
-    if scenario == "moving-shelf":
+    if moving:
         cx, y0, vx = EXAMPLE_SHELF
         ax.annotate(
             "",

@@ -28,10 +28,14 @@ import numpy as np
 
 from embedrl.train import layout
 from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
-from embedrl.train.scenarios import SCENARIOS
+from embedrl.train.scenarios import (
+    DEFAULT_SCENARIO,
+    OTHER_ROBOT_FIELDS,
+    SCENARIOS,
+    SHELF_FIELDS,
+    field_indices,
+)
 
-SCENARIO_OBSERVATIONS = {name: len(spec.observation) for name, spec in SCENARIOS.items()}
-"""How many values each scenario's controller reads."""
 _AISLE_END = layout.UPPER_SHELF_WIDTH / 2
 """|x| beyond which the robot is beside the shelves, not in the aisle between them [m]."""
 
@@ -91,12 +95,15 @@ class PotentialFieldController:
     ``scenario`` says what the observation holds beyond the first six values (see the module).
     """
 
-    def __init__(self, gains: PotentialFieldGains | None = None, scenario: str = "static") -> None:
-        if scenario not in SCENARIO_OBSERVATIONS:
-            raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIO_OBSERVATIONS)}")
+    def __init__(self, gains: PotentialFieldGains | None = None, scenario: str = DEFAULT_SCENARIO) -> None:
+        if scenario not in SCENARIOS:
+            raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
         self.gains = gains or PotentialFieldGains()
         self.scenario = scenario
-        self._fixed = layout.FIXED_OBSTACLES if scenario == "moving-shelf" else layout.OBSTACLES
+        spec = SCENARIOS[scenario]  # which terms apply follows from what the scenario observes
+        self._shelf = field_indices(spec, SHELF_FIELDS)
+        self._other = field_indices(spec, OTHER_ROBOT_FIELDS)
+        self._fixed = layout.FIXED_OBSTACLES if self._shelf else layout.OBSTACLES
 
     def attraction(self, x: float, y: float, wait: bool = False) -> tuple[float, float]:
         """Negative gradient of the attractive potential: a unit vector (or zero at the goal).
@@ -189,10 +196,11 @@ class PotentialFieldController:
         x, y, s, c, v, w = (float(o) for o in obs[:6])
         shelf = other = None
         wait = False
-        if self.scenario == "moving-shelf":
-            shelf = (x + float(obs[6]), y + float(obs[7]), float(obs[8]))
-        elif self.scenario == "two-robots" and float(obs[11]) > 0.5:
-            other = (x + float(obs[6]), y + float(obs[7]))
+        if self._shelf is not None:
+            dx, dy, vx = self._shelf
+            shelf = (x + float(obs[dx]), y + float(obs[dy]), float(obs[vx]))
+        elif self._other is not None and float(obs[self._other[2]]) > 0.5:
+            other = (x + float(obs[self._other[0]]), y + float(obs[self._other[1]]))
             wait = self.yields(x, y, *other)
         fx, fy = self.direction(x + g.lookahead * v * c, y + g.lookahead * v * s, shelf, other, wait)
         error = math.atan2(fy, fx) - math.atan2(s, c)

@@ -107,6 +107,25 @@ SUMMARIES = {
 """One line per scenario, for help texts and plot titles (a test ties the keys to :data:`SCENARIOS`)."""
 
 
+SHELF_FIELDS = tuple(f.name for f in _SHELF_FIELDS)
+"""A scenario whose observation has these fields has the moving shelf (the controller and the plots read
+them by name, in this order: dx, dy, vx)."""
+OTHER_ROBOT_FIELDS = ("other_dx", "other_dy", "other_present")
+"""A scenario whose observation has these fields has a second robot, driven by its own copy of the policy."""
+
+
+def field_indices(spec: Interface, names: tuple[str, ...]) -> tuple[int, ...] | None:
+    """Where ``names`` sit in the spec's observation, or None if any is missing."""
+    index = {f.name: i for i, f in enumerate(spec.observation)}
+    return tuple(index[n] for n in names) if all(n in index for n in names) else None
+
+
+def has_moving_shelf(env_id: str) -> bool:
+    """Whether the scenario of ``env_id`` has the moving shelf (False for an env without a spec)."""
+    spec = BY_ENV_ID.get(env_id)
+    return spec is not None and field_indices(spec, SHELF_FIELDS) is not None
+
+
 def scenario_help() -> str:
     """The scenarios as a command's help lists them: name, observation size and what happens."""
     return "; ".join(

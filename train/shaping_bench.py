@@ -22,6 +22,7 @@ import numpy as np
 
 from embedrl.common import atomic_write, provenance, write_json
 from embedrl.train.bench import Job, run_jobs
+from embedrl.train.scenarios import DEFAULT_SCENARIO
 from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
 
 REWARD_VARIANTS = ("thesis", "shaped")
@@ -177,7 +178,17 @@ def _train_all(
             for seed in seed_list:
                 run = out / "runs" / f"{algo}-{reward}-seed{seed}"
                 jobs.append(
-                    (algo, preset, seed, str(run), max_steps, eval_episodes, "static", changes, "study")
+                    (
+                        algo,
+                        preset,
+                        seed,
+                        str(run),
+                        max_steps,
+                        eval_episodes,
+                        DEFAULT_SCENARIO,
+                        changes,
+                        "study",
+                    )
                 )
     results = run_jobs(jobs, workers)
     runs = []

@@ -17,7 +17,7 @@ from pathlib import Path
 from embedrl.common import SHIP_TEST_SEED, provenance
 from embedrl.train.evaluate import evaluate
 from embedrl.train.models import load_model_policy
-from embedrl.train.scenarios import SCENARIOS
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS
 
 POLICIES = Path(__file__).resolve().parents[1] / "policies"
 SHIP_EPISODES = 200
@@ -26,7 +26,7 @@ MIN_SUCCESS = 0.95
 
 def ship(run: Path, name: str) -> dict[str, object]:
     config = json.loads((run / "config.json").read_text())
-    scenario = config.get("scenario", "static")
+    scenario = config.get("scenario", DEFAULT_SCENARIO)
     target_dir = POLICIES / scenario
     report = evaluate(
         load_model_policy(run / "model.zip"),

@@ -64,7 +64,7 @@ from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
 from embedrl.train.portable import machine
 from embedrl.train.rewards import SHAPING_GAIN, SUCCESS_BONUS, check_options
-from embedrl.train.scenarios import SCENARIOS
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TWO_ROBOTS
 from embedrl.train.study_agents import (
     SeparateRatesDDPG,
     SoftplusActorCriticPolicy,
@@ -92,11 +92,11 @@ CHECKPOINT_FILES = ("model.zip", "env.pkl", "random.pkl", "state.json")
 """What every checkpoint holds (plus replay_buffer.pkl for DDPG, TD3 and SAC); state.json is written last."""
 
 
-def make_env(normalize: bool, seed: int, scenario: str = "static", cfg: Any = None) -> VecEnv:
+def make_env(normalize: bool, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: Any = None) -> VecEnv:
     """The training env of a scenario: one Monitor-ed env, or one slot per robot for two robots."""
     kwargs = env_kwargs(cfg)
     env: VecEnv
-    if scenario == "two-robots":
+    if scenario == TWO_ROBOTS.name:
         from embedrl.train.shared_policy import SharedPolicyVecEnv
         from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 
@@ -214,7 +214,7 @@ def _demonstration_steps(
     controller = PotentialFieldController(scenario=scenario)
     rng = np.random.default_rng(seed)
     first = DEMONSTRATION_SEED + 1000 * seed
-    if scenario == "two-robots":
+    if scenario == TWO_ROBOTS.name:
         venv = make_env(False, first, scenario, cfg)
         obs = np.asarray(venv.reset())
         finished = 0
@@ -251,7 +251,7 @@ def seed_replay_buffer(
     episodes: int,
     noise: float,
     seed: int,
-    scenario: str = "static",
+    scenario: str = DEFAULT_SCENARIO,
     cfg: Any = None,
 ) -> int:
     """Put the scenario's potential-field episodes (noisy actions) into the replay buffer; return the
@@ -267,7 +267,7 @@ def seed_replay_buffer(
 
 
 def _demonstrations(
-    episodes: int, noise: float, seed: int, scenario: str = "static", cfg: Any = None
+    episodes: int, noise: float, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: Any = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Observations visited with noisy potential-field actions, labelled with its clean actions."""
     observations: list[np.ndarray] = []
@@ -280,7 +280,13 @@ def _demonstrations(
 
 
 def warm_start(
-    model: PPO, env: VecEnv, episodes: int, epochs: int, seed: int, scenario: str = "static", cfg: Any = None
+    model: PPO,
+    env: VecEnv,
+    episodes: int,
+    epochs: int,
+    seed: int,
+    scenario: str = DEFAULT_SCENARIO,
+    cfg: Any = None,
 ) -> float:
     """Behaviour-clone the potential-field controller into PPO's policy mean; return the final loss."""
     obs, labels = _demonstrations(episodes, 0.2, seed, scenario, cfg)
@@ -460,7 +466,7 @@ def train(
     resume: bool = False,
     progress: bool = False,
     overrides: Sequence[str] = (),
-    scenario: str = "static",
+    scenario: str = DEFAULT_SCENARIO,
 ) -> dict[str, Any]:
     """Train one agent into ``out`` (or continue the run there) on a scenario; return its summary.
 
@@ -476,7 +482,7 @@ def train(
         _extend_budget(out, saved, budget)
         algo, preset_name, seed = saved["algo"], saved["preset"], saved["seed"]
         overrides = saved.get("overrides", [])
-        scenario = saved.get("scenario", "static")
+        scenario = saved.get("scenario", DEFAULT_SCENARIO)
     elif out.exists() and any(out.iterdir()):
         raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
     try:

@@ -312,7 +312,7 @@ class TwoRobotsPartnerView(gym.Env[np.ndarray, np.ndarray]):
         if partner is None:
             from embedrl.train.potential_field import PotentialFieldController
 
-            partner = PotentialFieldController(scenario="two-robots")
+            partner = PotentialFieldController(scenario=TWO_ROBOTS.name)
         self.partner = partner
         self.observation_space = self.parallel.observation_space(AGENTS[0])
         self.action_space = self.parallel.action_space(AGENTS[0])
