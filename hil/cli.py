@@ -112,10 +112,18 @@ def register(sub: Any) -> None:
     )
     r.add_argument(
         "--node",
-        choices=("c", "python"),
+        choices=("c", "firmware", "python"),
         default="c",
-        help="c: the compiled node over SocketCAN vcan0 (the verdict); python: the Python reference node on "
-        "python-can's virtual bus (no kernel, no build: the harness logic only)",
+        help="c: the compiled node over SocketCAN vcan0 (the verdict); firmware: the node as Cortex-M "
+        "firmware on qemu-system-arm, its UART bridged to vcan0 as serial CAN (SLCAN), with instructions "
+        "per step (processor in the loop); python: the Python reference node on python-can's virtual bus "
+        "(no kernel, no build: the harness logic only)",
+    )
+    r.add_argument(
+        "--target",
+        default="cortex-m4",
+        help="the firmware node's core: cortex-m4 (default), cortex-m3 or cortex-m7 "
+        "(runtime_c/cortex_m/targets.mk)",
     )
     r.set_defaults(func=cmd_run)
     d = hil_sub.add_parser(

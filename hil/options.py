@@ -36,7 +36,10 @@ class RunOptions:
     kill_node: tuple[int, int, int] | None = None
     """(node, episode, step): that node's process is killed before that step."""
     node: str = "c"
-    """``c``: the compiled node over SocketCAN; ``python``: the reference node on a virtual bus."""
+    """``c``: the compiled node over SocketCAN; ``firmware``: the Cortex-M image on QEMU, bridged over
+    SLCAN; ``python``: the reference node on a virtual bus."""
+    target: str = "cortex-m4"
+    """The core the firmware node is built for (``node="firmware"``): a name of ``cortex_m/targets.mk``."""
 
     @classmethod
     def of(cls, values: dict[str, Any]) -> RunOptions:

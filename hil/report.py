@@ -25,7 +25,7 @@ SIMULATION = "simulation (onnxruntime)"
 COPIED_KEYS = (
     "steps", "max_action_abs_diff", "first_divergent_step", "frames_tx", "frames_rx", "crc_errors",
     "sequence_errors", "rx_timeouts", "sandbox", "sandbox_detail", "latency_us", "deadline_misses",
-    "jitter_us", "node_status", "node_diag", "retries", "injections", "fault_catalogue", "nodes",
+    "jitter_us", "node_status", "node_diag", "retries", "injections", "fault_catalogue", "nodes", "firmware",
 )  # fmt: skip
 """The session's results that the report carries as they are."""
 
@@ -64,6 +64,10 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
     extra["precision"] = precision_of(options.export_dir)  # what the node's actions were compared with
     extra["two_robots"] = pairs
     extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
+    extra["node"] = options.node
+    firmware = results.get("firmware")
+    extra["target"] = options.target if firmware else None
+    extra["instructions_per_step"] = firmware["instructions_per_step"] if firmware else None
     data = report.to_json(extra)
     for row, e, s in zip(data["per_episode"], results["episodes"], sim_results, strict=True):
         row["fault"] = e["fault"]

@@ -62,7 +62,20 @@ def check(options: RunOptions) -> list[Scheduled]:
             )
         if s.injector.needs_socketcan and options.node == "python":
             raise HilError(f"--inject {s.injector.name} acts on the kernel's CAN interface: use --node c")
+    if options.node == "firmware":
+        _check_firmware(options)
     return schedule
+
+
+def _check_firmware(options: RunOptions) -> None:
+    from embedrl.export.target import TARGETS
+
+    if options.target not in TARGETS:
+        raise HilError(f"--target {options.target}: not a Cortex-M target; use one of {', '.join(TARGETS)}")
+    if options.fd:
+        raise HilError("the firmware node speaks classic CAN over its serial line (SLCAN): drop --fd")
+    if options.nodes > 1:
+        raise HilError("the firmware node runs one robot on one emulated board: drop --nodes")
 
 
 def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
@@ -121,6 +134,8 @@ def _check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
     if options.nodes > 1 and interface.env_id == NO_ENV:
         raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
     if interface.env_id == TWO_ROBOTS.env_id:  # one node per robot
+        if options.node == "firmware":
+            raise HilError("the two-robot scenario needs two nodes; the firmware node runs one: use --node c")
         if options.nodes not in (1, TWO_ROBOT_NODES):
             raise HilError(f"the two-robot scenario runs one node per robot: drop --nodes {options.nodes}")
         options = replace(options, nodes=TWO_ROBOT_NODES)
@@ -214,17 +229,25 @@ def _session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) ->
 def _build_and_run(options: RunOptions, guest: Guest | None, work: Path) -> dict[str, Any]:
     if options.node == "python":
         return _python_session(options, work)
+    if options.node == "c":
+        _make_node(options, work, {"FD": "1"} if options.fd else {})
+    return _guest_session(options, guest, work)
+
+
+def _make_node(options: RunOptions, work: Path, extra: dict[str, str]) -> Path:
+    """``make -C runtime_c node``: the host node, or with ``TARGET`` the firmware image; its path."""
     from embedrl.export import build
     from embedrl.export.errors import BuildError
 
-    print(f"building the node: make -C runtime_c node POLICY_DIR={options.export_dir / 'c'}")
+    target = f" TARGET={extra['TARGET']}" if "TARGET" in extra else ""
+    print(f"building the node: make -C runtime_c{target} node POLICY_DIR={options.export_dir / 'c'}")
     try:
-        build.make(
-            "node", options.export_dir / "c", work / "build", extra={"FD": "1"} if options.fd else None
-        )
+        build.make("node", options.export_dir / "c", work / "build", extra=extra)
     except BuildError as exc:
         raise HilError(str(exc)) from None
-    return _guest_session(options, guest, work)
+    if "TARGET" in extra:
+        return work / "build" / extra["TARGET"] / "node.elf"
+    return work / "build" / "policy_node"
 
 
 def _python_session(options: RunOptions, work: Path) -> dict[str, Any]:
@@ -257,6 +280,8 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
             options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
         )  # fmt: skip
+        if options.node == "firmware":  # its watchdog is fixed in the image: built for this sandbox
+            cfg = _with_firmware(options, cfg, work)
         config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
         job = where.run(
@@ -271,6 +296,16 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
         results["sandbox_detail"] = where.description
         shutil.rmtree(scratch, ignore_errors=True)
     return results
+
+
+def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> SessionConfig:
+    """The firmware image built with the session's watchdog and recovery count, and its board."""
+    from embedrl.export.target import TARGETS
+
+    extra = {"TARGET": options.target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
+             "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
+    elf = _make_node(options, work, extra)
+    return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.target].qemu_machine)
 
 
 def _move_log(written: Path | None, wanted: Path | None) -> None:

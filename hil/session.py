@@ -36,6 +36,7 @@ from embedrl.export.reference import reference_policy
 from embedrl.hil import candb
 from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
+from embedrl.hil.firmware import FirmwareNode, instruction_summary
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode
@@ -64,9 +65,12 @@ class SessionConfig:
     """The export folder: the node's actions are compared with its reference for the export's precision
     (:func:`embedrl.export.reference.reference_policy`); None: with ``onnx`` under onnxruntime."""
     node_binary: str | None = None
-    """The compiled ``policy_node`` (``node="c"``)."""
+    """The compiled ``policy_node`` (``node="c"``), or the firmware image (``node="firmware"``)."""
     node: str = "c"
-    """``c`` (the compiled node, a process) or ``python`` (the reference node, a thread)."""
+    """``c`` (the compiled node, a process), ``firmware`` (the Cortex-M image on QEMU, bridged over SLCAN)
+    or ``python`` (the reference node, a thread)."""
+    qemu_machine: str | None = None
+    """The board that runs the firmware image (``node="firmware"``), e.g. ``mps2-an386``."""
     bus: str = "socketcan"
     """python-can interface: ``socketcan`` or ``virtual``."""
     iface: str = "vcan0"
@@ -430,6 +434,16 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
         )  # fmt: skip
     if cfg.node_binary is None:
         raise ValueError("the C node needs node_binary")
+    if cfg.node == "firmware":
+        if cfg.qemu_machine is None:
+            raise ValueError("the firmware node needs qemu_machine")
+        plan = candb.layout(interface, node_id, cfg.fd)
+        return FirmwareNode(
+            cfg.node_binary, cfg.qemu_machine,
+            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
+            Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
+            [frame_id for _, frame_id, _ in plan.observation],
+        )  # fmt: skip
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
 
 
@@ -578,6 +592,12 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
                 break  # the node is gone: later episodes could only fail the same way
         link.wait_status(0.3)
     results = _results(cfg, stats, episodes, policy.injections, interface.sample_time_s)
+    if isinstance(node, FirmwareNode):
+        results["firmware"] = {
+            "machine": cfg.qemu_machine,
+            "starts": node.starts,
+            "instructions_per_step": instruction_summary(node.step_instructions()),
+        }
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
 

@@ -123,6 +123,14 @@ def summary_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
                 f" / {row['answered_as_expected']}",
             )
         )
+    per_step = data.get("instructions_per_step")
+    if per_step:
+        rows.append(
+            (
+                f"firmware {data['target']}: instructions per step mean / max (frame in -> action out)",
+                f"{per_step['mean']:,.0f} / {per_step['max']:,.0f} over {per_step['steps']} steps",
+            )
+        )
     failures = data["verdict"]["failures"]
     rows.append(("verdict", "PASS" if not failures else "FAIL: " + "; ".join(failures)))
     return rows

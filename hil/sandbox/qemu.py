@@ -27,6 +27,8 @@ KVM_BOOT_TIMEOUT_S = 30.0
 TCG_BOOT_TIMEOUT_S = 300.0
 SETUP = f"""for m in can can-raw vcan; do modprobe "$m" || echo "embedrl: modprobe $m failed"; done
 mkdir -p /dev/shm && (mountpoint -q /dev/shm || mount -t tmpfs tmpfs /dev/shm)
+mkdir -p /dev/pts && (mountpoint -q /dev/pts || mount -t devpts -o ptmxmode=0666 devpts /dev/pts)
+[ -e /dev/ptmx ] || ln -s pts/ptmx /dev/ptmx
 {VCAN_UP}"""
 
 

@@ -72,6 +72,8 @@ class UmlProvider(Provider):
         setup = f"""mount -t proc proc /proc
 mount -t sysfs sys /sys
 mount -t tmpfs tmpfs /dev/shm
+mkdir -p /dev/pts && (mountpoint -q /dev/pts || mount -t devpts -o ptmxmode=0666 devpts /dev/pts)
+[ -e /dev/ptmx ] || ln -s pts/ptmx /dev/ptmx
 M={shlex.quote(str(self.kernel.modules))}/$(uname -r)/kernel
 for m in {modules}; do insmod "$m" || echo "embedrl: insmod $m failed"; done
 {VCAN_UP}"""

@@ -12,7 +12,11 @@ int main(void);
 void Reset_Handler(void);
 void Default_Handler(void);
 
-/* Only the initial stack pointer, reset and the fault handlers: nothing else is enabled. */
+/* The firmware node's UART receive interrupt (transport_uart.c); images without it never enable it. */
+void UART0RX_Handler(void) __attribute__((weak, alias("Default_Handler")));
+
+/* The initial stack pointer, reset, the fault handlers and external interrupt 0 (UART0 receive on the
+ * MPS2 boards); nothing else is enabled. */
 __attribute__((section(".isr_vector"), used)) const uintptr_t vector_table[] = {
     (uintptr_t)_estack,         /* initial stack pointer */
     (uintptr_t)Reset_Handler,   /* reset */
@@ -21,6 +25,13 @@ __attribute__((section(".isr_vector"), used)) const uintptr_t vector_table[] = {
     (uintptr_t)Default_Handler, /* MemManage */
     (uintptr_t)Default_Handler, /* BusFault */
     (uintptr_t)Default_Handler, /* UsageFault */
+    0u, 0u, 0u, 0u,             /* reserved */
+    (uintptr_t)Default_Handler, /* SVCall */
+    (uintptr_t)Default_Handler, /* DebugMonitor */
+    0u,                         /* reserved */
+    (uintptr_t)Default_Handler, /* PendSV */
+    (uintptr_t)Default_Handler, /* SysTick */
+    (uintptr_t)UART0RX_Handler, /* IRQ 0 */
 };
 
 void Default_Handler(void)

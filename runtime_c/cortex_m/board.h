@@ -1,0 +1,48 @@
+/*
+ * The emulated board's peripherals (QEMU's mps2-an385/an386/an500, ARM's MPS2 FPGA images): CMSDK APB
+ * UARTs and timers at their documented addresses, the Cortex-M NVIC. A real part maps its own UART and
+ * timer behind the same functions (transport_uart.c, clock_timer.c): only these addresses change.
+ */
+#ifndef EMBEDRL_BOARD_H
+#define EMBEDRL_BOARD_H
+
+#include <stdint.h>
+
+#define BOARD_REG(addr) (*(volatile uint32_t *)(addr))
+
+#define BOARD_PCLK_HZ 25000000u /* the APB clock of the MPS2 images: UART baud and TIMER0 tick */
+
+/* CMSDK APB UART: DATA, STATE (bit 0 TX full, bit 1 RX full), CTRL (TX, RX, TX irq, RX irq enables),
+ * INTSTATUS (write 1 to clear), BAUDDIV. */
+#define UART0_BASE 0x40004000u /* the CAN link (SLCAN) */
+#define UART1_BASE 0x40005000u /* the diagnostics line (per-step instruction counts) */
+#define UART_DATA(b) BOARD_REG((b) + 0x00u)
+#define UART_STATE(b) BOARD_REG((b) + 0x04u)
+#define UART_CTRL(b) BOARD_REG((b) + 0x08u)
+#define UART_INTSTATUS(b) BOARD_REG((b) + 0x0Cu)
+#define UART_BAUDDIV(b) BOARD_REG((b) + 0x10u)
+#define UART_STATE_TX_FULL 0x1u
+#define UART_STATE_RX_FULL 0x2u
+#define UART_CTRL_TX 0x1u
+#define UART_CTRL_RX 0x2u
+#define UART_CTRL_RX_IRQ 0x8u
+#define UART_INT_RX 0x2u
+#define UART0_RX_IRQ 0u /* NVIC line of UART0's receive interrupt */
+
+/* CMSDK APB timer: a 32-bit down counter at BOARD_PCLK_HZ. */
+#define TIMER0_BASE 0x40000000u
+#define TIMER_CTRL(b) BOARD_REG((b) + 0x00u)
+#define TIMER_VALUE(b) BOARD_REG((b) + 0x04u)
+#define TIMER_RELOAD(b) BOARD_REG((b) + 0x08u)
+#define TIMER_CTRL_ENABLE 0x1u
+
+#define NVIC_ISER0 BOARD_REG(0xE000E100u)
+
+/* Timer ticks since clock_init (free-running, wraps after 2^32 ticks: 171 s at 25 MHz). */
+uint32_t clock_ticks(void);
+void clock_init(void);
+
+/* Write bytes to the diagnostics UART (blocking). */
+void diag_write(const char *text);
+
+#endif /* EMBEDRL_BOARD_H */

@@ -1,0 +1,88 @@
+/*
+ * The policy node as firmware: the same node.c as the host's policy_node, on the board's UART (CAN frames
+ * as SLCAN lines, transport_uart.c) and timer (clock_timer.c). The same loop as node/main.c; the
+ * configuration is fixed at build time (NODE_TIMEOUT_MS, NODE_RECOVER, NODE_ID; make variables).
+ *
+ * Diagnostics line (UART1), one line each:
+ *   READY                       the node runs (after its interface opened)
+ *   S <step> <cycle>            a step answered: timer ticks from its observation's last frame in to its
+ *                               action frame out (under QEMU -icount: instructions, see clock_timer.c)
+ *   X <overflows> <bad_lines>   after each status frame: receive-ring overflows and refused lines
+ */
+#include "board.h"
+#include "node.h"
+#include "transport_uart.h"
+
+#ifndef NODE_TIMEOUT_MS
+#define NODE_TIMEOUT_MS POLICY_IO_WATCHDOG_MS
+#endif
+#ifndef NODE_RECOVER
+#define NODE_RECOVER 3u
+#endif
+#ifndef NODE_ID
+#define NODE_ID 0u
+#endif
+
+#define DECIMAL_DIGITS 11u
+
+static void diag_u32(uint32_t value)
+{
+    char text[DECIMAL_DIGITS + 1u];
+    uint32_t n = DECIMAL_DIGITS;
+    text[n] = '\0';
+    do {
+        text[--n] = (char)('0' + value % 10u);
+        value /= 10u;
+    } while (value != 0u && n > 0u);
+    diag_write(&text[n]);
+}
+
+static void report_step(uint32_t step, uint32_t cycle_ticks)
+{
+    diag_write("S ");
+    diag_u32(step);
+    diag_write(" ");
+    diag_u32(cycle_ticks);
+    diag_write("\n");
+}
+
+int main(void)
+{
+    clock_init();
+    const node_config config = {NODE_TIMEOUT_MS, NODE_RECOVER, POLICY_IO_STATUS_PERIOD_MS, NODE_ID};
+    uint32_t ids[POLICY_IO_OBS_FRAMES];
+    for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
+        ids[k] = POLICY_IO_OBS_FIRST_ID + config.node_id * POLICY_IO_NODE_STRIDE + k;
+    }
+    if (transport_open("uart0", ids, POLICY_IO_OBS_FRAMES, POLICY_IO_FD) != 0) {
+        diag_write("E ");
+        diag_write(transport_error());
+        diag_write("\n");
+        return 1;
+    }
+    static node_t node;
+    node_init(&node, &config, clock_ms());
+    diag_write("READY\n");
+    uint32_t status_counter = node.status_counter;
+    for (;;) {
+        uint32_t wait_ms = node_poll(&node, clock_ms());
+        can_frame_t frame;
+        uint8_t bus_state = 0u;
+        if (transport_recv(&frame, &bus_state, wait_ms) == TRANSPORT_FRAME) {
+            uint32_t answered = node.actions_sent;
+            node_on_frame(&node, &frame, clock_ms());
+            if (node.actions_sent != answered) {
+                uint32_t cycle = clock_ticks() - transport_frame_ticks();
+                report_step(node.last_step, cycle);
+            }
+        }
+        if (node.status_counter != status_counter) {
+            status_counter = node.status_counter;
+            diag_write("X ");
+            diag_u32(transport_overflows());
+            diag_write(" ");
+            diag_u32(transport_bad_lines());
+            diag_write("\n");
+        }
+    }
+}
