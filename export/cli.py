@@ -172,6 +172,15 @@ def _print_summary(report: dict[str, Any]) -> None:
                 f"(stack {t['stack_bytes']} B); test image flash {t['image_flash_bytes']} B",
             )
         )
+        share = t["fraction_of_sample_time"]
+        rows.append(
+            (
+                f"{name} time per inference",
+                f"{t['instructions_per_inference']:,.0f} instructions (measured), "
+                f"~{t['estimated_cycles_per_inference']:,} cycles (model) = {t['estimated_inference_us']:,.0f} us on {t['clock']['part']}"
+                + (f", {100 * share:.2g}% of the sample time" if share is not None else ""),
+            )
+        )
     size = report["code_size"]
     rows.append(("object size", f"text {size['text']} B, data {size['data']} B, bss {size['bss']} B"))
     print(table(rows))

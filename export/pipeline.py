@@ -26,7 +26,7 @@ import onnxruntime as ort
 
 from embedrl import train
 from embedrl.common import provenance
-from embedrl.export import build, fixed_point, quantize, target, verify
+from embedrl.export import build, cycles, fixed_point, quantize, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
@@ -198,9 +198,10 @@ def _verify_target(
     build_dir: Path,
     act_dim: int,
     quantized: str | None,
+    sample_time_s: float | None,
 ) -> dict[str, Any]:
     """Build and run one target's firmware: float actions must match onnxruntime within tolerance,
-    quantised ones the Python model bit for bit."""
+    quantised ones the Python model bit for bit; its instructions and estimated cycles per inference."""
     out = target.build_firmware(t, c_dir, vectors_path, build_dir)
     run = target.run_qemu(t, out / "firmware.elf", len(vectors), act_dim)
     if np.any(run.codes != 0):
@@ -219,9 +220,11 @@ def _verify_target(
         raise VerificationError(
             f"{t.name}: the firmware differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
         )
+    traced = cycles.profile(out / "policy.elf", t.qemu_machine, t.name)
     return {
         "qemu_machine": t.qemu_machine,
         "max_abs_error": err,
+        **cycles.time_on_target(run.instructions_per_inference, traced, t.name, sample_time_s),
         **target.sizes(out, run.stack_bytes),
         "quantize": quantized,
         "bit_exact_with_model": True if quantized else None,
@@ -493,6 +496,7 @@ def _verify(
         targets[name] = _verify_target(
             target.TARGETS[name], generated.c_dir, vectors_path, vectors, expected, built.build_dir,
             lowered.graph.size(lowered.graph.output), opts.quantize,
+            lowered.interface.sample_time_s if lowered.interface else None,
         )  # fmt: skip
     checks["non_finite_observation"] = _safe_on_nan(built.compiled, lowered.graph.size(lowered.graph.input))
     return Verified(checks, targets, _closed_loop(lowered, built, opts, log))

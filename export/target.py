@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from embedrl.export import build
+from embedrl.export import build, cycles
 from embedrl.export.errors import BuildError, ExportError
 from embedrl.export.ops.base import c_float
 
@@ -124,6 +124,8 @@ class TargetRun:
     actions: np.ndarray
     codes: np.ndarray
     stack_bytes: int
+    instructions_per_inference: float
+    """Measured under ``-icount`` (:func:`embedrl.export.cycles.instructions_per_inference`)."""
 
 
 def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> TargetRun:
@@ -137,6 +139,7 @@ def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> Target
         "-monitor",
         "none",
         "-semihosting",
+        *cycles.ICOUNT,  # the timer counts instructions (the image's TICKS line)
         "-kernel",
         str(firmware),
     ]
@@ -161,7 +164,8 @@ def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> Target
         raise ExportError(
             f"{target.name}: the firmware printed {bits.shape[1]} actions per line, expected {act_dim}"
         )
-    return TargetRun(bits.view(np.float32), np.array([int(row[2]) for row in rows]), stack[0])
+    instructions = cycles.instructions_per_inference(lines)
+    return TargetRun(bits.view(np.float32), np.array([int(row[2]) for row in rows]), stack[0], instructions)
 
 
 def sizes(out: Path, stack_bytes: int) -> dict[str, int]:

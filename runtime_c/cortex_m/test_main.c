@@ -4,12 +4,17 @@
  *
  *   STACK <bytes>              peak stack of one policy_step, measured by stack painting
  *   A <index> <code> <hex>...  return code and the action's IEEE-754 bits, one line per observation
+ *   TICKS <policy> <empty> <count>
+ *                              TIMER0 ticks of a loop calling policy_step on every observation, and of the
+ *                              same loop calling a function that does nothing (the loop's own cost);
+ *                              under QEMU -icount shift=0 a tick is 40 instructions (export/cycles.py)
  *   DONE <count>
  */
 #include <stdint.h>
 #include <stdio.h>
 #include <string.h>
 
+#include "board.h"
 #include "policy.h"
 
 #define PAINT 0xA5A5A5A5u
@@ -18,6 +23,22 @@
 extern const unsigned embedrl_test_count;
 extern const float embedrl_test_obs[][POLICY_OBS_DIM];
 extern void initialise_monitor_handles(void);
+
+static int __attribute__((noinline)) no_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
+{
+    __asm__ volatile("" : : "r"(obs), "r"(act) : "memory");
+    return 0;
+}
+
+/* Ticks of one pass over the observations calling step (through a volatile pointer: the same call). */
+static uint32_t timed_pass(int (*volatile step)(const float *, float *), float act[POLICY_ACT_DIM])
+{
+    uint32_t start = TIMER_VALUE(TIMER0_BASE);
+    for (unsigned i = 0; i < embedrl_test_count; ++i) {
+        (void)step(embedrl_test_obs[i], act);
+    }
+    return start - TIMER_VALUE(TIMER0_BASE); /* a down counter */
+}
 
 static uint32_t bits(float f)
 {
@@ -55,6 +76,12 @@ int main(void)
         }
         printf("\n");
     }
+    TIMER_RELOAD(TIMER0_BASE) = 0xFFFFFFFFu;
+    TIMER_VALUE(TIMER0_BASE) = 0xFFFFFFFFu;
+    TIMER_CTRL(TIMER0_BASE) = TIMER_CTRL_ENABLE;
+    uint32_t policy_ticks = timed_pass(policy_step, act);
+    uint32_t empty_ticks = timed_pass(no_step, act);
+    printf("TICKS %lu %lu %u\n", (unsigned long)policy_ticks, (unsigned long)empty_ticks, embedrl_test_count);
     printf("DONE %u\n", embedrl_test_count);
     return 0;
 }
