@@ -177,7 +177,8 @@ def _print_summary(report: dict[str, Any]) -> None:
             (
                 f"{name} time per inference",
                 f"{t['instructions_per_inference']:,.0f} instructions (measured), "
-                f"~{t['estimated_cycles_per_inference']:,} cycles (model) = {t['estimated_inference_us']:,.0f} us on {t['clock']['part']}"
+                f"~{t['estimated_cycles_per_inference']:,} cycles (model) = "
+                f"{t['estimated_inference_us']:,.0f} us on {t['clock']['part']}"
                 + (f", {100 * share:.2g}% of the sample time" if share is not None else ""),
             )
         )
