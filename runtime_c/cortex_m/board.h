@@ -38,9 +38,20 @@
 
 #define NVIC_ISER0 BOARD_REG(0xE000E100u)
 
+/* SysTick (processor clock, 25 MHz on the MPS2 images): a 1 ms interrupt wakes the idle loop's WFI. */
+#define SYST_CSR BOARD_REG(0xE000E010u)
+#define SYST_RVR BOARD_REG(0xE000E014u)
+#define SYST_CVR BOARD_REG(0xE000E018u)
+#define SYST_CSR_ENABLE_TICKINT_CORE 0x7u
+#define BOARD_CPU_HZ 25000000u
+
 /* Timer ticks since clock_init (free-running, wraps after 2^32 ticks: 171 s at 25 MHz). */
 uint32_t clock_ticks(void);
+/* Start the timer and the 1 ms SysTick interrupt. */
 void clock_init(void);
+/* Sleep until the next interrupt (a received byte, or the next millisecond). */
+void clock_idle(void);
+void SysTick_Handler(void);
 
 /* Write bytes to the diagnostics UART (blocking). */
 void diag_write(const char *text);

@@ -14,6 +14,7 @@ void Default_Handler(void);
 
 /* The firmware node's UART receive interrupt (transport_uart.c); images without it never enable it. */
 void UART0RX_Handler(void) __attribute__((weak, alias("Default_Handler")));
+void SysTick_Handler(void) __attribute__((weak, alias("Default_Handler")));
 
 /* The initial stack pointer, reset, the fault handlers and external interrupt 0 (UART0 receive on the
  * MPS2 boards); nothing else is enabled. */
@@ -30,7 +31,7 @@ __attribute__((section(".isr_vector"), used)) const uintptr_t vector_table[] = {
     (uintptr_t)Default_Handler, /* DebugMonitor */
     0u,                         /* reserved */
     (uintptr_t)Default_Handler, /* PendSV */
-    (uintptr_t)Default_Handler, /* SysTick */
+    (uintptr_t)SysTick_Handler, /* SysTick (the firmware node's idle wake-up) */
     (uintptr_t)UART0RX_Handler, /* IRQ 0 */
 };
 

@@ -71,6 +71,8 @@ transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t 
         }
         if (event == SLCAN_REPLY) {
             uart_put(UART0_BASE, reply);
+        } else if (event == SLCAN_NONE) {
+            clock_idle(); /* until a byte arrives or the next millisecond */
         }
     } while ((uint32_t)(clock_ms() - start) < timeout_ms);
     return TRANSPORT_TIMEOUT;
