@@ -1,0 +1,198 @@
+"""Processor in the loop: the CAN node as Cortex-M firmware on QEMU, bridged to the bus over SLCAN.
+
+Fast: the instruction figures' parsing and the cycle model's classes (the serial framing's own unit tests
+are C, in ``make -C runtime_c test``). Slow: the firmware node on the host over python-can's ``slcan``
+interface alone (no kernel CAN), then lock-step episodes through ``vcan0`` in the sandbox on the M4F
+(float32, int8, q15) and the M3, and the node-side fault classes against the firmware.
+"""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import can
+import numpy as np
+import pytest
+
+from embedrl.cli import main
+from embedrl.export import cycles
+from embedrl.export.build import RUNTIME_C
+from embedrl.export.reference import reference_policy
+from embedrl.hil.candb import load_interface
+from embedrl.hil.codec import Action, Codec
+from embedrl.hil.firmware import INSTRUCTIONS_PER_TICK, FirmwareNode, instruction_summary
+from embedrl.hil.sandbox import Guest
+from tests.hil.conftest import SHIPPED_TD3
+from tests.hil.helpers import hil
+
+TOLERANCE = 1e-5
+NODE_FAULTS = ("corrupt", "replay", "delay", "out-of-range", "kill-restart", "replay-fresh", "silent", "loss")
+"""The node-side fault classes (the catalogue's, less those acting on the kernel's interface)."""
+
+
+def test_instruction_figures_come_from_the_timer_lines(tmp_path: Path) -> None:
+    assert cycles.instructions_per_inference(
+        ["STACK 52", "TICKS 298399 64 256", "DONE 256"]
+    ) == pytest.approx((298399 - 64) * 40 / 256)
+    with pytest.raises(Exception, match="TICKS"):
+        cycles.instructions_per_inference(["DONE 256"])
+    node = FirmwareNode.__new__(FirmwareNode)  # the diagnostics files only: no QEMU
+    node.diag, node.starts = tmp_path / "uart1.txt", 2
+    (tmp_path / "uart1-0.txt").write_text("READY\nS 1 1250\nX 0 0\nS 2 1260\ngarbage\n")
+    (tmp_path / "uart1-1.txt").write_text("READY\nS 1 1240\n")
+    assert node.step_instructions() == [1250 * 40.0, 1260 * 40.0, 1240 * 40.0]
+    summary = instruction_summary(node.step_instructions())
+    assert summary is not None and summary["steps"] == 3 and summary["max"] == 1260 * INSTRUCTIONS_PER_TICK
+    assert instruction_summary([]) is None
+
+
+@pytest.mark.parametrize(
+    ("mnemonic", "operands", "cls", "words"),
+    [
+        ("vfma.f32", "s15, s14, s13", "fp_multiply_accumulate", 0),
+        ("vmul.f32", "s15, s14, s13", "fp_alu", 0),
+        ("vldmia", "r3!, {s15}", "load_multiple", 1),
+        ("vpush", "{d8-d9}", "store_multiple", 4),
+        ("ldr.w", "r3, [r2, #4]", "load", 0),
+        ("push", "{r4, r5, r6, lr}", "store_multiple", 4),
+        ("pop", "{r4-r7, pc}", "load_multiple", 5),
+        ("bne.n", "1c4", "branch", 0),
+        ("bic", "r3, r3, #1", "alu", 0),
+        ("umull", "r0, r1, r2, r3", "long_multiply", 0),
+        ("mla", "r0, r1, r2, r3", "multiply_accumulate", 0),
+    ],
+)
+def test_the_cycle_model_classes_instructions_as_the_manual_does(
+    mnemonic: str, operands: str, cls: str, words: int
+) -> None:
+    assert cycles._classify(mnemonic) == cls
+    if words:
+        assert cycles._registers(operands) == words
+
+
+def _firmware(export: Path, target: str, build: Path) -> Path:
+    subprocess.run(
+        ["make", "-s", "-C", str(RUNTIME_C), f"TARGET={target}", "node", f"POLICY_DIR={export / 'c'}",
+         f"BUILD_DIR={build}", f"PYTHON={sys.executable}"],
+        check=True, capture_output=True, text=True,
+    )  # fmt: skip
+    return build / target / "node.elf"
+
+
+@pytest.mark.slow
+def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
+    export_dir: Path, tmp_path: Path
+) -> None:
+    """The host's python-can ``slcan`` interface on the firmware's UART, no bus in between: 20 steps of
+    random observations answered, each within the signals' resolution of the export's reference."""
+    elf = _firmware(export_dir, "cortex-m4", tmp_path)
+    qemu = subprocess.Popen(
+        ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none", "-semihosting", "-serial",
+         "pty", "-serial", f"file:{tmp_path / 'uart1.txt'}", "-icount", "shift=0", "-kernel", str(elf)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert qemu.stdout is not None
+        pty = re.search(r"/dev/pts/\d+", qemu.stdout.readline())
+        assert pty is not None
+        bus = can.Bus(interface="slcan", channel=pty.group(0), sleep_after_open=0)
+        interface = load_interface(export_dir / "interface.json")
+        codec, reference = Codec(interface), reference_policy(export_dir)
+        rng = np.random.default_rng(0)
+        for step in range(1, 21):
+            obs = np.array([rng.uniform(f.low, f.high) for f in interface.observation], np.float32)
+            frames, sent = codec.encode_observation(obs, step)
+            for frame in frames:
+                bus.send(frame)
+            answer = None
+            for _ in range(100):
+                decoded = codec.decode(bus.recv(0.1) or can.Message(arbitration_id=0x7FF))
+                if isinstance(decoded, Action) and decoded.step == step:
+                    answer = decoded
+                    break
+            assert answer is not None, f"step {step} unanswered"
+            np.testing.assert_allclose(
+                answer.action, reference(sent.reshape(1, -1)).reshape(-1), atol=TOLERANCE
+            )
+        bus.shutdown()
+    finally:
+        qemu.kill()
+        qemu.wait()
+    lines = (tmp_path / "uart1.txt").read_text().splitlines()
+    assert lines[0] == "READY" and sum(line.startswith("S ") for line in lines) == 20
+
+
+@pytest.fixture(scope="module")
+def quantized_exports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    exports = {}
+    for precision in ("int8", "q15"):
+        out = tmp_path_factory.mktemp("pil") / precision
+        argv = ["export", str(SHIPPED_TD3), "--out", str(out), "--episodes", "0", "--quantize", precision]
+        assert main(argv) == 0
+        exports[precision] = out
+    return exports
+
+
+@pytest.mark.slow
+def test_three_lock_step_episodes_with_the_firmware_node_on_the_m4f(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    report = hil(
+        guest, export_dir, tmp_path, "--node", "firmware", "--target", "cortex-m4", "--episodes", "3"
+    )
+    assert report["node"] == "firmware" and report["target"] == "cortex-m4"
+    assert report["successes"] == 3 and report["outcomes_differing_from_simulation"] == []
+    assert report["max_action_abs_diff"] <= TOLERANCE
+    per_step = report["instructions_per_step"]
+    assert per_step["steps"] == report["steps"]
+    # the node cycle holds one inference (about 47,000 instructions on the M4F) plus decoding and encoding
+    assert 40_000 < per_step["mean"] < 80_000 and per_step["max"] < 2 * per_step["mean"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("precision", ["int8", "q15"])
+def test_quantized_policies_on_the_firmware_node_match_their_models(
+    guest: Guest, quantized_exports: dict[str, Path], tmp_path: Path, precision: str
+) -> None:
+    report = hil(guest, quantized_exports[precision], tmp_path, "--node", "firmware", "--episodes", "1")
+    assert report["precision"] == precision and report["successes"] == 1
+    assert report["max_action_abs_diff"] <= TOLERANCE  # bit-exact model, then the signals' resolution
+
+
+@pytest.mark.slow
+def test_one_episode_with_the_firmware_node_on_the_m3(guest: Guest, export_dir: Path, tmp_path: Path) -> None:
+    report = hil(
+        guest, export_dir, tmp_path, "--node", "firmware", "--target", "cortex-m3", "--episodes", "1"
+    )
+    assert report["successes"] == 1 and report["max_action_abs_diff"] <= TOLERANCE
+    assert report["instructions_per_step"]["mean"] > 400_000  # software floating point: ~10x the M4F
+
+
+@pytest.mark.slow
+def test_the_node_side_faults_are_detected_on_the_firmware_as_on_the_host_node(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    inject = [a for i, kind in enumerate(NODE_FAULTS) for a in ("--inject", f"{kind}@{i}:3")]
+    argv = ["--node", "firmware", "--episodes", str(len(NODE_FAULTS)), "--allow-faults", *inject]
+    report = hil(guest, export_dir, tmp_path, *argv)
+    assert {r["kind"] for r in report["injections"]} == set(NODE_FAULTS)
+    for record in report["injections"]:
+        assert record["detected"] is not False, record["kind"]
+        assert record["answered_as_expected"], record["kind"]
+
+
+def test_the_firmware_node_refuses_what_it_cannot_do_in_one_line(
+    export_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = ["hil", "run", "--export-dir", str(export_dir), "--node", "firmware"]
+    for extra, message in (
+        (["--target", "cortex-m0"], "not a Cortex-M target"),
+        (["--fd"], "drop --fd"),
+        (["--nodes", "2"], "drop --nodes"),
+    ):
+        assert main([*base, *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1
