@@ -63,6 +63,35 @@ def test_size_report_is_within_the_bounds_for_the_study_actor(study_export: dict
     assert m3["stack_bytes"] > m4["stack_bytes"]
 
 
+def test_time_on_the_target_is_counted_and_the_cycles_follow_the_traced_mix(
+    study_export: dict[str, Any],
+) -> None:
+    macs = 6 * 100 + 100 * 100 + 100 * 2
+    m4, m3 = study_export["targets"]["cortex-m4"], study_export["targets"]["cortex-m3"]
+    for t in (m4, m3):
+        # counted under -icount over 256 inferences: about 4 instructions per multiply-add on the M4F
+        assert 2 * macs < t["instructions_per_inference"]
+        model = t["cycle_model"]
+        assert sum(model["instruction_classes"].values()) == model["traced_instructions"]
+        # the traced inference (the size probe's, on zeros) runs about what the counted ones run (software
+        # floating point takes shortcuts on zeros: the M3's differ by about 5%)
+        assert (
+            abs(model["traced_instructions"] - t["instructions_per_inference"])
+            < 0.1 * t["instructions_per_inference"]
+        )
+        assert t["estimated_cycles_per_inference"] == round(
+            t["instructions_per_inference"] * model["cycles_per_instruction"]
+        )
+        assert 1.0 <= model["cycles_per_instruction"] < 3.0
+        assert t["estimated_inference_us"] == pytest.approx(
+            t["estimated_cycles_per_inference"] / t["clock"]["hz"] * 1e6, rel=1e-3
+        )
+    assert m4["instructions_per_inference"] < 6 * macs  # an FPU: a few instructions per multiply-add
+    assert m3["instructions_per_inference"] > 5 * m4["instructions_per_inference"]  # software floating point
+    assert m4["cycle_model"]["instruction_classes"].get("fp_alu", 0) > macs  # FP instructions did the work
+    assert "fp_alu" not in m3["cycle_model"]["instruction_classes"]
+
+
 def test_a_policy_too_large_for_the_target_is_a_clear_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
