@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup deps apt-packages demo test test-fast lint type format bench export-example targets-example policies clean
+.PHONY: setup deps apt-packages demo test test-fast lint type format bench bench-target export-example targets-example policies clean
 
 setup: $(STAMP)
 
@@ -87,6 +87,19 @@ format: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --json $(OUT)/bench/export.json
+
+# Peer code generators for the target benchmark, in their own environment under tools/ (never a dependency
+# of embedrl): emx-onnx-cgen, pinned.
+EMX := tools/emx/bin/emx-onnx-cgen
+$(EMX):
+	$(PYTHON) -m venv tools/emx
+	tools/emx/bin/pip install --quiet emx-onnx-cgen==1.4.0
+
+# Instructions and estimated cycles per inference on the Cortex-M cores: embedrl's C against emx-onnx-cgen's
+# C of the same shipped policy, both on QEMU in one run.
+bench-target: $(STAMP) $(EMX)
+	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3 --force --episodes 0
+	$(VENV)/bin/embedrl bench-target --export-dir $(OUT)/bench/td3 --emx $(EMX) --json $(OUT)/bench/target.json
 
 # A TD3 with the study's 6-100-100-2 actor trained in a minute by imitating the potential-field controller
 # (independent of the shipped policies), exported with the full verification (10,000 samples, 200 episodes).

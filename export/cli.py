@@ -187,6 +187,35 @@ def _print_summary(report: dict[str, Any]) -> None:
     print(table(rows))
 
 
+def cmd_bench_target(args: argparse.Namespace) -> int:
+    from embedrl.common import table, write_json
+    from embedrl.export import target, target_bench
+
+    unknown = [t for t in args.target if t not in target.TARGETS]
+    if unknown:
+        raise ExportError(f"--target {unknown[0]}: use one of {', '.join(target.TARGETS)}")
+    if not (args.export_dir / "policy.onnx").is_file():
+        raise ExportError(f"{args.export_dir}: no policy.onnx (give an `embedrl export` folder)")
+    report = target_bench.run(args.export_dir, args.target or list(target.TARGETS), args.emx)
+    rows: list[tuple[str, str]] = []
+    for t in report["targets"]:
+        for who in ("embedrl", "emx_onnx_cgen"):
+            f = t[who]
+            rows.append((
+                f"{t['target']} {who}: instructions / est. cycles / flash",
+                f"{f['instructions_per_inference']:,.0f} / {f['estimated_cycles_per_inference']:,} "
+                f"(CPI {f['cycles_per_instruction']}) / {f['flash_bytes']:,} B",
+            ))  # fmt: skip
+        ratios = f"{t['ratio_instructions']}x instructions, {t['ratio_cycles']}x cycles"
+        agree = f"actions agree within {t['max_action_difference']:.2g}"
+        rows.append((f"{t['target']} emx / embedrl", f"{ratios} ({agree})"))
+    print(table(rows))
+    if args.json:
+        write_json(report, args.json)
+        print(f"wrote {args.json}")
+    return 0
+
+
 def cmd_bench_export(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
     from embedrl.export.bench import run
@@ -269,6 +298,17 @@ def register(sub: Any) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_export)
+
+    p = sub.add_parser(
+        "bench-target", help="instructions and cycles per inference on Cortex-M: embedrl vs emx-onnx-cgen"
+    )
+    p.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
+    p.add_argument(
+        "--target", action="append", default=[], help="a Cortex-M target (repeatable; default: every one)"
+    )
+    p.add_argument("--emx", type=Path, default=Path("tools/emx/bin/emx-onnx-cgen"), help="emx-onnx-cgen")
+    p.add_argument("--json", type=Path, help="write the measurement here")
+    p.set_defaults(func=cmd_bench_target)
 
 
 ERRORS: tuple[type[Exception], ...] = (ExportError,)

@@ -173,14 +173,15 @@ def _trace(elf: Path, machine: str) -> list[tuple[int, str]]:
         ]
 
 
-def profile(elf: Path, machine: str, target: str) -> dict[str, Any]:
-    """One inference of the size probe ``elf`` (``policy.elf``: main calls ``policy_step`` once), traced:
-    its instruction classes and the cycles the target's model gives them."""
+def profile(elf: Path, machine: str, target: str, function: str = "policy_step") -> dict[str, Any]:
+    """One inference of the probe ``elf`` (``policy.elf``: main calls ``function`` once), traced from
+    ``function``'s entry to the return into ``main``: its instruction classes and the cycles the target's
+    model gives them."""
     model = CYCLE_MODELS[target]
     trace = _trace(elf, machine)
-    starts = [i for i, (_, fn) in enumerate(trace) if fn == "policy_step"]
+    starts = [i for i, (_, fn) in enumerate(trace) if fn == function]
     if not starts:
-        raise ExportError(f"{elf.name}: policy_step never ran in the trace")
+        raise ExportError(f"{elf.name}: {function} never ran in the trace")
     begin = starts[0]
     end = next((i for i in range(begin, len(trace)) if trace[i][1] == "main"), len(trace))
     code = _disassembly(elf)

@@ -170,7 +170,7 @@ def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> Target
 
 def sizes(out: Path, stack_bytes: int) -> dict[str, int]:
     """Policy flash and RAM (difference of the probe images plus the stack) and the test image's."""
-    policy, empty, image = (_size(out / f"{name}.elf") for name in ("policy", "empty", "firmware"))
+    policy, empty, image = (elf_size(out / f"{name}.elf") for name in ("policy", "empty", "firmware"))
     return {
         "flash_bytes": (policy["text"] + policy["data"]) - (empty["text"] + empty["data"]),
         "ram_bytes": (policy["data"] + policy["bss"]) - (empty["data"] + empty["bss"]) + stack_bytes,
@@ -180,7 +180,8 @@ def sizes(out: Path, stack_bytes: int) -> dict[str, int]:
     }
 
 
-def _size(elf: Path) -> dict[str, int]:
+def elf_size(elf: Path) -> dict[str, int]:
+    """``text``, ``data`` and ``bss`` of an image (arm-none-eabi-size)."""
     out = subprocess.run(["arm-none-eabi-size", str(elf)], capture_output=True, text=True, check=True).stdout
     text, data, bss = (int(v) for v in out.splitlines()[1].split()[:3])
     return {"text": text, "data": data, "bss": bss}

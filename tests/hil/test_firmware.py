@@ -196,3 +196,14 @@ def test_the_firmware_node_refuses_what_it_cannot_do_in_one_line(
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1
+
+
+def test_the_target_benchmark_refuses_without_its_peer_in_one_line(
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["bench-target", "--export-dir", str(export_dir), "--emx", str(tmp_path / "nosuch")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "make bench-target" in err and len(err.splitlines()) == 1
+    assert main(["bench-target", "--export-dir", str(export_dir), "--target", "cortex-m0"]) == 2
+    assert "use one of cortex-m4" in capsys.readouterr().err
