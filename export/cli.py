@@ -291,6 +291,11 @@ def register(sub: Any) -> None:
     )
     p.set_defaults(func=cmd_export)
 
+    _register_benchmarks(sub)
+
+
+def _register_benchmarks(sub: Any) -> None:
+    """``bench-export`` (inference time on this machine) and ``bench-target`` (on the Cortex-M cores)."""
     p = sub.add_parser("bench-export", help="ns per inference: generated C vs onnxruntime vs torch")
     p.add_argument(
         "--export-dir", type=Path, help="an export folder (default: the study's 6-100-100-2 actor)"

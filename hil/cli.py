@@ -126,6 +126,10 @@ def register(sub: Any) -> None:
         "(runtime_c/cortex_m/targets.mk)",
     )
     r.set_defaults(func=cmd_run)
+    _register_doctor(hil_sub)
+
+
+def _register_doctor(hil_sub: Any) -> None:
     d = hil_sub.add_parser(
         "doctor", help="check every CAN sandbox provider on this machine (run this first when HIL fails)"
     )
