@@ -7,6 +7,7 @@ ended so because of the bus, the node or the C, not because of the policy.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -68,6 +69,11 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
     firmware = results.get("firmware")
     extra["target"] = options.target if firmware else None
     extra["instructions_per_step"] = firmware["instructions_per_step"] if firmware else None
+    extra["time_on_target"] = (
+        _time_on_target(options, firmware["instructions_per_step"], interface.sample_time_s)
+        if firmware and firmware["instructions_per_step"]
+        else None
+    )
     data = report.to_json(extra)
     for row, e, s in zip(data["per_episode"], results["episodes"], sim_results, strict=True):
         row["fault"] = e["fault"]
@@ -148,6 +154,30 @@ def _two_robot_simulation(
         "simulation_both_through": sum(r.outcome == "success" for r in pairs),
     }
     return EvalReport.from_results(robot_rows, options.seed, SIMULATION), counts
+
+
+def _time_on_target(options: RunOptions, per_step: dict[str, Any], sample_time_s: float) -> dict[str, Any]:
+    """The node cycle's worst step at the modelled part's clock, with the cycles per instruction of the
+    export's traced inference (:func:`embedrl.export.cycles.cycles_per_instruction`), and the margin to the
+    sample time."""
+    import tempfile
+
+    from embedrl.export import cycles
+
+    with tempfile.TemporaryDirectory(prefix="embedrl-cycles-") as tmp:
+        traced = cycles.cycles_per_instruction(options.export_dir, options.target, Path(tmp))
+    timed = cycles.time_on_target(per_step["max"], traced, options.target, sample_time_s)
+    step_s = timed["estimated_inference_us"] / 1e6
+    return {
+        "worst_step_instructions": per_step["max"],
+        "estimated_cycles": timed["estimated_cycles_per_inference"],
+        "cycles_per_instruction": round(traced["cycles_per_instruction"], 3),
+        "clock": timed["clock"],
+        "estimated_step_us": timed["estimated_inference_us"],
+        "sample_time_s": sample_time_s,
+        "margin_s": round(sample_time_s - step_s, 6),
+        "fraction_of_sample_time": timed["fraction_of_sample_time"],
+    }
 
 
 def _per_node(rows: list[dict[str, Any]], nodes: int, differing: list[int]) -> dict[int, dict[str, Any]]:

@@ -131,6 +131,15 @@ def summary_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
                 f"{per_step['mean']:,.0f} / {per_step['max']:,.0f} over {per_step['steps']} steps",
             )
         )
+    timed = data.get("time_on_target")
+    if timed:
+        rows.append(
+            (
+                f"firmware worst step on {timed['clock']['part']} (est.)",
+                f"{timed['estimated_step_us']:,.0f} us, {100 * timed['fraction_of_sample_time']:.2g}% of the "
+                f"{timed['sample_time_s']} s sample time (margin {timed['margin_s'] * 1000:,.1f} ms)",
+            )
+        )
     failures = data["verdict"]["failures"]
     rows.append(("verdict", "PASS" if not failures else "FAIL: " + "; ".join(failures)))
     return rows

@@ -29,7 +29,9 @@ from tests.hil.conftest import SHIPPED_TD3
 from tests.hil.helpers import hil
 
 TOLERANCE = 1e-5
-NODE_FAULTS = ("corrupt", "replay", "delay", "out-of-range", "kill-restart", "replay-fresh", "silent", "loss")
+NODE_FAULTS = (
+    "corrupt", "replay", "delay", "out-of-range", "kill-restart", "replay-fresh", "silent", "loss", "flood",
+)  # fmt: skip
 """The node-side fault classes (the catalogue's, less those acting on the kernel's interface)."""
 
 
@@ -150,6 +152,11 @@ def test_three_lock_step_episodes_with_the_firmware_node_on_the_m4f(
     assert per_step["steps"] == report["steps"]
     # the node cycle holds one inference (about 47,000 instructions on the M4F) plus decoding and encoding
     assert 40_000 < per_step["mean"] < 80_000 and per_step["max"] < 2 * per_step["mean"]
+    timed = report["time_on_target"]  # the worst step at the modelled part's clock, against the sample time
+    assert timed["clock"]["hz"] == 168_000_000 and timed["worst_step_instructions"] == per_step["max"]
+    assert 1.0 < timed["cycles_per_instruction"] < 3.0
+    assert timed["margin_s"] == pytest.approx(timed["sample_time_s"] - timed["estimated_step_us"] / 1e6, abs=1e-5)
+    assert 0 < timed["fraction_of_sample_time"] < 0.01
 
 
 @pytest.mark.slow
