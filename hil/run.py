@@ -60,8 +60,11 @@ def check(options: RunOptions) -> list[Scheduled]:
             raise HilError(
                 f"--inject {s.injector.name}@{s.episode}:{s.step}: the run has {options.episodes} episode(s)"
             )
-        if s.injector.needs_socketcan and options.node == "python":
-            raise HilError(f"--inject {s.injector.name} acts on the kernel's CAN interface: use --node c")
+        if s.injector.needs_socketcan and options.node != "c":
+            raise HilError(
+                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only the C "
+                "node has: use --node c"
+            )
     if options.node == "firmware":
         _check_firmware(options)
     return schedule

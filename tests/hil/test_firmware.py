@@ -200,6 +200,7 @@ def test_the_firmware_node_refuses_what_it_cannot_do_in_one_line(
         (["--target", "cortex-m0"], "not a Cortex-M target"),
         (["--fd"], "drop --fd"),
         (["--nodes", "2"], "drop --nodes"),
+        (["--inject", "link-down-up", "--allow-faults"], "only the C node has"),
     ):
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err.strip()
