@@ -208,24 +208,6 @@ def profile(elf: Path, machine: str, target: str, function: str = "policy_step")
     }
 
 
-def cycles_per_instruction(export_dir: Path, target: str, work: Path) -> dict[str, Any]:
-    """The traced inference of ``target`` for an export: from its ``export_report.json`` when it was
-    exported with ``--target``, else traced now from the size probe built in ``work``."""
-    from embedrl.common import parse_json
-    from embedrl.export import target as targets
-
-    report = export_dir / "export_report.json"
-    if report.is_file():
-        known = parse_json(report.read_text()).get("targets", {}).get(target)
-        if known and "cycle_model" in known:
-            model: dict[str, Any] = known["cycle_model"]
-            return {k: model[k] for k in ("traced_instructions", "traced_cycles", "cycles_per_instruction",
-                                          "instruction_classes")}  # fmt: skip
-    t = targets.TARGETS[target]
-    out = targets.build_firmware(t, export_dir / "c", export_dir / "test" / "test_vectors.c", work)
-    return profile(out / "policy.elf", t.qemu_machine, target)
-
-
 def time_on_target(
     instructions: float, traced: dict[str, Any], target: str, sample_time_s: float | None
 ) -> dict[str, Any]:

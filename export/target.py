@@ -14,9 +14,11 @@ import shutil
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from embedrl.common import parse_json
 from embedrl.export import build, cycles
 from embedrl.export.errors import BuildError, ExportError
 from embedrl.export.ops.base import c_float
@@ -185,3 +187,18 @@ def elf_size(elf: Path) -> dict[str, int]:
     out = subprocess.run(["arm-none-eabi-size", str(elf)], capture_output=True, text=True, check=True).stdout
     text, data, bss = (int(v) for v in out.splitlines()[1].split()[:3])
     return {"text": text, "data": data, "bss": bss}
+
+
+def cycles_per_instruction(export_dir: Path, target: str, work: Path) -> dict[str, Any]:
+    """The traced inference of ``target`` for an export: from its ``export_report.json`` when it was
+    exported with ``--target``, else traced now from the size probe built in ``work``."""
+    report = export_dir / "export_report.json"
+    if report.is_file():
+        known = parse_json(report.read_text()).get("targets", {}).get(target)
+        if known and "cycle_model" in known:
+            model: dict[str, Any] = known["cycle_model"]
+            return {k: model[k] for k in ("traced_instructions", "traced_cycles", "cycles_per_instruction",
+                                          "instruction_classes")}  # fmt: skip
+    t = TARGETS[target]
+    out = build_firmware(t, export_dir / "c", export_dir / "test" / "test_vectors.c", work)
+    return cycles.profile(out / "policy.elf", t.qemu_machine, target)

@@ -158,14 +158,14 @@ def _two_robot_simulation(
 
 def _time_on_target(options: RunOptions, per_step: dict[str, Any], sample_time_s: float) -> dict[str, Any]:
     """The node cycle's worst step at the modelled part's clock, with the cycles per instruction of the
-    export's traced inference (:func:`embedrl.export.cycles.cycles_per_instruction`), and the margin to the
+    export's traced inference (:func:`embedrl.export.target.cycles_per_instruction`), and the margin to the
     sample time."""
     import tempfile
 
-    from embedrl.export import cycles
+    from embedrl.export import cycles, target
 
     with tempfile.TemporaryDirectory(prefix="embedrl-cycles-") as tmp:
-        traced = cycles.cycles_per_instruction(options.export_dir, options.target, Path(tmp))
+        traced = target.cycles_per_instruction(options.export_dir, options.target, Path(tmp))
     timed = cycles.time_on_target(per_step["max"], traced, options.target, sample_time_s)
     step_s = timed["estimated_inference_us"] / 1e6
     return {

@@ -123,6 +123,15 @@ def summary_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
                 f" / {row['answered_as_expected']}",
             )
         )
+    rows += _firmware_rows(data)
+    failures = data["verdict"]["failures"]
+    rows.append(("verdict", "PASS" if not failures else "FAIL: " + "; ".join(failures)))
+    return rows
+
+
+def _firmware_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
+    """The firmware node's instructions per step and its worst step on the modelled part, when known."""
+    rows: list[tuple[str, str]] = []
     per_step = data.get("instructions_per_step")
     if per_step:
         rows.append(
@@ -140,6 +149,4 @@ def summary_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
                 f"{timed['sample_time_s']} s sample time (margin {timed['margin_s'] * 1000:,.1f} ms)",
             )
         )
-    failures = data["verdict"]["failures"]
-    rows.append(("verdict", "PASS" if not failures else "FAIL: " + "; ".join(failures)))
     return rows
