@@ -229,23 +229,28 @@ class PythonNode(Node):
             diag[name] = min(self.counts.get(camel_to_snake_case(name), 0), 2**bits - 1)
         self._send("NodeDiag", diag)
 
-    def _poll(self, now: float) -> float:
-        """Watchdog and status; the seconds until the next deadline (as ``node_poll``)."""
+    def _check_watchdog(self, now: float) -> None:
+        """No valid observation for the timeout while running -> SAFE (as ``check_watchdog``)."""
         if self.armed and self.state == "RUN" and now - self.last_valid >= self.timeout_s:
             self.counts["timeouts"] += 1
             self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
             self.step_reference = False  # a sender that comes back may have restarted its steps
             self._send_action(self.safe, self.last_step)
             self._send_status()
-        elif self.state == "SAFE" and min(now - self.last_safe, now - self.last_valid) >= self.timeout_s:
+
+    def _poll(self, now: float) -> float:
+        """Watchdog and status; the seconds until the next deadline (as ``node_poll``)."""
+        if self.state == "SAFE" and min(now - self.last_safe, now - self.last_valid) >= self.timeout_s:
             self.last_safe = now
             self._send_action(self.safe, self.last_step)
+        self._check_watchdog(now)  # after the refresh: entering SAFE sends the safe action itself
         if now >= self.next_status:
             self._send_status()
             self.next_status = now + candb.STATUS_PERIOD_MS / 1000
         return max(0.0, min(self.next_status - now, self.timeout_s))
 
     def _on_frame(self, msg: can.Message, now: float) -> None:
+        self._check_watchdog(now)  # a frame handled after the deadline is late, polled or not
         if msg.is_extended_id or msg.arbitration_id not in self.rx or msg.dlc != self.plan.frame_bytes:
             return  # not an observation frame: the C node counts it as rejected
         data = bytes(msg.data)

@@ -145,8 +145,19 @@ static void complete_observation(node_t *node, uint32_t now_ms)
     node->last_step = node->pending_step;
 }
 
+/* The watchdog: no valid observation for the timeout while running -> SAFE. */
+static void check_watchdog(node_t *node, uint32_t now_ms)
+{
+    if (node->armed && node->state == NODE_RUN && now_ms - node->last_valid_ms >= node->config.timeout_ms) {
+        node->timeouts++;
+        enter_safe(node, now_ms);
+    }
+}
+
 void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
 {
+    /* A frame handled after the deadline is late whether or not the poll saw the deadline pass first. */
+    check_watchdog(node, now_ms);
     if (frame->id < node->obs_first_id || frame->id >= node->obs_first_id + POLICY_IO_OBS_FRAMES ||
         frame->len != POLICY_IO_FRAME_BYTES) {
         node->rejected++; /* not ours: another node's frame is never applied */
@@ -200,14 +211,12 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
 
 uint32_t node_poll(node_t *node, uint32_t now_ms)
 {
-    if (node->armed && node->state == NODE_RUN && now_ms - node->last_valid_ms >= node->config.timeout_ms) {
-        node->timeouts++;
-        enter_safe(node, now_ms);
-    } else if (node->state == NODE_SAFE && now_ms - node->last_safe_ms >= node->config.timeout_ms &&
-               now_ms - node->last_valid_ms >= node->config.timeout_ms) {
+    if (node->state == NODE_SAFE && now_ms - node->last_safe_ms >= node->config.timeout_ms &&
+        now_ms - node->last_valid_ms >= node->config.timeout_ms) {
         node->last_safe_ms = now_ms; /* still silent: refresh the safe action */
         send_action(node, safe_action, node->last_step);
     }
+    check_watchdog(node, now_ms); /* after the refresh: entering SAFE sends the safe action itself */
     if ((int32_t)(now_ms - node->next_status_ms) >= 0) {
         send_status(node);
         node->next_status_ms = now_ms + node->config.status_period_ms;

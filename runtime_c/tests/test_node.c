@@ -303,6 +303,20 @@ static void test_watchdog_safe_and_recovery(void)
     CHECK(node.state == NODE_RUN && last_action(act, &step) && step == 20 && fabsf(act[0] - 0.5f) < 4e-6f);
 }
 
+static void test_a_late_frame_counts_the_timeout_without_a_poll(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {1.0f, 1.0f, 0.0f, 1.0f, 0.0f, 0.0f};
+    float act[2];
+    uint16_t step;
+    send_observation(&node, 1, obs, 2000);
+    /* the next step arrives after the deadline and no poll ran between (a busy or descheduled node) */
+    send_observation(&node, 2, obs, 2000 + TIMEOUT_MS + 1);
+    CHECK(node.state == NODE_SAFE && node.timeouts == 1);
+    CHECK(last_action(act, &step) && step == 2 && act[0] == 0.25f && act[1] == -0.5f);
+}
+
 static void test_non_finite_output_gives_the_safe_action(void)
 {
     node_t node;
@@ -532,6 +546,7 @@ int main(void)
     test_e2e_rejections();
     test_never_assembles_two_steps();
     test_watchdog_safe_and_recovery();
+    test_a_late_frame_counts_the_timeout_without_a_poll();
     test_non_finite_output_gives_the_safe_action();
     test_a_value_outside_its_range_is_never_given_to_the_policy();
     test_actions_outside_their_range_are_saturated_not_wrapped();

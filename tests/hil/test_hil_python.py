@@ -11,12 +11,17 @@ import shutil
 import signal
 from pathlib import Path
 
+import can
 import numpy as np
 import onnx
 import pytest
 from onnx import helper, numpy_helper
 
 from embedrl.cli import main
+from embedrl.export.reference import reference_policy
+from embedrl.hil.candb import load_interface
+from embedrl.hil.codec import Action, Codec
+from embedrl.hil.nodes import PythonNode
 from tests.hil.contract import HilContract
 from tests.test_user_errors import run_and_interrupt
 
@@ -138,3 +143,28 @@ def test_the_summary_prints_the_nodes_own_counters(
         f"{status['crc_errors']} / {status['sequence_errors']} / {status['timeouts']}"
     )
     assert rows["steps the node left unanswered"].strip() == str(report["rx_timeouts"])
+
+
+def test_the_python_node_counts_a_late_frame_as_a_timeout_as_the_c_node_does(export_dir: Path) -> None:
+    """A step handled after the watchdog deadline with no poll in between (a busy node): SAFE, the timeout
+    counted and the step answered with the safe action (``runtime_c/tests/test_node.c`` checks the C)."""
+    interface = load_interface(export_dir / "interface.json")
+    node = PythonNode(
+        lambda: can.Bus(interface="virtual", channel="late-frame"), interface, reference_policy(export_dir),
+        timeout_ms=500, recover=3,
+    )  # fmt: skip
+    node.stop()  # driven by hand below: no thread polls in between
+    node.bus = can.Bus(interface="virtual", channel="late-frame")
+    listener = can.Bus(interface="virtual", channel="late-frame")
+    codec = Codec(interface)
+    obs = np.array([(f.low + f.high) / 2 for f in interface.observation], np.float32)
+    for step, now in ((1, 100.0), (2, 100.0 + 0.501)):
+        for frame in codec.encode_observation(obs, step)[0]:
+            node._on_frame(frame, now)
+    assert node.state == "SAFE" and node.counts["timeouts"] == 1
+    sent = list(iter(lambda: listener.recv(0.2), None))
+    actions = [a for a in map(codec.decode, sent) if isinstance(a, Action)]
+    assert [a.step for a in actions][-1] == 2
+    np.testing.assert_array_equal(actions[-1].action, np.asarray(interface.safe_action, np.float32))
+    node.bus.shutdown()
+    listener.shutdown()
