@@ -21,6 +21,7 @@ import contextlib
 import re
 import subprocess
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,9 @@ INSTRUCTIONS_PER_TICK = 1e9 / BOARD_CLOCK_HZ / 2**ICOUNT_SHIFT
 """Guest instructions per timer tick under ``-icount shift=0`` (1 ns of virtual time per instruction)."""
 PTY_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 5.0
+DIAG_QUIET_S = 0.2
+"""The diagnostics file is complete once it has not grown for this long (the firmware writes a step's line
+just after that step's action frame, so the last line can trail the last answer)."""
 BRIDGE_POLL_S = 0.01
 _PTY = re.compile(r"char device redirected to (/dev/pts/\d+)")
 _STEP = re.compile(r"^S (\d+) (\d+)$")
@@ -56,8 +60,11 @@ class FirmwareNode(Node):
         self.starts = 0
         self._start()
 
+    def _diag_path(self, start: int) -> Path:
+        return self.diag.with_name(f"{self.diag.stem}-{start}{self.diag.suffix}")
+
     def _start(self) -> None:
-        diag = self.diag.with_name(f"{self.diag.stem}-{self.starts}{self.diag.suffix}")
+        diag = self._diag_path(self.starts)
         self.starts += 1
         self.process = subprocess.Popen(
             ["qemu-system-arm", "-M", self.machine, "-nographic", "-monitor", "none", "-semihosting",
@@ -113,8 +120,23 @@ class FirmwareNode(Node):
         self.process.wait()
         self._end_bridge()
 
+    def _let_diagnostics_settle(self) -> None:
+        """Wait (at most :data:`STOP_TIMEOUT_S`) until the running firmware's diagnostics file has been quiet
+        for :data:`DIAG_QUIET_S`."""
+        path = self._diag_path(self.starts - 1)
+        deadline = time.monotonic() + STOP_TIMEOUT_S
+        size, quiet_since = -1, time.monotonic()
+        while time.monotonic() < deadline and self.alive():
+            now_size = path.stat().st_size if path.is_file() else 0
+            if now_size != size:
+                size, quiet_since = now_size, time.monotonic()
+            elif time.monotonic() - quiet_since >= DIAG_QUIET_S:
+                return
+            time.sleep(DIAG_QUIET_S / 4)
+
     def stop(self) -> None:
         if self.process.poll() is None:
+            self._let_diagnostics_settle()
             self.process.terminate()
             try:
                 self.process.wait(timeout=STOP_TIMEOUT_S)
@@ -132,7 +154,7 @@ class FirmwareNode(Node):
         the order the firmware answered them, over all its starts."""
         counts: list[float] = []
         for start in range(self.starts):
-            path = self.diag.with_name(f"{self.diag.stem}-{start}{self.diag.suffix}")
+            path = self._diag_path(start)
             if path.is_file():
                 for line in path.read_text(errors="replace").splitlines():
                     match = _STEP.match(line.strip())

@@ -11,6 +11,7 @@ from __future__ import annotations
 import re
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import can
@@ -120,11 +121,19 @@ def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
                 answer.action, reference(sent.reshape(1, -1)).reshape(-1), atol=TOLERANCE
             )
         bus.shutdown()
+        # The step's line follows its action frame on the other UART: give the last one time to land.
+        deadline = time.monotonic() + 10.0
+        while _step_lines(tmp_path / "uart1.txt") < 20 and time.monotonic() < deadline:
+            time.sleep(0.05)
     finally:
         qemu.kill()
         qemu.wait()
     lines = (tmp_path / "uart1.txt").read_text().splitlines()
-    assert lines[0] == "READY" and sum(line.startswith("S ") for line in lines) == 20
+    assert lines[0] == "READY" and _step_lines(tmp_path / "uart1.txt") == 20
+
+
+def _step_lines(diag: Path) -> int:
+    return sum(line.startswith("S ") for line in diag.read_text().splitlines())
 
 
 @pytest.fixture(scope="module")
