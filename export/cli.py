@@ -169,7 +169,16 @@ def _print_summary(report: dict[str, Any]) -> None:
             (
                 f"{name} policy size",
                 f"flash {t['flash_bytes']} B, RAM {t['ram_bytes']} B "
-                f"(stack {t['stack_bytes']} B); test image flash {t['image_flash_bytes']} B",
+                f"(stack {t['stack_bytes']} B measured, {t['stack_bound']['bytes']} B bound); "
+                f"test image flash {t['image_flash_bytes']} B",
+            )
+        )
+        node = t["node_firmware"]
+        rows.append(
+            (
+                f"{name} firmware node",
+                f"flash {node['flash_bytes']:,} B, RAM {node['image_ram_bytes']:,} B; stack bound "
+                f"{node['stack_bound']['bytes']} B (one cycle and the deepest interrupt)",
             )
         )
         share = t["fraction_of_sample_time"]

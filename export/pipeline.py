@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
-import hashlib
 import json
 import os
 import shutil
@@ -25,8 +24,8 @@ import onnx
 import onnxruntime as ort
 
 from embedrl import train
-from embedrl.common import provenance
-from embedrl.export import build, cycles, fixed_point, quantize, target, verify
+from embedrl.common import provenance, sha256
+from embedrl.export import build, cycles, fixed_point, quantize, stack, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
@@ -85,10 +84,6 @@ def _set_metadata(model: onnx.ModelProto, key: str, value: str) -> None:
             return
     entry = model.metadata_props.add()
     entry.key, entry.value = key, value
-
-
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def tool_version() -> str:
@@ -222,6 +217,8 @@ def _verify_target(
         )
     traced = cycles.profile(out / "policy.elf", t.qemu_machine, t.name)
     return {
+        "stack_bound": stack.policy_bound(out / "firmware.elf"),
+        "node_firmware": target.node_firmware(t, c_dir, build_dir),
         "qemu_machine": t.qemu_machine,
         "max_abs_error": err,
         **cycles.time_on_target(run.instructions_per_inference, traced, t.name, sample_time_s),

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from embedrl.common import parse_json
-from embedrl.export import build, cycles
+from embedrl.export import build, cycles, stack
 from embedrl.export.errors import BuildError, ExportError
 from embedrl.export.ops.base import c_float
 
@@ -39,6 +39,11 @@ class Target:
     ram_kib: int
     part: str
     cpu_flags: str
+
+    @property
+    def has_fpu(self) -> bool:
+        """Built for the hard-float ABI: interrupts stack the floating-point context too."""
+        return "-mfloat-abi=hard" in self.cpu_flags
 
 
 TARGET_TABLE = build.RUNTIME_C / "cortex_m" / "targets.mk"
@@ -179,6 +184,19 @@ def sizes(out: Path, stack_bytes: int) -> dict[str, int]:
         "stack_bytes": stack_bytes,
         "image_flash_bytes": image["text"] + image["data"],
         "image_ram_bytes": image["data"] + image["bss"],
+    }
+
+
+def node_firmware(target: Target, c_dir: Path, build_dir: Path) -> dict[str, Any]:
+    """The firmware node of this policy (``make TARGET=... node``): its flash, its static RAM and its
+    worst-case stack (:func:`embedrl.export.stack.node_bound`)."""
+    build.make("node", c_dir, build_dir, extra={"TARGET": target.name})
+    elf = build_dir / target.name / "node.elf"
+    size = elf_size(elf)
+    return {
+        "flash_bytes": size["text"] + size["data"],
+        "image_ram_bytes": size["data"] + size["bss"],  # with the linker's stack and heap reservations
+        "stack_bound": stack.node_bound(elf, fpu=target.has_fpu),
     }
 
 

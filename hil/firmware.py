@@ -12,7 +12,8 @@ gateway rule per direction).
 QEMU runs with ``-icount shift=0``: virtual time advances 1 ns per guest instruction, so the timer the
 firmware reads counts instructions (:data:`INSTRUCTIONS_PER_TICK` per tick at the boards' 25 MHz). The
 firmware writes one line per answered step on its diagnostics UART (UART1, a file here):
-``S <step> <ticks>`` from the last observation frame in to the action frame out.
+``S <step> <ticks>`` from the last observation frame in to the action frame out, and after each status
+frame ``X <overflows> <bad lines> <peak stack bytes>``.
 """
 
 from __future__ import annotations
@@ -45,6 +46,7 @@ just after that step's action frame, so the last line can trail the last answer)
 BRIDGE_POLL_S = 0.01
 _PTY = re.compile(r"char device redirected to (/dev/pts/\d+)")
 _STEP = re.compile(r"^S (\d+) (\d+)$")
+_STATUS = re.compile(r"^X (\d+) (\d+) (\d+)$")
 
 
 class FirmwareNode(Node):
@@ -161,6 +163,18 @@ class FirmwareNode(Node):
                     if match:
                         counts.append(int(match.group(2)) * INSTRUCTIONS_PER_TICK)
         return counts
+
+    def stack_peak(self) -> int | None:
+        """The deepest stack the firmware painted and found used, in bytes, over all its starts (None before
+        its first status line)."""
+        peaks = [
+            int(match.group(3))
+            for start in range(self.starts)
+            if self._diag_path(start).is_file()
+            for line in self._diag_path(start).read_text(errors="replace").splitlines()
+            if (match := _STATUS.match(line.strip()))
+        ]
+        return max(peaks, default=None)
 
 
 def instruction_summary(counts: list[float]) -> dict[str, Any] | None:

@@ -17,7 +17,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from embedrl.common import parse_json
+from embedrl.common import parse_json, sha256
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
@@ -294,6 +294,10 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
             why = where.diagnose(f"the HIL session failed (status {job.status}): {job.last_lines()}")
             raise HilError(str(why))
         results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
+        binary = Path(cfg.node_binary or "")
+        if options.node == "firmware":
+            results["firmware"]["stack_bound"] = _firmware_stack_bound(options, binary)
+        results["node_binary_sha256"] = sha256(binary)  # which bytes these verdicts are about
         _move_log(log, options.log)
         results["sandbox"] = where.provider
         results["sandbox_detail"] = where.description
@@ -309,6 +313,17 @@ def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> Sessi
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
     elf = _make_node(options, work, extra)
     return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.target].qemu_machine)
+
+
+def _firmware_stack_bound(options: RunOptions, elf: Path) -> dict[str, Any]:
+    """The static bound of the image that ran (:func:`embedrl.export.stack.node_bound`)."""
+    from embedrl.export import stack
+    from embedrl.export.target import TARGETS
+
+    try:
+        return stack.node_bound(elf, fpu=TARGETS[options.target].has_fpu)
+    except stack.StackError as exc:
+        raise HilError(f"the firmware node's stack: {exc}") from None
 
 
 def _move_log(written: Path | None, wanted: Path | None) -> None:

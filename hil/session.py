@@ -597,6 +597,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             "machine": cfg.qemu_machine,
             "starts": node.starts,
             "instructions_per_step": instruction_summary(node.step_instructions()),
+            "stack_peak_bytes": node.stack_peak(),
         }
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results

@@ -140,6 +140,15 @@ def _firmware_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
                 f"{per_step['mean']:,.0f} / {per_step['max']:,.0f} over {per_step['steps']} steps",
             )
         )
+    stack = (data.get("firmware") or {}).get("stack_bound")
+    if stack:
+        peak = data["firmware"]["stack_peak_bytes"]
+        rows.append(
+            (
+                f"firmware {data['target']}: stack measured peak / static bound [B]",
+                f"{'-' if peak is None else peak} / {stack['bytes']}",
+            )
+        )
     timed = data.get("time_on_target")
     if timed:
         rows.append(

@@ -7,7 +7,11 @@
  *   READY                       the node runs (after its interface opened)
  *   S <step> <cycle>            a step answered: timer ticks from its observation's last frame in to its
  *                               action frame out (under QEMU -icount: instructions, see clock_timer.c)
- *   X <overflows> <bad_lines>   after each status frame: receive-ring overflows and refused lines
+ *   X <overflows> <bad_lines> <stack>
+ *                               after each status frame: receive-ring overflows, refused lines and the
+ *                               peak stack so far in bytes (the stack is painted at start: every word
+ *                               below main's frame that no longer holds the paint was used, interrupts
+ *                               included)
  */
 #include "board.h"
 #include "node.h"
@@ -24,6 +28,30 @@
 #endif
 
 #define DECIMAL_DIGITS 11u
+#define PAINT 0xA5A5A5A5u
+
+extern uint32_t _sstack[], _estack[];
+
+/* Paint from the stack's bottom up to just below this frame; volatile so that gcc does not turn the loop
+ * into a memset call, whose own frame would sit in the painted area. */
+static void paint_stack(void)
+{
+    uint32_t *sp;
+    __asm__ volatile("mov %0, sp" : "=r"(sp));
+    for (volatile uint32_t *word = _sstack; word < sp - 1; ++word) {
+        *word = PAINT;
+    }
+}
+
+/* Bytes from the top of RAM down to the lowest word that lost its paint. */
+static uint32_t stack_peak(void)
+{
+    const volatile uint32_t *word = _sstack;
+    while (word < _estack && *word == PAINT) {
+        ++word;
+    }
+    return (uint32_t)((uintptr_t)_estack - (uintptr_t)word);
+}
 
 static void diag_u32(uint32_t value)
 {
@@ -48,6 +76,7 @@ static void report_step(uint32_t step, uint32_t cycle_ticks)
 
 int main(void)
 {
+    paint_stack();
     clock_init();
     const node_config config = {NODE_TIMEOUT_MS, NODE_RECOVER, POLICY_IO_STATUS_PERIOD_MS, NODE_ID};
     uint32_t ids[POLICY_IO_OBS_FRAMES];
@@ -82,6 +111,8 @@ int main(void)
             diag_u32(transport_overflows());
             diag_write(" ");
             diag_u32(transport_bad_lines());
+            diag_write(" ");
+            diag_u32(stack_peak());
             diag_write("\n");
         }
     }

@@ -167,6 +167,10 @@ def test_three_lock_step_episodes_with_the_firmware_node_on_the_m4f(
     step_s = timed["estimated_step_us"] / 1e6
     assert timed["margin_s"] == pytest.approx(timed["sample_time_s"] - step_s, abs=1e-5)
     assert 0 < timed["fraction_of_sample_time"] < 0.01
+    # the painted stack (interrupts included) never exceeds the static bound of the same image
+    firmware = report["firmware"]
+    assert 0 < firmware["stack_peak_bytes"] <= firmware["stack_bound"]["bytes"] < 1024
+    assert len(report["node_binary_sha256"]) == 64
 
 
 @pytest.mark.slow
@@ -186,6 +190,7 @@ def test_one_episode_with_the_firmware_node_on_the_m3(guest: Guest, export_dir: 
     )
     assert report["successes"] == 1 and report["max_action_abs_diff"] <= TOLERANCE
     assert report["instructions_per_step"]["mean"] > 400_000  # software floating point: ~10x the M4F
+    assert report["firmware"]["stack_peak_bytes"] <= report["firmware"]["stack_bound"]["bytes"]
 
 
 @pytest.mark.slow
