@@ -402,7 +402,7 @@ def _source(banner: str, name: str, ctx: _Context, body: list[str], buffers: lis
 static int {name}_finite(float x)
 {{
     uint32_t bits;
-    memcpy(&bits, &x, sizeof bits);
+    (void)memcpy(&bits, &x, sizeof bits);
     return (bits & 0x7f800000u) != 0x7f800000u;
 }}
 

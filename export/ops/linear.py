@@ -57,10 +57,11 @@ def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str =
     lines = [f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"]
     full = k - k % K_BLOCK
     if full:
-        terms = " + ".join(f"x{j} * {cast}{w}[k + {j}][n]" for j in range(K_BLOCK))
+        rows = ["k", *(f"k + {j}" for j in range(1, K_BLOCK))]  # no "k + 0": MISRA 2.2 (no effect)
+        terms = " + ".join(f"x{j} * {cast}{w}[{row}][n]" for j, row in enumerate(rows))
         lines += [
             f"for (int k = 0; k < {full}; k += {K_BLOCK}) {{",
-            *[f"    const float x{j} = {x}[k + {j}];" for j in range(K_BLOCK)],
+            *[f"    const float x{j} = {x}[{row}];" for j, row in enumerate(rows)],
             f"    for (int n = 0; n < {n}; ++n) {{",
             f"        {y}[n] = {y}[n] + {terms};",
             "    }",

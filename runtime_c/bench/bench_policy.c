@@ -57,7 +57,7 @@ int main(int argc, char **argv)
         double start = now_ns();
         for (size_t i = 0; i < n; ++i) {
             policy_step(observations[i], act);
-            checksum += act[0];
+            checksum += (double)act[0];
         }
         per_call[r] = (now_ns() - start) / (double)n;
     }

@@ -10,7 +10,7 @@ static const char HEX[] = "0123456789ABCDEF";
 
 void slcan_init(slcan_rx *rx)
 {
-    memset(rx, 0, sizeof *rx);
+    (void)memset(rx, 0, sizeof *rx);
 }
 
 void slcan_rx_push(slcan_rx *rx, uint8_t byte)

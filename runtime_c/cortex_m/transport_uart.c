@@ -45,7 +45,7 @@ int transport_open(const char *iface, const uint32_t *ids, unsigned count, int f
     (void)iface; /* one UART, and the IDs are checked by the node itself */
     (void)ids;
     (void)count;
-    if (fd) {
+    if (fd != 0) {
         last_error = "CAN FD frames cannot travel as classic SLCAN lines";
         return -1;
     }

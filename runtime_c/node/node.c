@@ -24,7 +24,7 @@ static uint32_t saturate(uint32_t value, uint32_t max)
 
 void node_init(node_t *node, const node_config *config, uint32_t now_ms)
 {
-    memset(node, 0, sizeof *node);
+    (void)memset(node, 0, sizeof *node);
     node->config = *config;
     node->obs_first_id = POLICY_IO_OBS_FIRST_ID + config->node_id * POLICY_IO_NODE_STRIDE;
     node->act_first_id = POLICY_IO_ACT_FIRST_ID + config->node_id * POLICY_IO_NODE_STRIDE;
@@ -59,7 +59,7 @@ static void send_status(node_t *node)
 {
     struct policy_dbc_node_status_t msg;
     can_frame_t frame = {node->status_id, POLICY_DBC_NODE_STATUS_LENGTH, {0}};
-    memset(&msg, 0, sizeof msg);
+    (void)memset(&msg, 0, sizeof msg);
     msg.counter = node->status_counter;
     msg.state = (uint8_t)node->state;
     msg.frames_ok = (uint16_t)saturate(node->frames_ok, U16_MAX);
@@ -67,14 +67,14 @@ static void send_status(node_t *node)
     msg.sequence_errors = (uint8_t)saturate(node->sequence_errors, U8_MAX);
     msg.timeouts = (uint8_t)saturate(node->timeouts, U8_MAX);
     msg.inference_us = (uint16_t)saturate(node->inference_us, INFERENCE_US_MAX);
-    policy_dbc_node_status_pack(frame.data, &msg, sizeof frame.data);
+    (void)policy_dbc_node_status_pack(frame.data, &msg, sizeof frame.data);
     e2e_protect(frame.id, frame.data, frame.len);
     node->status_counter = (uint8_t)((node->status_counter + 1u) % E2E_COUNTER_MODULO);
     send_frame(node, &frame);
 
     struct policy_dbc_node_diag_t diag;
     can_frame_t diag_frame = {node->status_id + 1u, POLICY_DBC_NODE_DIAG_LENGTH, {0}};
-    memset(&diag, 0, sizeof diag);
+    (void)memset(&diag, 0, sizeof diag);
     diag.counter = node->diag_counter;
     diag.bus_state = (uint8_t)node->bus_state;
     diag.resyncs = (uint8_t)saturate(node->resyncs, RESYNCS_MAX);
@@ -84,7 +84,7 @@ static void send_status(node_t *node)
     diag.action_faults = (uint8_t)saturate(node->action_faults, U8_MAX);
     diag.send_failures = (uint8_t)saturate(node->send_failures, U8_MAX);
     diag.link_resets = (uint8_t)saturate(node->link_resets, LINK_RESETS_MAX);
-    policy_dbc_node_diag_pack(diag_frame.data, &diag, sizeof diag_frame.data);
+    (void)policy_dbc_node_diag_pack(diag_frame.data, &diag, sizeof diag_frame.data);
     e2e_protect(diag_frame.id, diag_frame.data, diag_frame.len);
     node->diag_counter = (uint8_t)((node->diag_counter + 1u) % E2E_COUNTER_MODULO);
     send_frame(node, &diag_frame);
@@ -171,7 +171,7 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
     }
     /* Decode into a scratch copy: a frame rejected by its counter or a range must change nothing. */
     float scratch[POLICY_OBS_DIM];
-    memcpy(scratch, node->pending_obs, sizeof scratch);
+    (void)memcpy(scratch, node->pending_obs, sizeof scratch);
     uint16_t step = 0;
     uint8_t counter = 0;
     policy_io_status decoded = policy_io_decode_observation(part, frame->data, scratch, &step, &counter);
@@ -192,7 +192,7 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
         node->consecutive_valid = 0;
         return;
     }
-    memcpy(node->pending_obs, scratch, sizeof scratch);
+    (void)memcpy(node->pending_obs, scratch, sizeof scratch);
     node->frames_ok++;
     if (!node->pending_valid || step != node->pending_step) {
         if (node->pending_valid && node->pending_parts != 0u) {
@@ -204,7 +204,7 @@ void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
         node->pending_parts = 0;
     }
     node->pending_parts |= 1u << part;
-    if (node->pending_parts == (uint32_t)((1ull << POLICY_IO_OBS_FRAMES) - 1u)) {
+    if (node->pending_parts == (uint32_t)((1ULL << POLICY_IO_OBS_FRAMES) - 1u)) {
         complete_observation(node, now_ms);
     }
 }

@@ -75,7 +75,9 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
         "test/observations.npy",
         "test/test_vectors.c",
     ]
-    assert report["compiler"]["command"].startswith("cc -std=c99 -Wall -Wextra -Werror -pedantic")
+    assert report["compiler"]["command"].startswith(
+        "cc -std=c99 -Wall -Wextra -Wconversion -Wdouble-promotion -Wcast-qual -Wshadow -Werror -pedantic"
+    )
     assert report["code_size"]["text"] > 0
     assert sorted(p.name for p in out.iterdir()) == [
         "c",

@@ -66,7 +66,7 @@ static float policy_buf1[4];
 static int policy_finite(float x)
 {
     uint32_t bits;
-    memcpy(&bits, &x, sizeof bits);
+    (void)memcpy(&bits, &x, sizeof bits);
     return (bits & 0x7f800000u) != 0x7f800000u;
 }
 
@@ -115,12 +115,12 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         policy_buf0[n] = policy_w5_b2[n];
     }
     for (int k = 0; k < 4; k += 4) {
-        const float x0 = policy_buf1[k + 0];
+        const float x0 = policy_buf1[k];
         const float x1 = policy_buf1[k + 1];
         const float x2 = policy_buf1[k + 2];
         const float x3 = policy_buf1[k + 3];
         for (int n = 0; n < 2; ++n) {
-            policy_buf0[n] = policy_buf0[n] + x0 * policy_w4_W2[k + 0][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
+            policy_buf0[n] = policy_buf0[n] + x0 * policy_w4_W2[k][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
         }
     }
     /* Tanh 'squash' [1x2] -> [1x2] */
