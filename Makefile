@@ -16,7 +16,7 @@ setup: $(STAMP)
 # sudo); otherwise the command to run is printed. Then a User-Mode Linux >= 7.2 is cached for CPUs on
 # which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision; no network once cached).
 APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
-    patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang
+    patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang cppcheck chromium
 deps: apt-packages $(STAMP)
 	$(PY) -m embedrl.hil.sandbox.provision
 

@@ -1,0 +1,72 @@
+"""MISRA C:2012 on the firmware node as deployed (cppcheck's addon, Debian's cppcheck from ``make deps``):
+every finding explained by the deviation log, for every precision; a new violation fails."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from embedrl.cli import main
+from embedrl.hil import misra
+from embedrl.hil.misra import Deviation, Finding
+from tests.hil.conftest import SHIPPED_TD3
+
+
+@pytest.fixture(scope="module")
+def exports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    out = {}
+    for precision in ("float32", "int8", "q15"):
+        folder = tmp_path_factory.mktemp("misra") / precision
+        quantize = [] if precision == "float32" else ["--quantize", precision]
+        assert main(["export", str(SHIPPED_TD3), "--out", str(folder), "--episodes", "0", *quantize]) == 0
+        out[precision] = folder
+    return out
+
+
+@pytest.mark.parametrize("precision", ["float32", "int8", "q15"])
+def test_every_finding_on_the_deployed_node_is_explained(exports: dict[str, Path], precision: str) -> None:
+    result = misra.check(exports[precision])
+    assert result.unexplained == []
+    files = {f.file for f in result.findings}
+    assert {"c/policy.c", "runtime_c/node/node.c", "runtime_c/cortex_m/slcan.c", "can/policy_dbc.c"} <= files
+    summary = result.to_json()
+    assert summary["findings"] == len(result.findings) and "Cppcheck 2" in summary["tool"]
+    assert all(d["why"] for d in summary["deviations"])
+
+
+def test_a_new_violation_in_the_generated_code_fails(exports: dict[str, Path], tmp_path: Path) -> None:
+    changed = tmp_path / "export"
+    shutil.copytree(exports["float32"], changed)
+    policy = changed / "c" / "policy.c"
+    policy.write_text(
+        policy.read_text() + "\nint policy_extra(int x)\n{\n    goto done;\ndone:\n    return x;\n}\n"
+    )
+    problems = misra.check(changed).unexplained
+    assert any(p.startswith("c/policy.c:") and "15.1 has no deviation" in p for p in problems), problems
+
+
+def test_counted_deviations_catch_one_more_and_one_fewer() -> None:
+    log = [
+        Deviation("15.5", ("runtime_c/*",), "guard clauses", 2),
+        Deviation("8.9", ("c/*",), "tables", None),
+    ]
+    two = [Finding("15.5", "runtime_c/node/node.c", 10), Finding("15.5", "runtime_c/node/e2e.c", 4)]
+    tables = [Finding("8.9", "c/policy.c", n) for n in range(7)]  # generated: any number
+    assert misra.unexplained([*two, *tables], log) == []
+    three = [*two, Finding("15.5", "runtime_c/cortex_m/slcan.c", 3)]
+    assert misra.unexplained(three, log) == [
+        "15.5 in runtime_c/*: 3 findings, the log says 2 (a new violation)"
+    ]
+    assert "fixed" in misra.unexplained(two[:1], log)[0]
+    misplaced = [*two, Finding("8.9", "runtime_c/node/node.c", 3)]  # covered in c/, not in runtime_c/
+    assert misra.unexplained(misplaced, log) == ["runtime_c/node/node.c:3: 8.9 has no deviation"]
+
+
+def test_the_log_names_real_rules_with_reasons() -> None:
+    for d in misra.load_deviations():
+        assert d.why and d.files, d
+        assert d.rule.replace(".", "").isdigit() or d.rule.isidentifier(), d.rule
+        generated = all(p.startswith(misra.GENERATED_PREFIXES) for p in d.files)
+        assert (d.count is None) == generated, f"{d.rule} {d.files}: only generated files go uncounted"
