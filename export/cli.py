@@ -119,7 +119,23 @@ def cmd_export(args: argparse.Namespace) -> int:
     )
     report = run_export(opts)
     _print_summary(report)
-    print(f"wrote {args.out}/ ({', '.join(report['files'])}, export_report.json)")
+    kept = sorted(str(p.relative_to(args.out)) for p in (args.out / "bin").rglob("*") if p.is_file())
+    print(f"wrote {args.out}/ ({', '.join([*report['files'], *kept])}, export_report.json, chain.json)")
+    return 0
+
+
+def cmd_verify_chain(args: argparse.Namespace) -> int:
+    """Exit 0 when every link matches, 1 at the first that does not (named), 2 without a manifest."""
+    from embedrl.export import chain
+
+    checks = chain.verify(args.export_dir)
+    for number, check in enumerate(checks, 1):
+        if args.verbose or not check.ok:
+            state = "ok  " if check.ok else "FAIL"
+            print(f"{state} link {number}/{len(checks)} {check.link.name}: {check.detail}")
+        if not check.ok:
+            return 1
+    print(f"chain intact: {len(checks)} links, from {checks[0].link.name} to {checks[-1].link.name}")
     return 0
 
 
@@ -299,6 +315,14 @@ def register(sub: Any) -> None:
         help="also build firmware for this Cortex-M, run it on QEMU and measure it (repeatable)",
     )
     p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser(
+        "verify-chain",
+        help="recompute every hash of an export's traceability chain; name the first link that changed",
+    )
+    p.add_argument("export_dir", type=Path, help="an `embedrl export` folder (with chain.json)")
+    p.add_argument("--verbose", action="store_true", help="one line per link")
+    p.set_defaults(func=cmd_verify_chain)
 
     _register_benchmarks(sub)
 

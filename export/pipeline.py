@@ -25,7 +25,7 @@ import onnxruntime as ort
 
 from embedrl import train
 from embedrl.common import provenance, sha256
-from embedrl.export import build, cycles, fixed_point, quantize, stack, target, verify
+from embedrl.export import build, chain, cycles, fixed_point, quantize, stack, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
@@ -304,7 +304,50 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
     with tempfile.TemporaryDirectory(prefix="embedrl-build-") as tmp:
         built = _build(generated, Path(tmp), opts, lowered.graph, log)
         verified = _verify(loaded, lowered, generated, built, staging, opts, log)
-    return _write_report(loaded, lowered, built, verified, staging, opts)
+        _keep_binaries(built.build_dir, staging, opts.targets)
+    report = _write_report(loaded, lowered, built, verified, staging, opts)
+    chain.write(staging, _chain_links(staging, loaded, opts))
+    return report
+
+
+BINARIES = {"host": ("libpolicy.so",), "target": ("firmware.elf", "node.elf")}
+"""What the export keeps in ``bin/<host or target>/``: the binaries its verification ran."""
+
+
+def _keep_binaries(build_dir: Path, staging: Path, targets: tuple[str, ...]) -> None:
+    for where, names in [("host", BINARIES["host"]), *((t, BINARIES["target"]) for t in targets)]:
+        (staging / "bin" / where).mkdir(parents=True)
+        for name in names:
+            shutil.copy2(
+                build_dir / ("" if where == "host" else where) / name, staging / "bin" / where / name
+            )
+
+
+def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[chain.Link]:
+    """The export's traceability chain (:mod:`embedrl.export.chain`), from the run to the report."""
+    links = []
+    config = chain.run_config_of(opts.source) if opts.source.suffix.lower() == ".zip" else None
+    if config is not None:
+        links.append(chain.link(staging, "run config", config, [], seed=chain.seed_of(config)))
+    links.append(chain.link(staging, "model", opts.source, ["run config"] if config else []))
+    if loaded.vecnormalize is not None:
+        links.append(chain.link(staging, "normalisation statistics", loaded.vecnormalize, ["run config"]))
+    parents = ["model", *(["normalisation statistics"] if loaded.vecnormalize else [])]
+    links.append(chain.link(staging, "ONNX", staging / "policy.onnx", parents))
+    if (staging / INTERFACE_FILE).is_file():
+        links.append(chain.link(staging, "interface", staging / INTERFACE_FILE, ["ONNX"]))
+    for c_file in sorted((staging / "c").iterdir()):
+        links.append(chain.link(staging, f"C source {c_file.name}", c_file, ["ONNX"]))
+    sources = [k.name for k in links if k.name.startswith("C source")]
+    for test_file in sorted((staging / "test").iterdir()):
+        links.append(chain.link(staging, f"test data {test_file.name}", test_file, ["ONNX"]))
+    for binary in sorted((staging / "bin").rglob("*")):
+        if binary.is_file():
+            name = f"binary {binary.relative_to(staging / 'bin')}"
+            links.append(chain.link(staging, name, binary, sources))
+    binaries = [k.name for k in links if k.name.startswith(("binary", "test data"))]
+    links.append(chain.link(staging, "verification report", staging / "export_report.json", binaries))
+    return links
 
 
 def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loaded:

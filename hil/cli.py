@@ -16,7 +16,7 @@ from embedrl.hil.sandbox import MODES
 def cmd_run(args: argparse.Namespace) -> int:
     from embedrl.common import table, write_json
     from embedrl.hil.options import RunOptions
-    from embedrl.hil.run import run
+    from embedrl.hil.run import add_to_chain, run
     from embedrl.hil.verdict import summary_rows
 
     data = run(RunOptions.of(vars(args)))
@@ -24,6 +24,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     written = [str(p) for p in (args.json, args.log, args.plot) if p]
     if args.json:
         write_json(data, args.json)
+        if add_to_chain(args.export_dir, args.json, data):
+            written.append(f"{args.export_dir / 'chain.json'} (the report's link)")
     if written:
         print(f"wrote {', '.join(written)}")
     return 0 if data["verdict"]["passed"] else 1

@@ -98,8 +98,31 @@ def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
         for s in schedule
         if (s.injector.name, s.episode, s.step) not in fired
     ]
+    data["export_files"] = {
+        name: sha256(options.export_dir / name)
+        for name in CHAINED_FILES
+        if (options.export_dir / name).is_file()
+    }  # which bytes the verdict is about (embedrl.export.chain checks them)
     data["verdict"] = verdict(data, options.allow_faults)
     return data
+
+
+CHAINED_FILES = ("policy.onnx", "interface.json", "c/policy.c")
+
+
+def add_to_chain(export_dir: Path, report: Path, data: dict[str, Any]) -> bool:
+    """Append the written report to the export's traceability chain; False for an export without one."""
+    from embedrl.export import chain
+
+    if not (export_dir / chain.MANIFEST).is_file():
+        return False
+    facts = {"passed": data["verdict"]["passed"], "node": data["node"], "target": data["target"],
+             "episodes": data["episodes"], "node_binary_sha256": data.get("node_binary_sha256")}  # fmt: skip
+    made_from = ["interface", "C source policy.c", "C source policy.h"]
+    chain.append(
+        export_dir, chain.link(export_dir, f"HIL report {report.resolve()}", report, made_from, **facts)
+    )
+    return True
 
 
 def onnx_of(export_dir: Path) -> Path:

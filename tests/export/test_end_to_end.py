@@ -80,7 +80,9 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
     )
     assert report["code_size"]["text"] > 0
     assert sorted(p.name for p in out.iterdir()) == [
+        "bin",
         "c",
+        "chain.json",
         "export_report.json",
         "interface.json",
         "policy.onnx",

@@ -180,7 +180,9 @@ def test_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.Cap
     assert (out / "keep.txt").read_text() == "precious"
     assert main(["export", str(src), "--out", str(out), "--episodes", "0", "--force"]) == 0
     assert sorted(p.name for p in out.iterdir()) == [
+        "bin",
         "c",
+        "chain.json",
         "export_report.json",
         "interface.json",
         "policy.onnx",

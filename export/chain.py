@@ -1,0 +1,143 @@
+"""The traceability chain of an export: which run, model, ONNX, C and binaries made it, and which reports
+were made on exactly these bytes, each link hashed (``chain.json`` in the export folder).
+
+The links, in order: the run's configuration and seed -> the model (and its normalisation statistics)
+-> the ONNX -> the interface -> the generated C -> each binary (the host library the verification ran,
+each target's firmware test image and firmware node) -> the verification report -> each HIL report made
+on the export afterwards (``embedrl hil run --json`` appends its own). Each link names the links it was
+made from; where a file records its parent's hash itself (the C's header names the ONNX's, the ONNX's
+metadata the model's, a shipped policy's record the model's, a HIL report the export's files), the check
+reads that too.
+
+:func:`verify` recomputes every hash and names the first link that no longer matches.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from embedrl.common import parse_json, sha256
+from embedrl.export.errors import ExportError
+
+MANIFEST = "chain.json"
+FORMAT = 1
+
+
+class ChainError(ExportError):
+    """No readable manifest in the folder."""
+
+
+@dataclass(frozen=True)
+class Link:
+    name: str
+    path: str
+    """Relative to the export folder when inside it, else absolute."""
+    sha256: str
+    made_from: list[str] = field(default_factory=list)
+    facts: dict[str, Any] = field(default_factory=dict)
+    """What the link states about itself (a run's seed, a report's verdict)."""
+
+
+@dataclass(frozen=True)
+class Check:
+    link: Link
+    ok: bool
+    detail: str
+
+
+def run_config_of(source: Path) -> Path | None:
+    """The configuration a model was trained with: a shipped policy's record beside it (``td3.json`` for
+    ``td3.zip``) or the run folder's ``config.json`` (the model's folder or its parent's)."""
+    candidates = [
+        source.with_suffix(".json"),
+        source.parent / "config.json",
+        source.parent.parent / "config.json",
+    ]
+    return next((c for c in candidates if c.is_file() and c != source), None)
+
+
+def seed_of(config: Path) -> int | None:
+    """The training seed a run configuration records (a shipped record nests it under ``config``)."""
+    try:
+        data = parse_json(config.read_text())
+    except (ValueError, OSError):
+        return None
+    inner = data.get("config", data) if isinstance(data, dict) else None
+    seed = inner.get("seed") if isinstance(inner, dict) else None
+    return seed if isinstance(seed, int) else None
+
+
+def link(export_dir: Path, name: str, path: Path, made_from: list[str], **facts: Any) -> Link:
+    """A link to ``path`` as it is now."""
+    path = path.resolve()
+    root = export_dir.resolve()
+    shown = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
+    return Link(name, shown, sha256(path), made_from, facts)
+
+
+def write(export_dir: Path, links: list[Link]) -> Path:
+    manifest = export_dir / MANIFEST
+    data = {"format": FORMAT, "links": [asdict(k) for k in links]}
+    manifest.write_text(json.dumps(data, indent=2) + "\n")
+    return manifest
+
+
+def read(export_dir: Path) -> list[Link]:
+    manifest = export_dir / MANIFEST
+    if not manifest.is_file():
+        raise ChainError(f"{export_dir}: no {MANIFEST} (export it again with `embedrl export`)")
+    try:
+        data = parse_json(manifest.read_text())
+        if data.get("format") != FORMAT:
+            raise ValueError(f"format {data.get('format')!r}, expected {FORMAT}")
+        return [Link(**entry) for entry in data["links"]]
+    except (ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ChainError(f"{manifest}: not a chain manifest ({exc})") from None
+
+
+def append(export_dir: Path, new: Link) -> None:
+    """Add (or replace, by name) a link made on the export later, such as a HIL report."""
+    links = [k for k in read(export_dir) if k.name != new.name]
+    write(export_dir, [*links, new])
+
+
+def verify(export_dir: Path) -> list[Check]:
+    """Every link in order: its file's hash now against the manifest, then what it records of its parents."""
+    links = read(export_dir)
+    by_name = {k.name: k for k in links}
+    return [_check(export_dir, k, by_name) for k in links]
+
+
+def _check(export_dir: Path, k: Link, by_name: dict[str, Link]) -> Check:
+    path = Path(k.path) if Path(k.path).is_absolute() else export_dir / k.path
+    if not path.is_file():
+        return Check(k, False, f"{k.path} is missing")
+    now = sha256(path)
+    if now != k.sha256:
+        return Check(k, False, f"{k.path} changed: sha256 {now[:12]}..., the chain says {k.sha256[:12]}...")
+    for parent, recorded in _recorded_parents(path, k).items():
+        if parent in by_name and by_name[parent].sha256 != recorded:
+            return Check(k, False, f"{k.path} was made from another {parent} (sha256 {recorded[:12]}...)")
+    return Check(k, True, f"{k.path} sha256 {now[:12]}...")
+
+
+_C_HEADER = re.compile(r"^ \* (source|onnx): (?:\S+ )?sha256 ([0-9a-f]{64})$", re.M)
+
+
+def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
+    """The hashes of its parents that a file records itself, by link name."""
+    if path.suffix == ".c" and k.name.startswith("C source"):
+        found = dict(_C_HEADER.findall(path.read_text(errors="replace")[:2000]))
+        return {name: found[key] for key, name in (("onnx", "ONNX"), ("source", "model")) if key in found}
+    if k.name == "run config" and path.suffix == ".json":
+        recorded = parse_json(path.read_text()).get("sha256")
+        return {"model": recorded} if isinstance(recorded, str) else {}
+    if k.name.startswith("HIL report") and path.suffix == ".json":
+        files = parse_json(path.read_text()).get("export_files") or {}
+        names = {"policy.onnx": "ONNX", "c/policy.c": "C source policy.c", "interface.json": "interface"}
+        return {names[f]: h for f, h in files.items() if f in names}
+    return {}
