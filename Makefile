@@ -38,18 +38,29 @@ $(STAMP): pyproject.toml
 
 # The main job, the whole chain: the potential-field baseline; the shipped TD3 policy
 # (policies/static/td3.zip; the example actor imitating the baseline if it is missing); export -> ONNX
-# -> C, verified; the C policy as a CAN node driven by the simulator over vcan (User-Mode Linux where the
-# kernel has no CAN); a short report and the plots in $(OUT)/demo.
+# -> C, verified, and Cortex-M4 firmware on QEMU; the C policy as a CAN node driven by the simulator over
+# vcan (User-Mode Linux where the kernel has no CAN), then the same node as Cortex-M4 firmware on QEMU in
+# the loop; the int8 and q15 exports; the deployment report (report.html) and the plots in $(OUT)/demo.
 DEMO_POLICY ?= $(firstword $(wildcard policies/static/td3.zip) $(OUT)/example/td3.zip)
 demo: deps $(STAMP)
 	$(VENV)/bin/embedrl eval --controller potential-field --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/eval.json --plot $(OUT)/demo/trajectories.png
 	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
 	test -f $(DEMO_POLICY) || $(PY) -m embedrl.export.example $(DEMO_POLICY)
-	$(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export --force
+	$(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export --force --target cortex-m4
+	for q in int8 q15; do \
+	    $(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export-$$q --force --quantize $$q --episodes 0 \
+	        || exit 1; \
+	done
 	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
-	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, hil.json, frames.log, hil_*.png)"
+	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 3 --seed 0 --node firmware \
+	    --target cortex-m4 --json $(OUT)/demo/hil-firmware.json
+	$(VENV)/bin/embedrl verify-chain $(OUT)/demo/export
+	$(VENV)/bin/embedrl report $(OUT)/demo/export --hil $(OUT)/demo/hil.json --hil $(OUT)/demo/hil-firmware.json \
+	    --also $(OUT)/demo/export-int8 --also $(OUT)/demo/export-q15 --out $(OUT)/demo/report.html
+	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, export-int8/, export-q15/, \
+	hil.json, hil-firmware.json, frames.log, hil_*.png, report.html)"
 
 # How the shipped policies were made, each shipped only if it succeeds in >= 95% of 200 episodes on seeds
 # training never used (train/ship.py). policies/static/{ddpg,td3,sac,ppo}.zip were trained past the stop

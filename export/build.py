@@ -25,14 +25,20 @@ the ``embedrl`` package (as package data) in an installed wheel."""
 def make(
     target: str, c_dir: Path, build_dir: Path, opt: str | None = None, extra: dict[str, str] | None = None
 ) -> None:
-    """Run ``make -C runtime_c TARGET POLICY_DIR=c_dir BUILD_DIR=build_dir [OPT=opt]``.
+    """Run ``make -C runtime_c TARGET POLICY_DIR=c_dir BUILD_DIR=build_dir [OPT=opt] [NAME=VALUE ...]``.
 
-    Errors carry the last lines of make's output.
+    Folders and files with whitespace in their path (``extra`` values naming a file included) reach make
+    through links without any. Errors carry the last lines of make's output.
     """
     if not (RUNTIME_C / "Makefile").is_file():
         raise BuildError(f"{RUNTIME_C}/Makefile not found: the installation is incomplete")
     build_dir.mkdir(parents=True, exist_ok=True)
-    with _without_spaces(c_dir.resolve(), build_dir.resolve()) as (policy_dir, out_dir):
+    extra = dict(extra or {})
+    files = {k: Path(v) for k, v in extra.items() if Path(v).is_absolute() and Path(v).is_file()}
+    folders = [c_dir.resolve(), build_dir.resolve(), *(p.resolve().parent for p in files.values())]
+    with _without_spaces(*folders) as (policy_dir, out_dir, *file_dirs):
+        for (key, path), folder in zip(files.items(), file_dirs, strict=True):
+            extra[key] = str(folder / path.name)
         cmd = [
             "make",
             "--no-print-directory",
@@ -45,7 +51,7 @@ def make(
         ]
         if opt is not None:
             cmd.append(f"OPT={opt}")
-        cmd += [f"{k}={v}" for k, v in (extra or {}).items()]
+        cmd += [f"{k}={v}" for k, v in extra.items()]
         result = subprocess.run(cmd, capture_output=True, text=True, env=_own_make_env())
     if result.returncode != 0:
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])

@@ -569,16 +569,13 @@ def write(
     return written
 
 
-def markdown_table(interface: Interface) -> str:
-    """The CAN frames and signals of ``interface`` (node 0) as a Markdown table: ID, message, sender,
-    and each signal with its bits, scale, range and unit, from the same database the node is built from."""
+def frame_rows(interface: Interface) -> list[tuple[str, str, str, list[str]]]:
+    """The CAN frames of ``interface`` (node 0) from the same database the node is built from: ID, message,
+    sender and each signal as ``name (start bit, bits, scale, range, unit)``."""
     db = database(interface)
     plan = layout(interface)
     fields = {s.signal: s for _, _, slots in (*plan.observation, *plan.action) for s in slots}
-    rows = [
-        "| ID | message | sent by | signals: name (start bit, bits, scale, range, unit) |",
-        "|---|---|---|---|",
-    ]
+    rows = []
     for message in sorted(db.messages, key=lambda m: m.frame_id):
         parts = []
         for signal in message.signals:
@@ -591,8 +588,20 @@ def markdown_table(interface: Interface) -> str:
                 )
             else:
                 parts.append(f"{signal.name} ({signal.start}, {signal.length})")
-        sender = ", ".join(message.senders)
-        rows.append(f"| 0x{message.frame_id:03X} | {message.name} | {sender} | {'; '.join(parts)} |")
+        rows.append((f"0x{message.frame_id:03X}", message.name, ", ".join(message.senders), parts))
+    return rows
+
+
+def markdown_table(interface: Interface) -> str:
+    """:func:`frame_rows` as a Markdown table."""
+    rows = [
+        "| ID | message | sent by | signals: name (start bit, bits, scale, range, unit) |",
+        "|---|---|---|---|",
+    ]
+    rows += [
+        f"| {i} | {name} | {sender} | {'; '.join(parts)} |"
+        for i, name, sender, parts in frame_rows(interface)
+    ]
     return "\n".join(rows) + "\n"
 
 

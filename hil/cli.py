@@ -31,6 +31,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0 if data["verdict"]["passed"] else 1
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from embedrl.hil import signoff
+
+    data = signoff.write(args.export_dir, args.hil, args.also, args.out)
+    unexplained = len(data["coding_standard"]["unexplained"])
+    intact = all(link["ok"] for link in data["chain"])
+    print(
+        f"wrote {args.out}: {len(data['targets'])} target(s), {len(data['hil_reports'])} HIL report(s), "
+        f"MISRA {data['coding_standard']['findings']} findings ({unexplained} unexplained), "
+        f"chain {'intact' if intact else 'BROKEN'}"
+    )
+    return 0
+
+
 def _kill_spec(text: str) -> tuple[int, int, int]:
     node, at, rest = text.partition("@")
     episode, colon, step = rest.partition(":")
@@ -129,6 +143,26 @@ def register(sub: Any) -> None:
     )
     r.set_defaults(func=cmd_run)
     _register_doctor(hil_sub)
+    _register_report(sub)
+
+
+def _register_report(sub: Any) -> None:
+    p = sub.add_parser(
+        "report",
+        help="the deployment report: one self-contained HTML page (interface, verification, closed loop, "
+        "target resources, MISRA, traceability)",
+    )
+    p.add_argument("export_dir", type=Path, help="an `embedrl export` folder")
+    p.add_argument(
+        "--hil", type=Path, action="append", default=[], metavar="REPORT.json",
+        help="a report of `embedrl hil run --json` on this export (repeatable: host node, firmware node)",
+    )  # fmt: skip
+    p.add_argument(
+        "--also", type=Path, action="append", default=[], metavar="EXPORT_DIR",
+        help="another export of the same policy in another precision, for the error histograms (repeatable)",
+    )  # fmt: skip
+    p.add_argument("--out", type=Path, required=True, help="the HTML file to write")
+    p.set_defaults(func=cmd_report)
 
 
 def _register_doctor(hil_sub: Any) -> None:

@@ -1,0 +1,90 @@
+"""The deployment report (``embedrl report``): one self-contained HTML page an embedded team can sign
+off, with the interface, the numerical verification, the closed loop on every platform, the target
+resources, the coding standard and the traceability chain of one export."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from embedrl.hil.errors import HilError
+
+
+def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[str, Any]:
+    """Every fact the page shows (its JSON form); bad inputs are refused before any work."""
+    from embedrl.export import chain
+    from embedrl.export.reference import precision_of
+    from embedrl.hil import misra
+    from embedrl.hil.signoff import facts
+
+    export = facts.load_export(export_dir)
+    others = [(d, facts.load_export(d)) for d in also]
+    hils = [(p.name, facts.load_hil(p, export_dir)) for p in hil_reports]
+    try:
+        links = chain.verify(export_dir)
+    except chain.ChainError as exc:
+        raise HilError(str(exc)) from None
+    verification = []
+    for folder, data in [(export_dir, export), *others]:
+        errors = facts.errors_per_sample(folder, data)
+        verification.append({
+            "precision": precision_of(folder), "samples": len(errors), "max_error": float(errors.max()),
+            "p99_error": float(np.percentile(errors, 99)), "errors": errors,
+            "bit_exact_with_model": True if data.get("quantize") else None,
+            "onnx_vs_source": data["verification"].get("onnx_vs_sb3_max_abs_error"),
+        })  # fmt: skip
+    return {
+        "export_dir": str(export_dir),
+        "export": export,
+        "interface": facts.interface_facts(export, export_dir),
+        "verification": verification,
+        "tolerance": export["verification"]["tolerance"],
+        "closed_loop": facts.closed_loop_rows(export, hils),
+        "hil_reports": [name for name, _ in hils],
+        "targets": facts.target_facts(export, export_dir, [h for _, h in hils]),
+        "coding_standard": misra.check(export_dir).to_json(),
+        "warnings": export["compiler"]["command"],
+        "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
+    }
+
+
+def render(data: dict[str, Any]) -> str:
+    from html import escape
+
+    from embedrl.hil.signoff import figures, page, sections
+
+    data["figures"] = {
+        "errors": figures.error_histograms({v["precision"]: v["errors"] for v in data["verification"]},
+                                           data["tolerance"]),
+        "closed_loop": figures.closed_loop(data["closed_loop"]) if data["closed_loop"] else "",
+        "stack_and_memory": figures.stack_and_memory(data["targets"]) if data["targets"] else "",
+    }  # fmt: skip
+    export = data["export"]
+    source = export["source"]
+    intro = (
+        f"Policy <b>{escape(export['name'])}</b> from <code>{escape(Path(source['path']).name)}</code> "
+        f"(sha256 {source['sha256'][:16]}...), {escape(export['tool'])}, precision "
+        f"{escape(data['verification'][0]['precision'])}; {len(export['ops'])} ops, "
+        f"{export['observation_dim']} observations -> {export['action_dim']} actions."
+    )
+    body = {
+        "interface": sections.interface(data),
+        "verification": sections.verification(data),
+        "closed-loop": sections.closed_loop(data),
+        "resources": sections.resources(data),
+        "coding-standard": sections.coding_standard(data),
+        "traceability": sections.traceability(data),
+    }
+    return page.page(f"Deployment report: {export['name']} ({data['interface']['name']})", intro, body)
+
+
+def write(export_dir: Path, hil_reports: list[Path], also: list[Path], out: Path) -> dict[str, Any]:
+    """Gather, render and write the page atomically; the facts, for the caller's summary."""
+    from embedrl.common import atomic_write
+
+    data = gather(export_dir, hil_reports, also)
+    html = render(data)
+    atomic_write(out, lambda tmp: tmp.write_text(html))
+    return data

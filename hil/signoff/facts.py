@@ -1,0 +1,156 @@
+"""What the deployment report states, gathered from an export folder and the HIL reports made on it:
+the interface and its CAN frames, the numerical verification recomputed per sample, the closed loop on
+each platform, the target resources, the coding standard and the traceability chain.
+
+Every file read here is the user's: JSON is parsed without executing anything, the C is rebuilt from
+the export's sources rather than a binary in the folder loaded, and a HIL report made on other bytes
+than this export's is refused.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from embedrl.common import parse_json, sha256
+from embedrl.hil import candb
+from embedrl.hil.errors import HilError
+from embedrl.train.interface import INTERFACE_FILE
+
+TOP_SYMBOLS = 12
+"""Largest symbols listed per image."""
+RAM_ORIGIN = 0x20000000
+"""Where the targets' RAM starts (runtime_c/Makefile's memory.ld): symbols below it are in flash."""
+SECTIONS = (".isr_vector", ".text", ".ARM.exidx", ".data", ".bss", ".heap", ".stack")
+
+
+def load_export(export_dir: Path) -> dict[str, Any]:
+    """The export's report and interface; a folder that is not an export is refused in one line."""
+    report = export_dir / "export_report.json"
+    if not report.is_file() or not (export_dir / INTERFACE_FILE).is_file():
+        raise HilError(
+            f"{export_dir}: not an `embedrl export` folder (no export_report.json or interface.json)"
+        )
+    try:
+        data = parse_json(report.read_text())
+        data["interface"]["observation"]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise HilError(f"{report}: not an export report ({exc})") from None
+    return dict(data)
+
+
+def load_hil(path: Path, export_dir: Path) -> dict[str, Any]:
+    """A HIL report made on exactly this export's files."""
+    try:
+        data = parse_json(path.read_text())
+        files = data["export_files"]
+        data["verdict"]["passed"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise HilError(f"{path}: not a HIL report of `embedrl hil run --json` ({exc})") from None
+    for name, recorded in files.items():
+        if not (export_dir / name).is_file() or sha256(export_dir / name) != recorded:
+            raise HilError(f"{path} was made on another export: its {name} differs from {export_dir}'s")
+    return dict(data)
+
+
+def interface_facts(export: dict[str, Any], export_dir: Path) -> dict[str, Any]:
+    interface = candb.load_interface(export_dir / INTERFACE_FILE)
+    return {
+        "name": interface.name,
+        "sample_time_s": interface.sample_time_s,
+        "safe_action": list(interface.safe_action),
+        "observation": export["interface"]["observation"],
+        "action": export["interface"]["action"],
+        "frames": candb.frame_rows(interface),
+        "watchdog_ms": candb.WATCHDOG_MS,
+    }
+
+
+def errors_per_sample(export_dir: Path, export: dict[str, Any]) -> np.ndarray:
+    """max |C - ONNX| per sample over the export's verification observations, the C rebuilt from ``c/``
+    (a quantised policy: its distance to the float ONNX, the quantisation error)."""
+    import onnxruntime as ort
+
+    from embedrl.export import build
+
+    observations = np.load(export_dir / "test" / "observations.npy", allow_pickle=False).astype(np.float32)
+    session = ort.InferenceSession(str(export_dir / "policy.onnx"), providers=["CPUExecutionProvider"])
+    expected = session.run(None, {session.get_inputs()[0].name: observations})[0]
+    with tempfile.TemporaryDirectory(prefix="embedrl-report-") as tmp:
+        build.make("lib", export_dir / "c", Path(tmp))
+        policy = build.CPolicy(Path(tmp) / "libpolicy.so", export["name"], export["observation_dim"],
+                               export["action_dim"])  # fmt: skip
+        actions, _ = policy.batch(observations)
+    return np.asarray(np.max(np.abs(actions.astype(np.float64) - expected), axis=1))
+
+
+def image_memory(elf: Path) -> dict[str, Any]:
+    """Bytes per section (``arm-none-eabi-size -A``) and the largest symbols (``readelf -s``)."""
+    sizes = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True, check=True)
+    sections = {}
+    for line in sizes.stdout.splitlines():
+        parts = line.split()
+        if len(parts) == 3 and parts[0] in SECTIONS:
+            sections[parts[0]] = int(parts[1])
+    table = subprocess.run(["arm-none-eabi-readelf", "-sW", str(elf)], capture_output=True, text=True,
+                           check=True)  # fmt: skip
+    symbols: list[dict[str, Any]] = []
+    for line in table.stdout.splitlines():
+        parts = line.split()
+        if len(parts) == 8 and parts[3] in ("FUNC", "OBJECT") and parts[2].isdigit() and int(parts[2]) > 0:
+            in_ram = int(parts[1], 16) >= RAM_ORIGIN
+            kind = "code" if parts[3] == "FUNC" else ("RAM" if in_ram else "constant (flash)")
+            symbols.append({"symbol": parts[7], "bytes": int(parts[2]), "kind": kind})
+    symbols.sort(key=lambda s: (-s["bytes"], s["symbol"]))
+    return {"sections": sections, "symbols": symbols[:TOP_SYMBOLS]}
+
+
+def target_facts(
+    export: dict[str, Any], export_dir: Path, hils: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Per Cortex-M target: the export's measurements, memory per section and symbol, the stack bounds
+    beside what was painted (the test image's policy_step; the firmware node in a HIL run)."""
+    rows = []
+    for name, t in export.get("targets", {}).items():
+        node_runs = [h for h in hils if h.get("node") == "firmware" and h.get("target") == name]
+        peaks = [
+            h["firmware"]["stack_peak_bytes"] for h in node_runs if h["firmware"].get("stack_peak_bytes")
+        ]
+        images = {}
+        for image in ("node.elf", "firmware.elf"):
+            elf = export_dir / "bin" / name / image
+            if elf.is_file():
+                images[image] = image_memory(elf)
+        rows.append({
+            "target": name,
+            "measured": t,
+            "images": images,
+            "node_stack_peak_bytes": max(peaks, default=None),
+            "node_step": next((h["time_on_target"] for h in node_runs if h.get("time_on_target")), None),
+        })  # fmt: skip
+    return rows
+
+
+def closed_loop_rows(export: dict[str, Any], hils: list[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Outcomes per platform on the same seeds: the simulation with onnxruntime and with the C (the
+    export's check), then each HIL run beside the simulation on its own seeds."""
+    rows = []
+    loop = export.get("closed_loop") or {}
+    for key, label in (("reference", "simulation, onnxruntime"), ("c", "simulation, generated C")):
+        if key in loop:
+            rows.append(_outcomes(label, loop[key], loop.get("seed"), None))
+    for name, h in hils:
+        where = f"HIL, {h['node']} node" + (f" on {h['target']}" if h.get("target") else "")
+        rows.append(_outcomes(f"{where} ({name})", h, h.get("seed"), h["verdict"]["passed"]))
+        if h.get("simulation"):
+            rows.append(_outcomes(f"simulation, same seeds ({name})", h["simulation"], h.get("seed"), None))
+    return rows
+
+
+def _outcomes(label: str, data: dict[str, Any], seed: Any, passed: bool | None) -> dict[str, Any]:
+    keys = ("episodes", "successes", "collisions", "timeouts")
+    return {"platform": label, "seed": seed, "verdict": passed, **{k: data.get(k) for k in keys}}

@@ -1,0 +1,141 @@
+"""``embedrl report``: the deployment page opened in headless Chromium (Debian's ``chromium``, from
+``make deps``), offline, every section and key figure read back from the rendered DOM, nothing fetched."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from embedrl.cli import main
+from tests.hil.conftest import SHIPPED_TD3
+
+SECTIONS = ("interface", "verification", "closed-loop", "resources", "coding-standard", "traceability")
+CHROMIUM = ("chromium", "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+            "--disable-background-networking", "--disable-component-update",
+            "--host-resolver-rules=MAP * ~NOTFOUND")  # fmt: skip
+SCREENSHOT = Path("/tmp/embedrl-report-screenshot.png")
+"""The rendered page, kept for a person to look at."""
+
+
+@pytest.fixture(scope="module")
+def reported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[str, object]]:
+    """The shipped TD3 exported for the M4, a HIL run on the Python node, and the report of both, in
+    folders with spaces."""
+    root = tmp_path_factory.mktemp("report") / "with space"
+    export = root / "export dir"
+    argv = ["export", str(SHIPPED_TD3), "--out", str(export), "--episodes", "2", "--target", "cortex-m4"]
+    assert main(argv) == 0
+    hil = root / "hil run.json"
+    argv = [
+        "hil",
+        "run",
+        "--export-dir",
+        str(export),
+        "--node",
+        "python",
+        "--episodes",
+        "2",
+        "--json",
+        str(hil),
+    ]
+    assert main(argv) == 0
+    page = root / "out" / "report.html"
+    assert main(["report", str(export), "--hil", str(hil), "--out", str(page)]) == 0
+    return export, page, json.loads((export / "export_report.json").read_text())
+
+
+def _chromium(page: Path, *flags: str) -> str:
+    if shutil.which("chromium") is None:
+        pytest.fail("chromium is not installed: run `make deps` (Debian's chromium)")
+    result = subprocess.run([*CHROMIUM, *flags, page.as_uri()], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-500:]
+    return result.stdout
+
+
+def page_requests(page: Path, net_log: Path) -> list[str]:
+    """URLs the page itself asked for (Chromium's own background requests have no origin)."""
+    _chromium(page, f"--log-net-log={net_log}", "--dump-dom")
+    events = json.loads(net_log.read_text())
+    start = events["constants"]["logEventTypes"]["URL_REQUEST_START_JOB"]
+    return [
+        e["params"]["url"]
+        for e in events["events"]
+        if e["type"] == start and e.get("params", {}).get("initiator") not in (None, "not an origin")
+    ]
+
+
+class _Keys(HTMLParser):
+    """``data-key`` -> text, and the ids of the sections, from the rendered DOM."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.keys: dict[str, str] = {}
+        self.sections: list[str] = []
+        self._open: str | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        values = dict(attrs)
+        if tag == "section" and values.get("id"):
+            self.sections.append(str(values["id"]))
+        self._open = values.get("data-key") or self._open
+
+    def handle_data(self, data: str) -> None:
+        if self._open and data.strip():
+            self.keys[self._open] = data.strip()
+            self._open = None
+
+
+def test_the_page_opens_offline_with_every_section_and_key_figure(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path
+) -> None:
+    _, page, export = reported
+    html = page.read_text()
+    assert "<script" not in html and not re.search(r"""(src|href)=["']?(https?:)?//""", html)
+    dom = _Keys()
+    dom.feed(_chromium(page, "--dump-dom"))
+    assert dom.sections == list(SECTIONS)
+    m4 = export["targets"]["cortex-m4"]  # type: ignore[index]
+    assert dom.keys["sample-time-s"] == "0.3"
+    assert dom.keys["stack-bound-cortex-m4"] == str(m4["stack_bound"]["bytes"])
+    assert dom.keys["stack-painted-cortex-m4"] == str(m4["stack_bytes"])
+    assert dom.keys["node-stack-bound-cortex-m4"] == str(m4["node_firmware"]["stack_bound"]["bytes"])
+    assert dom.keys["instructions-cortex-m4"] == f"{round(m4['instructions_per_inference']):,}"
+    assert dom.keys["misra-unexplained"] == "0" and int(dom.keys["misra-findings"]) > 0
+    assert dom.keys["chain-intact"] == "intact"
+    assert float(dom.keys["max-error-float32"]) <= 1e-5
+    assert page_requests(page, tmp_path / "net.json") == []
+    _chromium(page, f"--screenshot={SCREENSHOT}", "--window-size=1280,5000", "--hide-scrollbars")
+    assert SCREENSHOT.stat().st_size > 100_000  # a page of tables and figures, not a blank one
+
+
+def test_the_fetch_check_sees_a_page_that_fetches(tmp_path: Path) -> None:
+    """The control: a page with a remote image and style sheet is caught."""
+    page = tmp_path / "fetching.html"
+    page.write_text('<html><body><img src="http://127.0.0.1:9/x.png"><link rel="stylesheet" '
+                    'href="https://example.com/a.css"></body></html>')  # fmt: skip
+    assert sorted(page_requests(page, tmp_path / "net.json")) == [
+        "http://127.0.0.1:9/x.png", "https://example.com/a.css"
+    ]  # fmt: skip
+
+
+def test_a_hil_report_of_another_export_or_a_folder_that_is_no_export_is_refused(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export, _, _ = reported
+    other = tmp_path / "other.json"
+    data = json.loads(next(export.parent.glob("*.json")).read_text())
+    data["export_files"]["c/policy.c"] = "0" * 64
+    other.write_text(json.dumps(data))
+    out = tmp_path / "r.html"
+    assert main(["report", str(export), "--hil", str(other), "--out", str(out)]) == 2
+    assert "was made on another export: its c/policy.c differs" in capsys.readouterr().err
+    assert main(["report", str(tmp_path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not an `embedrl export` folder" in err and len(err.splitlines()) == 1
+    assert not out.exists()
