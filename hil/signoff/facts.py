@@ -104,8 +104,12 @@ def image_memory(elf: Path) -> dict[str, Any]:
         if len(parts) == 8 and parts[3] in ("FUNC", "OBJECT") and parts[2].isdigit() and int(parts[2]) > 0:
             in_ram = int(parts[1], 16) >= RAM_ORIGIN
             kind = "code" if parts[3] == "FUNC" else ("RAM" if in_ram else "constant (flash)")
-            symbols.append({"symbol": parts[7], "bytes": int(parts[2]), "kind": kind})
+            symbols.append({"symbol": parts[7], "bytes": int(parts[2]), "kind": kind, "at": parts[1]})
     symbols.sort(key=lambda s: (-s["bytes"], s["symbol"]))
+    by_address: dict[str, dict[str, Any]] = {}  # aliases (__aeabi_dadd, __adddf3) share one: listed once
+    for symbol in symbols:
+        by_address.setdefault(symbol["at"], symbol)
+    symbols = list(by_address.values())
     return {"sections": sections, "symbols": symbols[:TOP_SYMBOLS]}
 
 

@@ -40,8 +40,8 @@ def error_histograms(errors: dict[str, np.ndarray], tolerance: float) -> str:
             ax.axvline(np.log10(tolerance), color="tab:red", linestyle="--", label=f"tolerance {tolerance:g}")
             ax.legend(loc="upper left", fontsize=8)
         ax.set(
-            title=f"{precision}: {len(err):,} samples ({exact:,} exact), max {err.max():.2g}",
-            xlabel="log10 max |C - ONNX float| per sample (exact ones left out)",
+            title=f"{precision}: {len(err):,} samples, max {err.max():.2g}\n({exact:,} exact, not drawn)",
+            xlabel="log10 max|C - ONNX float| per sample",
             ylabel="samples",
         )
     fig.tight_layout()
@@ -59,7 +59,7 @@ def closed_loop(rows: list[dict[str, Any]]) -> str:
         left += share
     ax.invert_yaxis()
     ax.set(xlim=(0, 1), xlabel="share of episodes")
-    ax.legend(loc="lower right", fontsize=8, ncols=3)
+    ax.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=8)
     return _svg(fig)
 
 
