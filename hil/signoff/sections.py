@@ -118,6 +118,7 @@ def _target_summary(targets: list[dict[str, Any]]) -> str:
             cell(m["estimated_cycles_per_inference"]),
             cell(m["estimated_inference_us"], f"inference-us-{name}"),
             cell(None if step is None else step["estimated_step_us"], f"node-step-us-{name}"),
+            cell(None if step is None else round(step["margin_s"] * 1000, 1), f"margin-ms-{name}"),
             cell(None if m["fraction_of_sample_time"] is None else 100 * m["fraction_of_sample_time"],
                  f"share-of-sample-time-{name}"),
         ])  # fmt: skip
@@ -128,6 +129,7 @@ def _target_summary(targets: list[dict[str, Any]]) -> str:
         + table(["target", "part", "policy flash [B]", "policy RAM [B]", "policy_step stack painted [B]",
                  "policy_step stack bound [B]", "node stack bound [B]", "node stack painted [B]",
                  "instructions per inference", "est. cycles", "est. inference [us]", "node worst step [us]",
+                 "margin to the sample time [ms]",
                  "% of sample time"], rows)
     )  # fmt: skip
 
