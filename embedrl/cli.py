@@ -1,22 +1,23 @@
 """The ``embedrl`` command: every package's subcommands, registered explicitly.
 
-``train`` adds ``eval``, ``render``, ``train``, ``bench``, ``bench-env``; ``export`` adds ``export`` and
-``bench-export``; ``hil`` adds ``hil run`` and ``hil doctor``. Errors a package raises on purpose (its
-``ERRORS``) print as one line ``error: ...`` with exit status 2; ``--debug`` shows the traceback.
-SIGINT and SIGTERM stop a command in order (its temporary folders removed, its children stopped): one
-line ``interrupted``, exit status 130 (SIGINT) or 143 (SIGTERM).
+``train`` adds ``eval``, ``render``, ``train``, ``bench``, ``bench-env``, ...; ``export`` adds ``export``,
+``verify-chain``, ``bench-export``, ``bench-target``; ``hil`` adds ``hil run``, ``hil doctor`` and ``report``.
+Errors a package raises on purpose (its ``ERRORS``) print as one line ``error: ...`` with exit status 2;
+``--debug`` shows the traceback. SIGINT and SIGTERM stop a command in order (its temporary folders
+removed, its children stopped): one line ``interrupted``, exit status 130 (SIGINT) or 143 (SIGTERM).
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import signal
 import sys
 import threading
 import traceback
 from types import FrameType
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from embedrl import __version__
 from embedrl.common import check_output
@@ -31,21 +32,73 @@ OUTPUTS = (("json", False), ("log", False), ("plot", True))
 COMMON_ERRORS: tuple[type[Exception], ...] = (OSError, ValueError, json.JSONDecodeError)
 
 
+DESCRIPTION = "A reinforcement-learning policy from simulation to a CAN controller, every step verified."
+EPILOG = """the pipeline, in order:
+  embedrl eval --controller potential-field --episodes 20    the baseline in simulation
+  embedrl train --algo td3 --out out/run                      train a policy
+  embedrl export policies/static/td3.zip --out out/td3        ONNX and C, verified
+  embedrl hil run --export-dir out/td3                        the C policy as a CAN node in the loop
+  embedrl report out/td3 --out out/td3.html                   the deployment report
+
+each command's options: embedrl COMMAND --help"""
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Each option's default in its help, where it has one worth saying and the help does not already."""
+
+    def _format_action(self, action: argparse.Action) -> str:
+        if action.help is None and action.option_strings and _worth_saying(action.default):
+            action = copy.copy(action)  # an option without help still shows its default
+            action.help = "(default: %(default)s)"
+        return super()._format_action(action)
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if "default" in text or not _worth_saying(default) or not action.option_strings:
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _worth_saying(default: object) -> bool:
+    """A default the help should state (0 is one; no value, off and empty lists are not)."""
+    return not (default is None or default is False or default is argparse.SUPPRESS or default in ([], ()))
+
+
 class Parser(argparse.ArgumentParser):
-    """argparse with its usage errors as one line (``embedrl train: error: ...``), exit status 2."""
+    """argparse with whole option names only (``--ep`` is not ``--episodes``), defaults in the help, and
+    usage errors as one line naming the (sub)command's help (``embedrl train: error: ...``), exit 2."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("allow_abbrev", False)
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(prog="embedrl", description=(__doc__ or "").splitlines()[0] if __doc__ else None)
+    parser = Parser(prog="embedrl", description=DESCRIPTION, epilog=EPILOG)
     parser.add_argument("--version", action="version", version=f"embedrl {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for package in PACKAGES:
         package.register(sub)
     return parser
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str] | None) -> argparse.Namespace:
+    """Parse; an option no (sub)command knows is refused by the innermost subcommand, whose help it names."""
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:
+        innermost: argparse.ArgumentParser = parser
+        for word in sys.argv[1:] if argv is None else argv:
+            commands = [a for a in innermost._actions if isinstance(a, argparse._SubParsersAction)]
+            if commands and word in commands[0].choices:
+                innermost = commands[0].choices[word]
+        innermost.error(f"unrecognized arguments: {' '.join(unknown)}")
+    return args
 
 
 class Terminated(KeyboardInterrupt):
@@ -65,7 +118,7 @@ def _stop(signum: int, frame: FrameType | None) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = _parse(build_parser(), argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
     args.as_command = argv is None  # the process is this command (it may start itself again)
     handled = COMMON_ERRORS + tuple(e for package in PACKAGES for e in package.ERRORS)

@@ -88,6 +88,8 @@ def write(export_dir: Path, links: list[Link]) -> Path:
 
 def read(export_dir: Path) -> list[Link]:
     manifest = export_dir / MANIFEST
+    if not export_dir.is_dir():
+        raise ChainError(f"{export_dir}: no such folder")
     if not manifest.is_file():
         raise ChainError(f"{export_dir}: no {MANIFEST} (export it again with `embedrl export`)")
     try:

@@ -139,6 +139,8 @@ def onnx_of(export_dir: Path) -> Path:
 
 
 def _export_interface(export_dir: Path) -> Interface:
+    if not export_dir.is_dir():
+        raise HilError(f"{export_dir}: no such folder (give an `embedrl export` folder)")
     if not (export_dir / "c" / "policy.c").is_file():
         raise HilError(
             f"{export_dir}: no c/policy.c (is it an `embedrl export` folder with the default --name?)"

@@ -149,3 +149,57 @@ def test_console_script_is_installed() -> None:
     result = subprocess.run([str(exe), "--help"], capture_output=True, text=True, check=True)
     for command in ("eval", "render", "bench-env"):
         assert command in result.stdout
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (
+            ["eval", "--ep", "3"],
+            "embedrl eval: error: unrecognized arguments: --ep (see embedrl eval --help)",
+        ),
+        (["eval", "--contr", "potential-field"], "unrecognized arguments: --contr"),
+        (["hil", "run", "--export-dir", "x", "--bogus"], "(see embedrl hil run --help)"),
+    ],
+)
+def test_options_are_whole_words_and_errors_name_the_subcommands_help(
+    argv: list[str], said: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert said in err and len(err.splitlines()) == 1
+
+
+def test_help_states_the_defaults_and_the_pipeline(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["eval", "--help"])
+    text = capsys.readouterr().out
+    assert "(default: 200)" in text and "seed + i (default: 0)" in text
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = capsys.readouterr().out
+    assert text.count("embedrl ") > 5 and "registered" not in text  # a user's page, not the developer's
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["hil", "run", "--export-dir"], ["verify-chain"], ["report", "--out", "r.html"]],
+)
+def test_a_missing_folder_is_named_as_missing(
+    argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    missing = tmp_path / "no such export"
+    where = argv.index("--export-dir") + 1 if "--export-dir" in argv else 1
+    assert main([*argv[:where], str(missing), *argv[where:]]) == 2
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .endswith(("no such folder", "no such folder (give an `embedrl export` folder)"))
+    )
+
+
+def test_python_dash_m_runs_the_command() -> None:
+    result = subprocess.run([sys.executable, "-m", "embedrl", "--version"], capture_output=True, text=True)
+    assert result.returncode == 0 and result.stdout.startswith("embedrl ")

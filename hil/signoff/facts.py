@@ -31,6 +31,8 @@ SECTIONS = (".isr_vector", ".text", ".ARM.exidx", ".data", ".bss", ".heap", ".st
 def load_export(export_dir: Path) -> dict[str, Any]:
     """The export's report and interface; a folder that is not an export is refused in one line."""
     report = export_dir / "export_report.json"
+    if not export_dir.is_dir():
+        raise HilError(f"{export_dir}: no such folder")
     if not report.is_file() or not (export_dir / INTERFACE_FILE).is_file():
         raise HilError(
             f"{export_dir}: not an `embedrl export` folder (no export_report.json or interface.json)"

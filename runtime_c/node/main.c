@@ -51,11 +51,16 @@ static void reopen(node_t *node, const char *iface, const uint32_t *ids)
     }
 }
 
+static void print_usage(FILE *to)
+{
+    fprintf(to, "usage: policy_node --iface NAME [--timeout-ms 1..60000] [--recover 1..1000] "
+                "[--status-ms 10..60000] [--node-id 0..%u]\n",
+            POLICY_IO_MAX_NODES - 1u);
+}
+
 static int usage(void)
 {
-    fprintf(stderr, "usage: policy_node --iface NAME [--timeout-ms 1..60000] [--recover 1..1000] "
-                    "[--status-ms 10..60000] [--node-id 0..%u]\n",
-            POLICY_IO_MAX_NODES - 1u);
+    print_usage(stderr);
     return 2;
 }
 
@@ -64,6 +69,10 @@ int main(int argc, char **argv)
     const char *iface = NULL;
     node_config config = {POLICY_IO_WATCHDOG_MS, DEFAULT_RECOVER, POLICY_IO_STATUS_PERIOD_MS, 0u};
     for (int i = 1; i < argc; ++i) {
+        if (strcmp(argv[i], "--help") == 0 || strcmp(argv[i], "-h") == 0) {
+            print_usage(stdout); /* asked for: on stdout, success */
+            return 0;
+        }
         if (i + 1 >= argc) {
             return usage();
         }

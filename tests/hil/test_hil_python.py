@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import shutil
 import signal
+import subprocess
 from pathlib import Path
 
 import can
@@ -168,3 +169,13 @@ def test_the_python_node_counts_a_late_frame_as_a_timeout_as_the_c_node_does(exp
     np.testing.assert_array_equal(actions[-1].action, np.asarray(interface.safe_action, np.float32))
     node.bus.shutdown()
     listener.shutdown()
+
+
+def test_policy_node_help_is_an_answer_not_an_error(export_dir: Path, tmp_path: Path) -> None:
+    from embedrl.export import build
+
+    build.make("node", export_dir / "c", tmp_path)
+    asked = subprocess.run([str(tmp_path / "policy_node"), "--help"], capture_output=True, text=True)
+    assert asked.returncode == 0 and asked.stdout.startswith("usage: policy_node --iface NAME")
+    wrong = subprocess.run([str(tmp_path / "policy_node"), "--bogus"], capture_output=True, text=True)
+    assert wrong.returncode == 2 and wrong.stderr.startswith("usage: policy_node")
