@@ -12,16 +12,43 @@ import matplotlib.pyplot as plt
 from embedrl.common import atomic_write
 
 
-def plot_latency(latencies_us: list[float], path: Path, sandbox: str, realtime: bool) -> None:
-    fig, ax = plt.subplots(figsize=(7, 4))
-    if latencies_us:
-        ax.hist([v / 1000 for v in latencies_us], bins=50, color="tab:blue")
-    ax.set(
-        xlabel="round trip: observation frames out -> action frame in [ms]",
-        ylabel="steps",
-        title=f"HIL round trip ({'real time' if realtime else 'lock-step'}, {sandbox}, "
-        f"n={len(latencies_us)})",
-    )
+def plot_latency(
+    latencies_us: list[float],
+    path: Path,
+    sandbox: str,
+    realtime: bool,
+    sample_time_s: float,
+    watchdog_ms: float,
+) -> None:
+    """The round trip of every step (observation frames out -> action frame in): its distribution on a log
+    axis with the median, the 99th percentile, the sample period and the node's watchdog marked, and the
+    same values over the run (jitter over time)."""
+    import numpy as np
+
+    fig, (hist, over) = plt.subplots(1, 2, figsize=(12, 4), gridspec_kw={"width_ratios": [1, 1.3]})
+    ms = np.asarray(latencies_us, dtype=float) / 1000
+    limits = (("sample period", 1000 * sample_time_s, "tab:green"), ("node watchdog", watchdog_ms, "tab:red"))
+    if ms.size:
+        low = max(ms.min(), 1e-3) / 1.5
+        edges = np.logspace(np.log10(low), np.log10(max(ms.max(), watchdog_ms) * 1.5), 60)
+        hist.hist(ms, bins=edges, color="tab:blue")
+        over.plot(np.arange(1, ms.size + 1), ms, ".", ms=2, color="tab:blue", label="round trip")
+        for name, q, style in (("median", 50, "-"), ("99th percentile", 99, "--")):
+            value = float(np.percentile(ms, q))
+            for ax in (hist, over):
+                (ax.axvline if ax is hist else ax.axhline)(value, color="k", ls=style, lw=1,
+                                                           label=f"{name} {value:.3g} ms")  # fmt: skip
+    for name, value, colour in limits:
+        hist.axvline(value, color=colour, lw=1.5, label=f"{name} {value:g} ms")
+        over.axhline(value, color=colour, lw=1.5, label=f"{name} {value:g} ms")
+    mode = "real time" if realtime else "lock-step"
+    hist.set(xscale="log", xlabel="round trip [ms] (log scale)", ylabel="steps",
+             title=f"HIL round trip ({mode}, sandbox {sandbox}, {ms.size} steps)")  # fmt: skip
+    over.set(yscale="log", xlabel="step of the run", ylabel="round trip [ms] (log scale)",
+             title="round trip over the run (jitter)")  # fmt: skip
+    hist.legend(fontsize=7, loc="upper center")
+    over.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    fig.tight_layout()
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
     finally:

@@ -204,6 +204,8 @@ def _plot(
     assert options.plot is not None
     if any(e.trajectory for e in episodes):  # envs with a map (the warehouse scenarios)
         plot_trajectories(report, options.plot / "hil_trajectories.png")
+    interface = candb.load_interface(options.export_dir / INTERFACE_FILE)
     plot_latency(
-        results["latencies_us"], options.plot / "hil_latency.png", results["sandbox"], options.realtime
-    )
+        results["latencies_us"], options.plot / "hil_latency.png", results["sandbox"], options.realtime,
+        interface.sample_time_s, results["config"]["node_timeout_ms"],  # the watchdog this run's node had
+    )  # fmt: skip

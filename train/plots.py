@@ -32,7 +32,8 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
     if moving:
         band = (layout.MOVING_SHELF_Y_MIN, layout.MOVING_SHELF_Y_MAX + layout.UPPER_SHELF_DEPTH)
         ax.axhspan(*band, color="saddlebrown", alpha=0.12, label="moving shelf's band")
-    ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3)
+    ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3,
+            label="goal line (cross it)")  # fmt: skip
     for r in report.results:
         xs = [p[0] for p in r.trajectory]
         ys = [p[1] for p in r.trajectory]
@@ -44,6 +45,9 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
             ax.plot([p[0] for p in other][:1], [p[1] for p in other][:1], "s", color=colour, ms=3)
     for outcome, colour in OUTCOME_COLOURS.items():
         ax.plot([], [], color=colour, label=outcome)
+    ax.plot([], [], "o", color="k", ms=3, label="start")
+    if any(r.other_trajectories for r in report.results):
+        ax.plot([], [], "s--", color="k", ms=3, lw=1, label="second robot: start, path")
     v = layout.VIEW
     ax.set(xlim=(v.x0, v.x1), ylim=(v.y0, v.y1), aspect="equal", xlabel="x [m]", ylabel="y [m]")
     last_seed = report.seed + report.episodes - 1
@@ -58,26 +62,27 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
         plt.close(fig)
 
 
-def plot_progress(curve_csv: Path, path: Path, title: str) -> None:
-    """MATLAB-style training progress: episode return, 50-episode average, Episode Q0."""
+def plot_progress(curve_csv: Path, path: Path, title: str, warmup_steps: int = 0) -> None:
+    """Training progress as MATLAB draws it: each episode's return, the 50-episode average and the critic's
+    value of the start state (Q0), with the random warm-up (``warmup_steps`` env steps before any learning)
+    shaded, so that its flat start does not read as learning that is stuck."""
     import csv
 
     with curve_csv.open() as f:
         rows = list(csv.DictReader(f))
     episodes = [int(r["episode"]) for r in rows]
     fig, ax = plt.subplots(figsize=(9, 4.5))
-    ax.plot(
-        episodes,
-        [float(r["return"]) for r in rows],
-        color="tab:blue",
-        lw=0.6,
-        alpha=0.5,
-        label="episode return",
-    )
+    warm = [int(r["episode"]) for r in rows if int(r["steps"]) <= warmup_steps]
+    if warm:
+        ax.axvspan(0, max(warm), color="0.9",
+                   label=f"random warm-up: {warmup_steps:,} steps before learning starts")  # fmt: skip
+    ax.plot(episodes, [float(r["return"]) for r in rows], color="tab:blue", lw=0.6, alpha=0.5,
+            label="episode return")  # fmt: skip
     ax.plot(episodes, [float(r["average50"]) for r in rows], color="tab:red", lw=1.8, label="average of 50")
-    ax.plot(episodes, [float(r["q0"]) for r in rows], color="tab:orange", lw=1.0, ls="--", label="Episode Q0")
+    ax.plot(episodes, [float(r["q0"]) for r in rows], color="tab:orange", lw=1.0, ls="--",
+            label="critic's value of the start state (Q0)")  # fmt: skip
     ax.axhline(2.0, color="gray", ls=":", lw=1, label="stop criterion (2)")
-    ax.set(xlabel="episode", ylabel="return", title=title)
+    ax.set(xlabel="training episode", ylabel="return", title=title)
     ax.legend(loc="lower right", fontsize="small")
     try:
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
@@ -107,7 +112,8 @@ def plot_successes(curve_csv: Path, evaluations_csv: Path | None, path: Path, ti
         success = np.array([float(r["success"]) for r in mine])
         rate = np.convolve(success, np.ones(SUCCESS_WINDOW) / SUCCESS_WINDOW, mode="valid")
         steps = [int(r["steps"]) for r in mine][SUCCESS_WINDOW - 1 :]
-        ax.plot(steps, 100 * rate, lw=1.2, label=f"robot {robot}: last {SUCCESS_WINDOW} training episodes")
+        who = f"robot {robot + 1}: " if len(robots) > 1 else ""
+        ax.plot(steps, 100 * rate, lw=1.2, label=f"{who}share of the last {SUCCESS_WINDOW} training episodes")
     if evaluations_csv is not None and evaluations_csv.is_file():
         with evaluations_csv.open() as f:
             evals = list(csv.DictReader(f))
@@ -189,7 +195,8 @@ def plot_reward_field(scenario: str, path: Path) -> None:
                 (x - ROBOT_LENGTH / 2, y - ROBOT_WIDTH / 2), ROBOT_LENGTH, ROBOT_WIDTH, fill=False, ec="red"
             )
         )
-    ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3)
+    ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3,
+            label="goal line (cross it)")  # fmt: skip
     ax.set(xlim=(v.x0, v.x1), ylim=(v.y0, v.y1), aspect="equal", xlabel="x [m]", ylabel="y [m]")
     ax.set_title(
         f"Potential-field reward, {scenario} ({note})\n"

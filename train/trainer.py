@@ -3,7 +3,7 @@
 A run directory is self-describing::
 
     config.json        algorithm, preset, seed, hyperparameters, budget, package versions
-    curve.csv          one row per training episode: steps, return, 50-episode average, Episode Q0
+    curve.csv          one row per training episode: steps, return, 50-episode average, the critic's Q0
     summary.json       criterion reached?, episodes and env steps to it, first deterministic success, time
     progress.png       MATLAB-style: episode return, 50-episode average, Episode Q0
     successes.png      successes over training, per robot, and the validation evaluations
@@ -615,7 +615,7 @@ class _Run:
         from embedrl.train.plots import plot_progress, plot_successes
 
         title = f"{config.algo.upper()} ({self.scenario}, {config.preset}, seed {config.seed})"
-        plot_progress(out / "curve.csv", out / "progress.png", title)
+        plot_progress(out / "curve.csv", out / "progress.png", title, _warmup_steps(self.cfg))
         plot_successes(out / "curve.csv", out / EVALUATIONS_FILE, out / "successes.png", title)
         self.env.close()
         return summary
