@@ -3,15 +3,15 @@
 Each run trains until its stop rule (or the budget), then its selected model is evaluated
 deterministically on seeds it was not trained on. A run that finished before (its ``summary.json``) is not
 trained again and one that was interrupted is resumed, so an interrupted bench goes on where it stopped.
-Per algorithm the table gives the median over seeds with a 95% bootstrap interval, and the study's numbers
-beside ours; the potential-field controller is evaluated on the same seeds.
+Per algorithm the table gives the median over seeds with a 95% bootstrap interval (from three seeds), and
+the study's numbers beside ours; the potential-field controller is evaluated on the same seeds. The runs go
+to a process pool or to Ray (:mod:`embedrl.train.sweep`); each writes ``result.json`` in its folder as it
+ends, so the table can be rebuilt from the folders (``--from``).
 """
 
 from __future__ import annotations
 
 import json
-import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -21,8 +21,11 @@ from embedrl.common import BENCH_TEST_SEED, provenance, write_json
 from embedrl.train.config import Budget
 from embedrl.train.evaluate import REPORT_KEYS, evaluate
 from embedrl.train.scenarios import DEFAULT_SCENARIO, MOVING_SHELF, STATIC, TWO_ROBOTS
+from embedrl.train.sweep import Failure, run_all
 
 BOOTSTRAP_SAMPLES = 2000
+ALGO_ORDER = ("ddpg", "td3", "sac", "ppo")
+"""The table's column order."""
 
 STUDY = {
     "ddpg": {
@@ -117,11 +120,18 @@ def one_run(job: Job) -> dict[str, Any]:
             env_id=SCENARIOS[scenario].env_id,
         )
         cloned = {k: getattr(alone, k) for k in REPORT_KEYS}
-    return {
+    result = {
         **summary,
+        "max_steps": max_steps,
         "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
         "warm_start_evaluation": cloned,
     }
+    write_json(result, run / RESULT_FILE)  # as each run ends: the table can be rebuilt from the folders
+    return result
+
+
+RESULT_FILE = "result.json"
+"""A finished run's summary and evaluation, in its folder (``embedrl bench --from`` reads them)."""
 
 
 def _finished(run: Path, budget: Budget) -> bool:
@@ -159,30 +169,38 @@ def _derived(run: Path) -> dict[str, Any]:
     }
 
 
-def run_jobs(jobs: list[Job], workers: int) -> list[dict[str, Any]]:
-    """Every job's result, in order: in this process with one worker, else in a pool of fresh
-    interpreters (``spawn``: a forked child can inherit a lock some thread of this process held)."""
-    from tqdm import tqdm
-
-    if workers == 1:
-        return [one_run(job) for job in tqdm(jobs, desc="runs", unit="run")]
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return list(tqdm(pool.map(one_run, jobs), total=len(jobs), desc="runs", unit="run"))
+def run_jobs(
+    jobs: list[Job], workers: int, ray: str | None = None
+) -> tuple[list[dict[str, Any]], list[Failure]]:
+    """Every job's result (those that failed left out, in order) and the failures
+    (:func:`embedrl.train.sweep.run_all`: this process, a process pool or Ray)."""
+    results, failures = run_all(one_run, jobs, workers, ray, label=lambda job: f"{job[0]} seed {job[2]}")
+    return [r for r in results if r is not None], failures
 
 
-def median_ci(values: list[float], seed: int = 0) -> tuple[float, float, float]:
-    """Median and its 95% bootstrap interval."""
+def median_ci(values: list[float]) -> tuple[float, float | None, float | None]:
+    """Median and its 95% bootstrap interval (scipy's BCa bootstrap, seeded); no interval below
+    :data:`MIN_SEEDS_FOR_INTERVAL` values or when every value is the same."""
+    from scipy.stats import bootstrap
+
     data = np.asarray(values, dtype=float)
-    rng = np.random.default_rng(seed)
-    medians = np.median(rng.choice(data, size=(BOOTSTRAP_SAMPLES, len(data)), replace=True), axis=1)
-    return float(np.median(data)), float(np.percentile(medians, 2.5)), float(np.percentile(medians, 97.5))
+    median = float(np.median(data))
+    if len(data) < MIN_SEEDS_FOR_INTERVAL or np.all(data == data[0]):
+        return median, None, None
+    ci = bootstrap((data,), np.median, n_resamples=BOOTSTRAP_SAMPLES, confidence_level=0.95,
+                   method="percentile", rng=np.random.default_rng(0)).confidence_interval  # fmt: skip
+    return median, float(ci.low), float(ci.high)
+
+
+MIN_SEEDS_FOR_INTERVAL = 3
+"""Fewer values than this give a median without an interval (two points bound nothing)."""
 
 
 def _cell(values: list[float], fmt: str) -> str:
     if not values:
         return "-"
     m, lo, hi = median_ci(values)
-    return f"{m:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]" if len(values) > 1 else f"{m:{fmt}}"
+    return f"{m:{fmt}}" if lo is None or hi is None else f"{m:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
 
 
 def run_bench(
@@ -196,13 +214,10 @@ def run_bench(
     seed_offset: int = 0,
     scenario: str = DEFAULT_SCENARIO,
     overrides: tuple[str, ...] = (),
-) -> str:
-    """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm on ``scenario``; the table,
-    also written."""
-    from embedrl.train.potential_field import PotentialFieldController
-    from embedrl.train.scenarios import SCENARIOS
-
-    study = STUDY_BY_SCENARIO[scenario]
+    ray: str | None = None,
+) -> tuple[str, list[Failure]]:
+    """Train seeds ``seed_offset .. seed_offset + seeds - 1`` of each algorithm on ``scenario``; the table
+    (also written) and the runs that failed."""
     seed_list = list(range(seed_offset, seed_offset + seeds))
     jobs: list[Job] = [
         (
@@ -219,28 +234,73 @@ def run_bench(
         for a in algos
         for s in seed_list
     ]
-    runs = run_jobs(jobs, workers)
+    runs, failures = run_jobs(jobs, workers, ray)
+    note = (
+        f"preset `{preset}`"
+        + (f" with {', '.join(overrides)}" if overrides else "")
+        + f", budget {max_steps} steps"
+    )
+    failed = [f"{f.job[0]} seed {f.job[2]}: {f.error}" for f in failures]
+    return write_table(runs, out, note, failed), failures
+
+
+def table_from(folders: list[Path], out: Path) -> str:
+    """The table again from finished runs' folders (``runs/*/result.json`` under each of ``folders``, as a
+    bench on any machine of a cluster wrote them), written into ``out``."""
+    from embedrl.common import parse_json
+
+    runs = [
+        parse_json(p.read_text()) for folder in folders for p in sorted(folder.glob(f"runs/*/{RESULT_FILE}"))
+    ]
+    if not runs:
+        raise ValueError(f"no finished runs (runs/*/{RESULT_FILE}) under {', '.join(map(str, folders))}")
+    presets = sorted({r["preset"] for r in runs})
+    steps = sorted({r.get("max_steps", r["total_steps"]) for r in runs})
+    budgets = ", ".join(map(str, steps))
+    named = ", ".join(f"`{p}`" for p in presets)
+    note = f"preset {named}, budget {budgets} steps, from {len(runs)} run folders"
+    return write_table(runs, out, note, [])
+
+
+def write_table(runs: list[dict[str, Any]], out: Path, note: str, failed: list[str]) -> str:
+    """Per algorithm the median over its runs beside the study's numbers, the potential-field controller
+    on the same test seeds, and the runs that failed; ``bench.md`` and ``bench.json`` in ``out``."""
+    from embedrl.train.potential_field import PotentialFieldController
+    from embedrl.train.scenarios import SCENARIOS
+
+    scenarios = {r["scenario"] for r in runs}
+    if len(scenarios) != 1:
+        raise ValueError(
+            f"runs of several scenarios ({', '.join(sorted(scenarios))}): one table per scenario"
+        )
+    scenario = scenarios.pop()
+    algos = [a for a in ALGO_ORDER if any(r["algo"] == a for r in runs)]
+    eval_episodes = runs[0]["evaluation"]["episodes"]
+    study = STUDY_BY_SCENARIO[scenario]
     pf = evaluate(
         PotentialFieldController(scenario=scenario), eval_episodes, BENCH_TEST_SEED, "potential-field",
         env_id=SCENARIOS[scenario].env_id,
     )  # fmt: skip
-    rows = {algo: _row([r for r in runs if r["algo"] == algo]) for algo in algos}
+    rows = {
+        algo: _row(sorted((r for r in runs if r["algo"] == algo), key=lambda r: r["seed"])) for algo in algos
+    }
+    seeds = sorted({r["seed"] for r in runs})
     pf_line = (
         f"Potential-field controller on the same {eval_episodes} seeds: {pf.successes} / {pf.collisions} / "
         f"{pf.timeouts}, average reward {pf.mean_return:.3f}, reliability {100 * pf.success_rate:.1f}%."
     )
-    note = (
-        f"Scenario `{scenario}`. Median [95% bootstrap interval] over {seeds} seed(s) "
-        f"({seed_list[0]}..{seed_list[-1]}), preset `{preset}`"
-        + (f" with {', '.join(overrides)}" if overrides else "")
-        + f", budget {max_steps} steps."
+    text = (
+        f"Scenario `{scenario}`. Median [95% bootstrap interval, from {MIN_SEEDS_FOR_INTERVAL} seeds] over "
+        f"seeds {', '.join(map(str, seeds))}; {note}."
     )
-    table = _markdown(algos, rows, study, eval_episodes) + "\n\n" + pf_line + "\n\n" + note + "\n"
+    failures = "".join(f"\n\nFailed: {f}" for f in failed)
+    table = _markdown(algos, rows, study, eval_episodes) + "\n\n" + pf_line + "\n\n" + text + failures + "\n"
+    out.mkdir(parents=True, exist_ok=True)
     (out / "bench.md").write_text(table)
     write_json(
         {
-            "algos": algos, "scenario": scenario, "seeds": seed_list, "preset": preset,
-            "overrides": list(overrides), "max_steps": max_steps, "rows": rows, "study": study, "runs": runs,
+            "algos": algos, "scenario": scenario, "seeds": seeds, "note": note, "rows": rows, "study": study,
+            "runs": runs, "failed": failed,
             "potential_field": {
                 k: getattr(pf, k)
                 for k in ("successes", "collisions", "timeouts", "success_rate", "mean_return")

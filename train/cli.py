@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -243,13 +244,24 @@ def cmd_bench(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
 
-    table = run_bench(
+    if args.from_runs:
+        from embedrl.train.bench import table_from
+
+        print(table_from(args.from_runs, args.out))
+        print(f"wrote {args.out}/bench.md and bench.json")
+        return 0
+    table, failures = run_bench(
         args.algos, args.seeds, args.preset, args.out, args.max_steps, args.eval_episodes, args.workers,
-        args.seed_offset, args.scenario, tuple(args.set),
+        args.seed_offset, args.scenario, tuple(args.set), args.ray,
     )  # fmt: skip
     print(table)
-    print(f"wrote {args.out}/bench.md and bench.json")
-    return 0
+    print(f"wrote {args.out}/bench.md and bench.json (each run's folder under {args.out}/runs)")
+    if failures:
+        print(
+            f"{len(failures)} run(s) failed (listed under the table); the table holds the others",
+            file=sys.stderr,
+        )
+    return 1 if failures else 0
 
 
 def cmd_shaping(args: argparse.Namespace) -> int:
@@ -267,7 +279,7 @@ def cmd_shaping(args: argparse.Namespace) -> int:
             raise UsageError(str(exc)) from None
     table = run_shaping(
         args.algos, args.seeds, args.seed_offset, args.preset, args.out, args.max_steps, args.eval_episodes,
-        args.workers, args.gain, tuple(args.set),
+        args.workers, args.gain, tuple(args.set), args.ray,
     )  # fmt: skip
     print(table)
     print(f"wrote {args.out}/shaping.md, shaping.json and shaping.png")
@@ -287,7 +299,13 @@ def _add_run_set_arguments(p: argparse.ArgumentParser, max_steps: int) -> None:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--max-steps", type=_positive, default=max_steps)
     p.add_argument("--eval-episodes", type=_positive, default=200)
-    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1)
+    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1,
+                   help="runs at once on this machine (with --ray local: the CPUs Ray may use)")  # fmt: skip
+    p.add_argument(
+        "--ray", metavar="ADDRESS",
+        help="run each (algorithm, seed) as a Ray task: local (a Ray instance here), auto (the cluster this "
+        "machine joined with `ray start`) or HOST:PORT; default: a process pool on this machine",
+    )  # fmt: skip
 
 
 def register(sub: Any) -> None:
@@ -373,6 +391,11 @@ def _register_sweeps(sub: Any) -> None:
     p.add_argument("--preset", choices=PRESETS, default="tuned")
     _add_run_set_arguments(p, 300_000)
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
+    p.add_argument(
+        "--from", dest="from_runs", nargs="+", type=Path, metavar="DIR",
+        help="train nothing: the table again from benches' run folders (DIR/runs/*/result.json), e.g. those "
+        "machines of a cluster wrote",
+    )  # fmt: skip
     p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser(

@@ -21,8 +21,9 @@ from typing import Any
 import numpy as np
 
 from embedrl.common import atomic_write, provenance, write_json
-from embedrl.train.bench import Job, run_jobs
+from embedrl.train.bench import Job, one_run
 from embedrl.train.scenarios import DEFAULT_SCENARIO
+from embedrl.train.sweep import run_all
 from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
 
 REWARD_VARIANTS = ("thesis", "shaped")
@@ -126,11 +127,12 @@ def run_shaping(
     workers: int,
     gain: float,
     overrides: tuple[str, ...] = (),
+    ray: str | None = None,
 ) -> str:
-    """Train every (algorithm, reward, seed) from scratch on the static scenario; the table, also written
-    with the runs (JSON) and the curves (PNG)."""
+    """Train every (algorithm, reward, seed) from scratch on the static scenario (on Ray with ``ray``); the
+    table, also written with the runs (JSON) and the curves (PNG)."""
     seed_list = list(range(seed_offset, seed_offset + seeds))
-    runs = _train_all(algos, seed_list, preset, out, max_steps, eval_episodes, workers, gain, overrides)
+    runs = _train_all(algos, seed_list, preset, out, max_steps, eval_episodes, workers, gain, overrides, ray)
     note = (
         f"From scratch (preset `{preset}` without demonstrations or a cloned start), static scenario, seeds "
         f"{seed_list[0]}..{seed_list[-1]}, at most {max_steps} env steps, shaping gain {gain} per metre. "
@@ -166,6 +168,7 @@ def _train_all(
     workers: int,
     gain: float,
     overrides: tuple[str, ...],
+    ray: str | None = None,
 ) -> list[dict[str, Any]]:
     """Every (algorithm, reward, seed) trained (or resumed); each run's summary with its reward variant and
     the mean length of its last 50 episodes."""
@@ -190,9 +193,11 @@ def _train_all(
                         "study",
                     )
                 )
-    results = run_jobs(jobs, workers)
+    results, _ = run_all(one_run, jobs, workers, ray, label=lambda job: f"{job[0]} {job[7]} seed {job[2]}")
     runs = []
     for job, result in zip(jobs, results, strict=True):
+        if result is None:
+            continue  # reported as it failed; the table holds the runs that finished
         _, _, length = _curve(Path(job[3]))
         reward = "shaped" if "reward=shaped" in job[7] else "thesis"
         runs.append(
