@@ -40,6 +40,7 @@ SHORTER: list[tuple[re.Pattern[str], str | Callable[[re.Match[str]], str]]] = [
     (re.compile(r"--episodes \d+"), "--episodes 2"),
     (re.compile(r"--seeds \d+"), "--seeds 1"),
     (re.compile(r"--steps \d+"), "--steps 500"),
+    (re.compile(r"--trials \d+"), "--trials 2"),
 ]
 """How a README command is shortened: documented options only."""
 

@@ -158,6 +158,33 @@ TRAIN_DEFAULTS: dict[str, Any] = {
 given from one that was not: a resumed run takes everything from its own config.json."""
 
 
+def _read_preset(args: argparse.Namespace) -> None:
+    """``--preset``: a name, or a preset file (its preset, its changes before those of ``--set``)."""
+    from embedrl.train.config import PRESETS
+    from embedrl.train.tune import read_preset_file
+
+    if args.preset is None or args.preset in PRESETS:
+        return
+    if not args.preset.endswith(".json"):
+        raise UsageError(f"--preset {args.preset}: use {' or '.join(PRESETS)}, or a preset file (.json)")
+    try:
+        args.preset, changes = read_preset_file(Path(args.preset))
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    args.set = [*changes, *args.set]
+
+
+def cmd_tune(args: argparse.Namespace) -> int:
+    from embedrl.train.tune import run_tune
+
+    best = run_tune(args.algo, args.scenario, args.trials, args.max_steps, args.out, args.seed, args.preset)
+    print(f"best: trial {best['trial']}, validation success {100 * best['validation_success']:.0f}%, "
+          f"{' '.join(best['overrides'])}")  # fmt: skip
+    preset_file = args.out / "best_preset.json"
+    print(f"wrote {preset_file} (embedrl train --preset {preset_file}), trials.md, study.db, trials/")
+    return 0
+
+
 def cmd_train(args: argparse.Namespace) -> int:
     from embedrl.train.config import Budget
     from embedrl.train.trainer import read_run_config, train
@@ -172,6 +199,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         if args.stop not in (None, "budget"):
             raise UsageError(f"--keep-training means --stop budget, not --stop {args.stop}")
         args.stop = "budget"
+    _read_preset(args)
     given = {k: getattr(args, k) for k in TRAIN_DEFAULTS if getattr(args, k) is not None}
     if args.resume is not None:
         if args.set:
@@ -324,6 +352,7 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_render)
     _register_train(sub)
     _register_sweeps(sub)
+    _register_tune(sub)
 
     p = sub.add_parser("reward-field", help="plot the potential-field reward over a scenario's map (PNG)")
     add_scenario_argument(p)
@@ -343,7 +372,11 @@ def _register_train(sub: Any) -> None:
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
     p.add_argument("--algo", choices=ALGOS, help=f"default {TRAIN_DEFAULTS['algo']}")
     add_scenario_argument(p, default=None)
-    p.add_argument("--preset", choices=PRESETS, help=f"default {TRAIN_DEFAULTS['preset']}")
+    p.add_argument(
+        "--preset", metavar="NAME|FILE",
+        help=f"{' or '.join(PRESETS)} (default {TRAIN_DEFAULTS['preset']}), or a preset file that `embedrl "
+        "tune` wrote (best_preset.json: a preset and its changes)",
+    )  # fmt: skip
     p.add_argument(
         "--set",
         action="append",
@@ -372,6 +405,23 @@ def _register_train(sub: Any) -> None:
     p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_train)
+
+
+def _register_tune(sub: Any) -> None:
+    from embedrl.train.config import ALGOS, PRESETS
+
+    p = sub.add_parser(
+        "tune", help="search an algorithm's hyperparameters with Optuna; success on validation seeds"
+    )
+    p.add_argument("--algo", choices=ALGOS, required=True)
+    add_scenario_argument(p)
+    p.add_argument("--preset", choices=PRESETS, default="tuned", help="the preset the search changes")
+    p.add_argument("--trials", type=_positive, default=20, help="trials in total (a resumed search counts "
+                   "the ones it has)")  # fmt: skip
+    p.add_argument("--max-steps", type=_positive, default=100_000, help="each trial's training budget")
+    p.add_argument("--seed", type=int, default=0, help="the sampler's and every trial's training seed")
+    p.add_argument("--out", type=Path, required=True, help="the study's folder (study.db, trials/, results)")
+    p.set_defaults(func=cmd_tune)
 
 
 def _register_sweeps(sub: Any) -> None:

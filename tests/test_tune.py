@@ -1,0 +1,50 @@
+"""``embedrl tune``: a tiny Optuna search, resumed, its best preset read by ``embedrl train --preset``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from embedrl.cli import main
+from embedrl.train.tune import SPACE
+
+
+def test_a_tiny_search_resumes_and_its_best_preset_trains(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "study"
+    argv = ["tune", "--algo", "td3", "--trials", "2", "--max-steps", "300", "--out", str(out)]
+    assert main(argv) == 0
+    best = json.loads((out / "best_preset.json").read_text())
+    assert best["base_preset"] == "tuned" and 0.0 <= best["validation_success"] <= 1.0
+    assert {o.split("=")[0] for o in best["overrides"]} == set(SPACE)  # TD3 has every searched field
+    assert len((out / "trials.md").read_text().splitlines()) == 2 + 2
+    assert sorted(p.name for p in (out / "trials").iterdir()) == ["trial-0", "trial-1"]
+    # resumed: the study in study.db counts its trials; one more is run, the first two are not redone
+    assert main([*argv[:4], "3", *argv[5:]]) == 0
+    assert len((out / "trials.md").read_text().splitlines()) == 2 + 3
+    capsys.readouterr()
+    run = tmp_path / "run"
+    argv = ["train", "--preset", str(out / "best_preset.json"), "--max-steps", "300", "--out", str(run)]
+    assert main(argv) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert (
+        config["preset"] == "tuned"
+        and config["overrides"] == json.loads((out / "best_preset.json").read_text())["overrides"]
+    )
+
+
+@pytest.mark.parametrize(
+    "content", ["{not json", '{"base_preset": "fast", "overrides": []}', '{"overrides": 3}']
+)
+def test_a_bad_preset_file_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: str
+) -> None:
+    bad = tmp_path / "preset.json"
+    bad.write_text(content)
+    assert main(["train", "--preset", str(bad), "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "not a preset file of `embedrl tune`" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "run").exists()
