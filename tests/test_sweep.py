@@ -33,6 +33,8 @@ def test_a_tiny_bench_on_local_ray_reports_a_failed_run_and_keeps_the_others(
     # the table again from the folders, on another machine or later: the same rows
     assert main(["bench", "--from", str(out), "--out", str(tmp_path / "again")]) == 0
     assert json.loads((tmp_path / "again" / "bench.json").read_text())["rows"] == data["rows"]
+    for folder in (out, tmp_path / "again"):  # the learning curves from the run folders, both ways
+        assert (folder / "learning_curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def _double(x: int) -> dict[str, int]:

@@ -122,6 +122,7 @@ def one_run(job: Job) -> dict[str, Any]:
         cloned = {k: getattr(alone, k) for k in REPORT_KEYS}
     result = {
         **summary,
+        "run": str(run),
         "max_steps": max_steps,
         "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
         "warm_start_evaluation": cloned,
@@ -297,6 +298,7 @@ def write_table(runs: list[dict[str, Any]], out: Path, note: str, failed: list[s
     table = _markdown(algos, rows, study, eval_episodes) + "\n\n" + pf_line + "\n\n" + text + failures + "\n"
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.md").write_text(table)
+    plot_learning_curves(runs, algos, out / "learning_curves.png", f"Scenario {scenario}: {note}")
     write_json(
         {
             "algos": algos, "scenario": scenario, "seeds": seeds, "note": note, "rows": rows, "study": study,
@@ -310,6 +312,59 @@ def write_table(runs: list[dict[str, Any]], out: Path, note: str, failed: list[s
         out / "bench.json",
     )  # fmt: skip
     return table
+
+
+def plot_learning_curves(runs: list[dict[str, Any]], algos: list[str], path: Path, title: str) -> None:
+    """Per algorithm the 50-episode training average against env steps: median and worst-to-best band
+    over seeds, where learning starts (random actions before it), the demonstrations the replay buffer
+    held from the start, and the study's criterion."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from embedrl.common import atomic_write
+    from embedrl.train import curves
+    from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
+
+    fig, axes = plt.subplots(1, len(algos), figsize=(5.5 * len(algos), 4.8), sharey=True, squeeze=False)
+    for ax, algo in zip(axes[0], algos, strict=True):
+        mine = [r for r in runs if r["algo"] == algo]
+        end = max(r["total_steps"] for r in mine)
+        grid = np.linspace(0, end, curves.GRID_POINTS)
+        median, low, high = curves.median_band(
+            np.array([curves.on_grid(*curves.load(Path(r["run"]))[:2], grid) for r in mine])
+        )
+        ax.fill_between(
+            grid, low, high, color="tab:blue", alpha=0.2, lw=0, label=f"worst to best of {len(mine)} seed(s)"
+        )
+        ax.plot(grid, median, color="tab:blue", lw=1.6, label="median over seeds")
+        hyper = json.loads((Path(mine[0]["run"]) / "config.json").read_text())["hyperparameters"]
+        starts = int(hyper.get("learning_starts", 0))
+        if starts:
+            ax.axvline(
+                starts,
+                color="0.4",
+                ls=":",
+                lw=1.2,
+                label=f"learning starts (random actions before, {starts:,} steps)",
+            )
+        demos = int(hyper.get("demonstrations", hyper.get("warm_start_demonstrations", 0)))
+        if demos:
+            ax.plot([], [], " ", label=f"{demos} demonstration episodes given before step 0")
+        ax.axhline(
+            STOP_THRESHOLD, color="k", ls="--", lw=0.8, label=f"the study's criterion ({STOP_THRESHOLD:g})"
+        )
+        ax.set(title=algo.upper(), xlabel="env steps", xlim=(0, end))
+    axes[0][0].set_ylabel(f"return, {STOP_WINDOW}-episode training average")
+    handles, labels = axes[0][0].get_legend_handles_labels()  # the same marks in every panel
+    fig.legend(handles, labels, loc="lower center", ncols=3, fontsize="small")
+    fig.suptitle(title, fontsize="small")
+    fig.tight_layout(rect=(0, 0.14, 1, 1))
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
+    finally:
+        plt.close(fig)
 
 
 def _row(mine: list[dict[str, Any]]) -> dict[str, str]:

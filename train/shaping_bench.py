@@ -14,13 +14,13 @@ seed, for each reward).
 
 from __future__ import annotations
 
-import csv
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from embedrl.common import atomic_write, provenance, write_json
+from embedrl.train import curves as curves_
 from embedrl.train.bench import Job, one_run
 from embedrl.train.scenarios import DEFAULT_SCENARIO
 from embedrl.train.sweep import run_all
@@ -35,27 +35,6 @@ FROM_SCRATCH = {
     "ppo": ("warm_start_demonstrations=0",),
 }
 """What turns a preset into learning from scratch: no controller demonstrations, no cloned start."""
-GRID_POINTS = 200
-"""Env-step points at which the seeds' curves are compared."""
-
-
-def _curve(run: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(env steps, 50-episode average, episode length) per training episode of a run."""
-    with (run / "curve.csv").open() as f:
-        rows = list(csv.DictReader(f))
-    return (
-        np.array([int(r["steps"]) for r in rows], dtype=float),
-        np.array([float(r["average50"]) for r in rows]),
-        np.array([int(r["length"]) for r in rows], dtype=float),
-    )
-
-
-def _on_grid(steps: np.ndarray, values: np.ndarray, grid: np.ndarray) -> np.ndarray:
-    """The last value at or before each grid point (NaN before the first episode); a run that stopped
-    at the criterion keeps its last value."""
-    index = np.searchsorted(steps, grid, side="right") - 1
-    out = np.where(index >= 0, values[np.clip(index, 0, None)], np.nan)
-    return out
 
 
 def _range_cell(values: list[float], fmt: str) -> str:
@@ -74,7 +53,7 @@ def plot(runs: list[dict[str, Any]], algos: list[str], max_steps: int, path: Pat
     import matplotlib.pyplot as plt
     from matplotlib.ticker import FuncFormatter
 
-    grid = np.linspace(0, max_steps, GRID_POINTS)
+    grid = np.linspace(0, max_steps, curves_.GRID_POINTS)
     columns = min(2, len(algos))
     rows = -(-len(algos) // columns)
     fig, grid_axes = plt.subplots(
@@ -91,13 +70,8 @@ def plot(runs: list[dict[str, Any]], algos: list[str], max_steps: int, path: Pat
             mine = [r for r in runs if r["algo"] == algo and r["reward_variant"] == reward]
             if not mine:
                 continue
-            curves = np.array([_on_grid(*_curve(Path(r["run"]))[:2], grid) for r in mine])
-            valid = ~np.all(np.isnan(curves), axis=0)
-            median = np.full(len(grid), np.nan)
-            lo, hi = median.copy(), median.copy()
-            median[valid] = np.nanmedian(curves[:, valid], axis=0)
-            lo[valid] = np.nanmin(curves[:, valid], axis=0)
-            hi[valid] = np.nanmax(curves[:, valid], axis=0)
+            curves = np.array([curves_.on_grid(*curves_.load(Path(r["run"]))[:2], grid) for r in mine])
+            median, lo, hi = curves_.median_band(curves)
             reached = sum(r["criterion_reached"] for r in mine)
             label = f"{names[reward]}: {reached}/{len(mine)} reach it"
             ax.plot(grid, median, color=colours[reward], lw=1.6, label=label)
@@ -198,7 +172,7 @@ def _train_all(
     for job, result in zip(jobs, results, strict=True):
         if result is None:
             continue  # reported as it failed; the table holds the runs that finished
-        _, _, length = _curve(Path(job[3]))
+        _, _, length = curves_.load(Path(job[3]))
         reward = "shaped" if "reward=shaped" in job[7] else "thesis"
         runs.append(
             {
