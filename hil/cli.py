@@ -144,6 +144,35 @@ def register(sub: Any) -> None:
     r.set_defaults(func=cmd_run)
     _register_doctor(hil_sub)
     _register_report(sub)
+    _register_scope(sub)
+
+
+def cmd_scope(args: argparse.Namespace) -> int:
+    from embedrl.hil import scope
+    from embedrl.train.arguments import policy_from
+    from embedrl.train.scenarios import TWO_ROBOTS
+
+    if args.out.suffix.lower() != ".png":
+        raise HilError(f"cannot write {args.out}: the scope view is a .png file")
+    policy = policy_from(args)
+    extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
+    episode = scope.record(policy, args.scenario, args.seed, extra)
+    scope.plot(episode, args.out, args.controller or args.model.name)
+    print(f"wrote {args.out}: {len(episode['actions'])} steps, {episode['outcome']}")
+    return 0
+
+
+def _register_scope(sub: Any) -> None:
+    from embedrl.train.arguments import add_policy_arguments
+
+    p = sub.add_parser(
+        "scope", help="one episode against time, as a scope shows a controller: observations, actions and "
+        "what the CAN signals make of them (PNG)",
+    )  # fmt: skip
+    add_policy_arguments(p)
+    p.add_argument("--seed", type=int, default=0, help="the episode's reset seed")
+    p.add_argument("--out", type=Path, required=True, help="the picture (.png)")
+    p.set_defaults(func=cmd_scope)
 
 
 def _register_report(sub: Any) -> None:

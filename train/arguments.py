@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from embedrl.train.errors import UsageError
 from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, scenario_help
 
 PORTABLE_HELP = (
@@ -33,3 +34,60 @@ def add_model_file_arguments(p: argparse.ArgumentParser) -> None:
         help="the model's normalisation statistics (.npz, or SB3's .pkl read without running code); "
         "default: found beside the model, RL Zoo's <env>/vecnormalize.pkl included",
     )
+
+
+CONTROLLERS = ("potential-field",)
+"""Built-in scripted controllers, usable wherever a policy is expected."""
+
+
+def controller(name: str, scenario: str = DEFAULT_SCENARIO):  # type: ignore[no-untyped-def]
+    from embedrl.train.potential_field import PotentialFieldController
+
+    if name == "potential-field":
+        return PotentialFieldController(scenario=scenario)
+    raise UsageError(f"unknown controller {name!r}; available: {', '.join(CONTROLLERS)}")
+
+
+def policy_from(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    if args.model is not None:
+        from embedrl.train.models import load_model_policy
+
+        policy = load_model_policy(args.model, args.trust_pickle, args.vecnormalize)
+        check_model_scenario(args)
+        return policy
+    if args.vecnormalize is not None:
+        raise UsageError("--vecnormalize goes with a model, not with --controller")
+    return controller(args.controller, args.scenario)
+
+
+def env_id_of(args: argparse.Namespace) -> str:
+    from embedrl.train.scenarios import SCENARIOS
+
+    return SCENARIOS[args.scenario].env_id
+
+
+def check_model_scenario(args: argparse.Namespace) -> None:
+    """A model trained on one scenario's observation cannot run in another's: one clear line."""
+    if args.model is None:
+        return
+    from embedrl.train.models import model_metadata
+    from embedrl.train.scenarios import SCENARIOS
+
+    meta = model_metadata(args.model) or {}
+    trained = meta.get("scenario")
+    if trained is not None and trained != args.scenario:
+        raise UsageError(f"{args.model} was trained on scenario {trained}; pass --scenario {trained}")
+    spec = SCENARIOS[args.scenario]
+    shape = meta.get("observation_size")
+    if shape is not None and shape != len(spec.observation):
+        raise UsageError(
+            f"{args.model} observes {shape} values but scenario {args.scenario} gives {len(spec.observation)}"
+        )
+
+
+def add_policy_arguments(p: argparse.ArgumentParser) -> None:
+    add_scenario_argument(p)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
+    src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
+    add_model_file_arguments(p)

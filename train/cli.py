@@ -12,65 +12,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from embedrl.train.arguments import PORTABLE_HELP, add_model_file_arguments, add_scenario_argument
+from embedrl.train.arguments import (
+    PORTABLE_HELP,
+    add_policy_arguments,
+    add_scenario_argument,
+    env_id_of,
+    policy_from,
+)
 from embedrl.train.errors import TrainError, UsageError
 from embedrl.train.scenarios import DEFAULT_SCENARIO, TWO_ROBOTS
-
-CONTROLLERS = ("potential-field",)
-"""Built-in scripted controllers, usable wherever a policy is expected."""
-
-
-def _controller(name: str, scenario: str = DEFAULT_SCENARIO):  # type: ignore[no-untyped-def]
-    from embedrl.train.potential_field import PotentialFieldController
-
-    if name == "potential-field":
-        return PotentialFieldController(scenario=scenario)
-    raise UsageError(f"unknown controller {name!r}; available: {', '.join(CONTROLLERS)}")
-
-
-def _policy(args: argparse.Namespace):  # type: ignore[no-untyped-def]
-    if args.model is not None:
-        from embedrl.train.models import load_model_policy
-
-        policy = load_model_policy(args.model, args.trust_pickle, args.vecnormalize)
-        _check_model_scenario(args)
-        return policy
-    if args.vecnormalize is not None:
-        raise UsageError("--vecnormalize goes with a model, not with --controller")
-    return _controller(args.controller, args.scenario)
-
-
-def _env_id(args: argparse.Namespace) -> str:
-    from embedrl.train.scenarios import SCENARIOS
-
-    return SCENARIOS[args.scenario].env_id
-
-
-def _check_model_scenario(args: argparse.Namespace) -> None:
-    """A model trained on one scenario's observation cannot run in another's: one clear line."""
-    if args.model is None:
-        return
-    from embedrl.train.models import model_metadata
-    from embedrl.train.scenarios import SCENARIOS
-
-    meta = model_metadata(args.model) or {}
-    trained = meta.get("scenario")
-    if trained is not None and trained != args.scenario:
-        raise UsageError(f"{args.model} was trained on scenario {trained}; pass --scenario {trained}")
-    spec = SCENARIOS[args.scenario]
-    shape = meta.get("observation_size")
-    if shape is not None and shape != len(spec.observation):
-        raise UsageError(
-            f"{args.model} observes {shape} values but scenario {args.scenario} gives {len(spec.observation)}"
-        )
-
-
-def _add_policy_arguments(p: argparse.ArgumentParser) -> None:
-    add_scenario_argument(p)
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
-    src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
-    add_model_file_arguments(p)
 
 
 def _positive(text: str) -> int:
@@ -84,9 +34,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from embedrl.common import write_json
     from embedrl.train.evaluate import evaluate
 
-    policy = _policy(args)
+    policy = policy_from(args)
     name = args.controller or str(args.model)
-    report = evaluate(policy, args.episodes, args.seed, name, progress=True, env_id=_env_id(args))
+    report = evaluate(policy, args.episodes, args.seed, name, progress=True, env_id=env_id_of(args))
     print(report.table())
     if args.json:
         write_json(report.to_json(), args.json)
@@ -108,9 +58,9 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
-    policy = _policy(args)
+    policy = policy_from(args)
     extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
-    env = gym.make(_env_id(args), render_mode="rgb_array", **extra)
+    env = gym.make(env_id_of(args), render_mode="rgb_array", **extra)
     obs, info = env.reset(seed=args.seed)
     frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]
     while True:
@@ -338,7 +288,7 @@ def _add_run_set_arguments(p: argparse.ArgumentParser, max_steps: int) -> None:
 
 def register(sub: Any) -> None:
     p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
-    _add_policy_arguments(p)
+    add_policy_arguments(p)
     p.add_argument("--episodes", type=_positive, default=200)
     p.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
     p.add_argument("--json", type=Path, help="write the JSON report here")
@@ -346,7 +296,7 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("render", help="write one episode as an animated GIF or a PNG strip")
-    _add_policy_arguments(p)
+    add_policy_arguments(p)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
