@@ -53,3 +53,38 @@ def plot_latency(
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
     finally:
         plt.close(fig)
+
+
+def plot_action_differences(diffs: dict[str, list[float]], path: Path, can_rounding: float) -> None:
+    """Every step's largest |node action - reference action| on a log axis, one colour per node, beside
+    the tolerance and what the CAN signals' resolution alone gives."""
+    import numpy as np
+
+    from embedrl.export.verify import TOLERANCE
+
+    fig, ax = plt.subplots(figsize=(10, 3.6))
+    for node, values in diffs.items():
+        shown = np.maximum(np.asarray(values, dtype=float), EXACT)
+        label = f"node {node}" if len(diffs) > 1 else "node"
+        ax.plot(np.arange(1, shown.size + 1), shown, ".", ms=3, label=f"{label} ({shown.size} steps)")
+    ax.axhline(TOLERANCE, color="tab:red", lw=1.2, label=f"tolerance {TOLERANCE:g}")
+    ax.axhline(
+        can_rounding,
+        color="tab:green",
+        ls="--",
+        lw=1,
+        label=f"CAN rounding of an action {can_rounding:.1e}",
+    )
+    ax.set(
+        yscale="log", xlabel="step of the run", ylabel=f"max |node - reference| per step\n({EXACT:g}: exact)",
+        title="the node's actions against the export's reference, step by step",
+    )  # fmt: skip
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize="small")
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
+    finally:
+        plt.close(fig)
+
+
+EXACT = 1e-12
+"""Where an exact step is drawn on the log axis."""

@@ -27,7 +27,7 @@ COPIED_KEYS = (
     "steps", "max_action_abs_diff", "first_divergent_step", "frames_tx", "frames_rx", "crc_errors",
     "sequence_errors", "rx_timeouts", "sandbox", "sandbox_detail", "latency_us", "deadline_misses",
     "jitter_us", "node_status", "node_diag", "retries", "injections", "fault_catalogue", "nodes", "firmware",
-    "node_binary_sha256",
+    "node_binary_sha256", "action_diffs",
 )  # fmt: skip
 """The session's results that the report carries as they are."""
 
@@ -84,7 +84,7 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
         row["node"] = e.get("node", 0)
     data["per_node"] = _per_node(data["per_episode"], options.nodes, differing)
     if options.plot:
-        _plot(options, report, episodes, results)
+        _plot(options, report, episodes, results, sim)
     return data
 
 
@@ -196,16 +196,22 @@ def _per_node(rows: list[dict[str, Any]], nodes: int, differing: list[int]) -> d
 
 
 def _plot(
-    options: RunOptions, report: EvalReport, episodes: list[EpisodeResult], results: dict[str, Any]
-) -> None:
-    from embedrl.hil.plots import plot_latency
+    options: RunOptions, report: EvalReport, episodes: list[EpisodeResult], results: dict[str, Any],
+    sim: EvalReport | None,
+) -> None:  # fmt: skip
+    from embedrl.hil.plots import plot_action_differences, plot_latency
     from embedrl.train.plots import plot_trajectories
 
     assert options.plot is not None
     if any(e.trajectory for e in episodes):  # envs with a map (the warehouse scenarios)
-        plot_trajectories(report, options.plot / "hil_trajectories.png")
+        plot_trajectories(report, options.plot / "hil_trajectories.png", overlay=sim)
     interface = candb.load_interface(options.export_dir / INTERFACE_FILE)
     plot_latency(
         results["latencies_us"], options.plot / "hil_latency.png", results["sandbox"], options.realtime,
         interface.sample_time_s, results["config"]["node_timeout_ms"],  # the watchdog this run's node had
     )  # fmt: skip
+    plot_action_differences(
+        results["action_diffs"],
+        options.plot / "hil_action_diff.png",
+        candb.rounding_errors(interface)["action"],
+    )

@@ -518,6 +518,7 @@ def _write_nodes_results(
     """Several nodes' results: merged statistics, every node's last status and diagnostics."""
     stats = Stats.merged([link.stats for link in links])
     results = _results(cfg, stats, episodes, [], sample_time)
+    results["action_diffs"] = {str(k): link.stats.diffs for k, link in enumerate(links)}
     results["nodes"] = [
         {
             "node_id": k,
@@ -616,6 +617,7 @@ def _results(
         "episodes": episodes,
         "steps": int(sum(e["steps"] for e in episodes)),
         "max_action_abs_diff": max(stats.diffs) if stats.diffs else None,
+        "action_diffs": {"0": stats.diffs},
         "first_divergent_step": stats.first_divergent_step,
         "frames_tx": stats.frames_tx,
         "frames_rx": stats.frames_rx,

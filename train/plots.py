@@ -17,11 +17,12 @@ from embedrl.train.evaluate import EvalReport
 OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
 
 
-def plot_trajectories(report: EvalReport, path: Path) -> None:
+def plot_trajectories(report: EvalReport, path: Path, overlay: EvalReport | None = None) -> None:
     """Draw every episode's path over the map, coloured by outcome; write a PNG atomically.
 
     The moving-shelf scenario draws the fixed map and the band the moving shelf sweeps; two robots draw
-    the second robot's path dashed."""
+    the second robot's path dashed. ``overlay`` (the simulation on the same seeds, beside a HIL run) is
+    drawn first, thick and grey, so that the run's paths show on top of it wherever they agree."""
     from embedrl.train.scenarios import has_moving_shelf
 
     fig, ax = plt.subplots(figsize=(9, 4.8))
@@ -34,11 +35,15 @@ def plot_trajectories(report: EvalReport, path: Path) -> None:
         ax.axhspan(*band, color="saddlebrown", alpha=0.12, label="moving shelf's band")
     ax.plot([-layout.GAP_WIDTH / 2, layout.GAP_WIDTH / 2], [layout.GOAL_Y] * 2, color="tab:green", lw=3,
             label="goal line (cross it)")  # fmt: skip
+    for r in overlay.results if overlay else []:
+        ax.plot([p[0] for p in r.trajectory], [p[1] for p in r.trajectory], "-", color="0.75", lw=4, zorder=1)
+    if overlay:
+        ax.plot([], [], "-", color="0.75", lw=4, label=f"{overlay.policy}, same seeds")
     for r in report.results:
         xs = [p[0] for p in r.trajectory]
         ys = [p[1] for p in r.trajectory]
         colour = OUTCOME_COLOURS[r.outcome]
-        ax.plot(xs, ys, "-", color=colour, lw=1, alpha=0.7)
+        ax.plot(xs, ys, "-", color=colour, lw=1, alpha=0.9, zorder=2)
         ax.plot(xs[:1], ys[:1], "o", color=colour, ms=3)
         for other in r.other_trajectories:
             ax.plot([p[0] for p in other], [p[1] for p in other], "--", color=colour, lw=1, alpha=0.7)

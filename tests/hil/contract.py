@@ -90,6 +90,9 @@ class HilContract:
         assert diag["stale_steps"] <= report["retries"]  # a retry of a slow answer is a repeated step
         assert (tmp_path / "plots" / "hil_latency.png").is_file()
         assert (tmp_path / "plots" / "hil_trajectories.png").is_file()
+        assert (tmp_path / "plots" / "hil_action_diff.png").is_file()
+        diffs = report["action_diffs"]["0"]  # every step's difference, the run's maximum among them
+        assert len(diffs) == report["steps"] and max(diffs) == report["max_action_abs_diff"]
 
     def test_the_fault_catalogue_is_detected_and_recovered_from(
         self, where: Guest | None, export_dir: Path, tmp_path: Path
