@@ -63,13 +63,17 @@ def cmd_render(args: argparse.Namespace) -> int:
     env = gym.make(env_id_of(args), render_mode="rgb_array", **extra)
     obs, info = env.reset(seed=args.seed)
     frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]
+    captions = ["t = 0.0 s"]
     while True:
-        obs, _, terminated, truncated, info = env.step(policy(obs))
+        action = np.asarray(policy(obs), dtype=float).reshape(-1)
+        obs, _, terminated, truncated, info = env.step(action)
         frames.append(env.unwrapped.render())  # type: ignore[arg-type]
+        forces = f"F_L {action[0]:+.2f}   F_R {action[1]:+.2f}"  # what drove the robot to this frame
+        captions.append(f"t = {len(captions) * SAMPLE_TIME:.1f} s   {forces}")
         if terminated or truncated:
             break
     env.close()
-    save_episode(frames, args.out, SAMPLE_TIME)
+    save_episode(frames, args.out, SAMPLE_TIME, captions)
     outcome = "success" if info["is_success"] else "collision" if info["collided"] else "timeout"
     print(f"wrote {args.out}: {len(frames) - 1} steps, {outcome}")
     return 0

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
+from PIL import Image, ImageDraw, ImageFont
 
 from embedrl.common import atomic_write
 from embedrl.train import layout
@@ -81,8 +81,15 @@ def draw_frame(
     return np.asarray(image)
 
 
-def save_episode(frames: Sequence[np.ndarray], path: Path, frame_seconds: float) -> None:
-    """Write frames as an animated GIF (``.gif``) or a PNG strip of ``STRIP_FRAMES`` frames (``.png``).
+CAPTION_PX = 16
+"""Height of a frame's caption (time and wheel forces) in pixels."""
+
+
+def save_episode(
+    frames: Sequence[np.ndarray], path: Path, frame_seconds: float, captions: Sequence[str] | None = None
+) -> None:
+    """Write frames as an animated GIF (``.gif``) or a PNG strip of ``STRIP_FRAMES`` frames (``.png``),
+    each with its caption (the time and the wheel forces) written in its top left corner.
 
     The file appears complete or not at all (written beside it, then renamed).
     """
@@ -92,6 +99,9 @@ def save_episode(frames: Sequence[np.ndarray], path: Path, frame_seconds: float)
     if suffix not in (".gif", ".png"):
         raise ValueError(f"cannot write {path}: use a .gif (animation) or .png (strip) file name")
     images = [Image.fromarray(f) for f in frames]
+    font = ImageFont.load_default(size=CAPTION_PX)
+    for image, caption in zip(images, captions or [], strict=False):  # in the light margin under the map
+        ImageDraw.Draw(image).text((8, image.height - CAPTION_PX - 12), caption, fill=(0, 0, 0), font=font)
     if suffix == ".gif":
         first, rest = images[0], images[1:]
         atomic_write(
