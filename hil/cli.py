@@ -21,7 +21,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     data = run(RunOptions.of(vars(args)))
     print(table(summary_rows(data)))
-    written = [str(p) for p in (args.json, args.log, args.plot) if p]
+    pictures = sorted(args.plot.glob("hil_*.png")) if args.plot else []
+    written = [str(p) for p in (args.json, args.log, *pictures) if p]
     if args.json:
         write_json(data, args.json)
         if add_to_chain(args.export_dir, args.json, data):

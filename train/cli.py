@@ -208,7 +208,8 @@ def cmd_train(args: argparse.Namespace) -> int:
     )
     for key, value in summary.items():
         print(f"{key:<36}  {value}")
-    print(f"wrote {out}/ (model.zip, config.json, curve.csv, summary.json, progress.png, checkpoint/, tb/)")
+    written = sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir())
+    print(f"wrote {out}/ ({', '.join(written)})")
     return 0
 
 
