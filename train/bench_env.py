@@ -7,11 +7,13 @@ warehouse's pymunk physics and collision checks cost against a minimal control e
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 
 import gymnasium as gym
 import numpy as np
+from tqdm import tqdm
 
 from embedrl.train import ENV_ID
 
@@ -42,7 +44,10 @@ def measure(env_id: str, steps: int, seed: int, repeats: int = 3) -> SpeedResult
     rng = np.random.default_rng(seed)
     actions = rng.uniform(space.low, space.high, size=(steps, *space.shape)).astype(space.dtype)
     best = float("inf")
-    for r in range(repeats):
+    # a bar per round, outside the timed loop; quiet when not a terminal
+    for r in tqdm(
+        range(repeats), desc=f"{env_id}: rounds of {steps:,} steps", disable=not sys.stderr.isatty()
+    ):
         env.reset(seed=seed + r)
         start = time.perf_counter()
         for a in actions:
