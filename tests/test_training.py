@@ -312,7 +312,7 @@ def test_bench_on_a_tiny_budget_writes_both_formats_with_all_rows(tmp_path: Path
         "reliability worst / median / best seed (%)",
         "reliability per seed (%)",
         "policy updates",
-        "(100..101)",
+        "over seeds 100, 101",
         "wall-clock time (s)",
         "TD3 (ours)",
         "TD3 (study)",
