@@ -48,3 +48,23 @@ def test_a_bad_preset_file_is_refused_in_one_line(
     err = capsys.readouterr().err.strip()
     assert "not a preset file of `embedrl tune`" in err and len(err.splitlines()) == 1
     assert not (tmp_path / "run").exists()
+
+
+def test_a_tiny_search_on_ray_tune_shares_its_study_with_the_local_search(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ray Tune runs the trials (Optuna's sampler through ``OptunaSearch``) into the same study.db: a search
+    resumed without Ray counts them. Relative paths: Ray runs each trial in a folder of its own."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["tune", "--algo", "td3", "--trials", "2", "--max-steps", "300", "--out", "my study"]
+    assert main([*argv, "--ray", "local", "--workers", "2"]) == 0
+    out = tmp_path / "my study"
+    assert len(list((out / "trials").glob("ray-*"))) == 2 and (out / "ray").is_dir()
+    rows = (out / "trials.md").read_text().splitlines()[2:]
+    assert len(rows) == 2 and all("| complete |" in row and "| 3/3 |" in row for row in rows)
+    best = json.loads((out / "best_preset.json").read_text())
+    assert {o.split("=")[0] for o in best["overrides"]} == set(SPACE)
+    assert main([*argv[:4], "3", *argv[5:]]) == 0  # one more, here: the two Ray trials are not redone
+    assert len((out / "trials.md").read_text().splitlines()) == 2 + 3
+    assert (out / "trials" / "trial-2").is_dir() and not (out / "trials" / "trial-0").exists()
+    assert "wrote my study/best_preset.json" in capsys.readouterr().out

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import sys
 from pathlib import Path
@@ -129,9 +130,18 @@ def _read_preset(args: argparse.Namespace) -> None:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from embedrl.train.tune import run_tune
+    from embedrl.train.tune import Search, run_tune
 
-    best = run_tune(args.algo, args.scenario, args.trials, args.max_steps, args.out, args.seed, args.preset)
+    optimize = None
+    if args.ray is not None:
+        from embedrl.train.tune_ray import optimize_on_ray
+
+        optimize = functools.partial(optimize_on_ray, address=args.ray, workers=args.workers)
+    search = Search(args.algo, args.scenario, args.max_steps, args.out, args.seed, args.preset)
+    try:
+        best = run_tune(search, args.trials, optimize)
+    except RuntimeError as exc:  # no trial finished its budget
+        raise UsageError(str(exc)) from None
     print(f"best: trial {best['trial']}, validation success {100 * best['validation_success']:.0f}%, "
           f"{' '.join(best['overrides'])}")  # fmt: skip
     preset_file = args.out / "best_preset.json"
@@ -376,6 +386,10 @@ def _register_tune(sub: Any) -> None:
     p.add_argument("--max-steps", type=_positive, default=100_000, help="each trial's training budget")
     p.add_argument("--seed", type=int, default=0, help="the sampler's and every trial's training seed")
     p.add_argument("--out", type=Path, required=True, help="the study's folder (study.db, trials/, results)")
+    p.add_argument("--ray", metavar="ADDRESS", help="run the trials with Ray Tune: local (a Ray instance "
+                   "here), auto (the cluster this machine joined) or HOST:PORT; default: one by one here")
+    p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1,
+                   help="with --ray local: trials at once (the CPUs Ray may use)")  # fmt: skip
     p.set_defaults(func=cmd_tune)
 
 

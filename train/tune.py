@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -45,74 +47,128 @@ def sample(trial: Any, fields: set[str]) -> list[str]:
     return changes
 
 
-def run_tune(
-    algo: str, scenario: str, trials: int, max_steps: int, out: Path, seed: int = 0, base: str = "tuned"
-) -> dict[str, Any]:
-    """Run (or continue) the search; the best trial as a preset file's content."""
+@dataclass(frozen=True)
+class Search:
+    """What a search trains: one algorithm's preset in one scenario, each trial for ``max_steps``."""
+
+    algo: str
+    scenario: str
+    max_steps: int
+    out: Path
+    seed: int = 0
+    base: str = "tuned"
+
+    @property
+    def name(self) -> str:
+        return f"{self.algo}-{self.scenario}"
+
+    @property
+    def storage(self) -> str:
+        return f"sqlite:///{self.out.resolve() / 'study.db'}"
+
+
+Optimize = Callable[["Search", set[str], int], None]
+"""Runs ``n`` more trials of a search whose configs have the given fields, recording them in its study
+(:func:`embedrl.train.tune_ray.optimize_on_ray`)."""
+
+
+def run_tune(search: Search, trials: int, optimize: Optimize | None = None) -> dict[str, Any]:
+    """Run (or continue) the search until ``trials`` have finished, one after another here or by
+    ``optimize``; the best trial as a preset file's content."""
     import optuna
 
     from embedrl.train.config import preset, to_dict
 
-    out.mkdir(parents=True, exist_ok=True)
-    fields = set(to_dict(preset(algo, base, scenario)))
+    search.out.mkdir(parents=True, exist_ok=True)
+    fields = set(to_dict(preset(search.algo, search.base, search.scenario)))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     study = optuna.create_study(
-        study_name=f"{algo}-{scenario}", storage=f"sqlite:///{out / 'study.db'}", load_if_exists=True,
-        direction="maximize", sampler=optuna.samplers.TPESampler(seed=seed),
+        study_name=search.name, storage=search.storage, load_if_exists=True, direction="maximize",
+        sampler=optuna.samplers.TPESampler(seed=search.seed),
         pruner=optuna.pruners.MedianPruner(n_startup_trials=2, n_warmup_steps=0),
     )  # fmt: skip
     left = trials - len([t for t in study.trials if t.state.is_finished()])
-    if left > 0:
-        study.optimize(
-            lambda trial: _objective(trial, algo, scenario, max_steps, out, seed, base, fields),
-            n_trials=left, show_progress_bar=sys.stderr.isatty(),
-        )  # fmt: skip
-    best = study.best_trial
+    if left > 0 and optimize is not None:
+        optimize(search, fields, left)
+        study = optuna.load_study(study_name=search.name, storage=search.storage)
+    elif left > 0:
+        study.optimize(lambda trial: _objective(trial, search, fields), n_trials=left,
+                       show_progress_bar=sys.stderr.isatty())  # fmt: skip
+    best = _best(study)
     result = {
-        "algo": algo, "scenario": scenario, "base_preset": base, "overrides": best.user_attrs["overrides"],
-        "validation_success": best.value, "trial": best.number, "max_steps": max_steps, "seed": seed,
+        "algo": search.algo, "scenario": search.scenario, "base_preset": search.base,
+        "overrides": overrides_of(best.params), "validation_success": best.value, "trial": best.number,
+        "max_steps": search.max_steps, "seed": search.seed,
     }  # fmt: skip
-    write_json(result, out / "best_preset.json")
-    (out / "trials.md").write_text(_table(study))
+    write_json(result, search.out / "best_preset.json")
+    (search.out / "trials.md").write_text(_table(study))
     return result
 
 
-def _objective(
-    trial: Any, algo: str, scenario: str, max_steps: int, out: Path, seed: int, base: str, fields: set[str]
-) -> float:
-    import optuna
+def overrides_of(params: dict[str, Any]) -> list[str]:
+    """A trial's sampled values as ``--set`` assignments, in :data:`SPACE`'s order."""
+    return [f"{name}={params[name]}" for name in SPACE if name in params]
 
+
+def train_trial(
+    search: Search, overrides: list[str], run: Path, report: Callable[[float, int], bool]
+) -> float:
+    """Train one trial in :data:`RUNGS` steps, evaluating the selected model on the validation seeds after
+    each; ``report(success, steps)`` returns True when the trial should stop there. The last success."""
     from embedrl.train.config import Budget
     from embedrl.train.evaluate import evaluate
     from embedrl.train.models import load_model_policy
     from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.trainer import train
 
-    overrides = sample(trial, fields)
-    trial.set_user_attr("overrides", overrides)
-    run = out / "trials" / f"trial-{trial.number}"
     success = 0.0
     for rung in range(1, RUNGS + 1):
-        steps = max_steps * rung // RUNGS
+        steps = search.max_steps * rung // RUNGS
         budget = Budget(max_steps=steps, stop="budget", eval_every=max(steps // 4, 100), eval_episodes=20)
-        train(algo, base, seed, run, budget, resume=rung > 1, overrides=() if rung > 1 else overrides,
-              scenario=scenario)  # fmt: skip
-        report = evaluate(load_model_policy(run / "model.zip"), VALIDATION_EPISODES, VALIDATION_SEED,
-                          f"trial {trial.number}", env_id=SCENARIOS[scenario].env_id)  # fmt: skip
-        success = report.success_rate
-        trial.report(success, steps)
-        if trial.should_prune():
-            raise optuna.TrialPruned()
+        train(search.algo, search.base, search.seed, run, budget, resume=rung > 1,
+              overrides=() if rung > 1 else overrides, scenario=search.scenario)  # fmt: skip
+        report_ = evaluate(load_model_policy(run / "model.zip"), VALIDATION_EPISODES, VALIDATION_SEED,
+                           run.name, env_id=SCENARIOS[search.scenario].env_id)  # fmt: skip
+        success = report_.success_rate
+        if report(success, steps):
+            break
     return success
 
 
+def _objective(trial: Any, search: Search, fields: set[str]) -> float:
+    import optuna
+
+    def report(success: float, steps: int) -> bool:
+        trial.report(success, steps)
+        if trial.should_prune():
+            raise optuna.TrialPruned()
+        return False
+
+    overrides = sample(trial, fields)
+    return train_trial(search, overrides, search.out / "trials" / f"trial-{trial.number}", report)
+
+
+def _best(study: Any) -> Any:
+    """The best trial that trained its whole budget (on Ray a stopped trial is recorded as complete with
+    the value it had when stopped)."""
+    import optuna
+
+    whole = [
+        t for t in study.trials
+        if t.state == optuna.trial.TrialState.COMPLETE and len(t.intermediate_values) == RUNGS
+    ]  # fmt: skip
+    if not whole:
+        raise RuntimeError("no trial trained its whole budget: run more trials")
+    return max(whole, key=lambda t: (t.value, -t.number))
+
+
 def _table(study: Any) -> str:
-    lines = ["| trial | state | validation success | last step | changes |", "|---|---|---|---|---|"]
+    lines = ["| trial | state | validation success | evaluations | changes |", "|---|---|---|---|---|"]
     for t in study.trials:
         value = "-" if t.value is None else f"{100 * t.value:.0f}%"
-        last = max(t.intermediate_values, default="-")
+        last = f"{len(t.intermediate_values)}/{RUNGS}"
         lines.append(f"| {t.number} | {t.state.name.lower()} | {value} | {last} | "
-                     f"{', '.join(t.user_attrs.get('overrides', []))} |")  # fmt: skip
+                     f"{', '.join(overrides_of(t.params))} |")  # fmt: skip
     return "\n".join(lines) + "\n"
 
 
