@@ -22,6 +22,7 @@ from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
 from embedrl.hil.options import DEFAULT_TIMEOUT_MS, MAX_TIMEOUT_MS, RunOptions
+from embedrl.hil.progress import episode_bar
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
 from embedrl.train.scenarios import TWO_ROBOTS
 
@@ -285,9 +286,10 @@ def _python_session(options: RunOptions, work: Path) -> dict[str, Any]:
     log = work / f"frames{options.log.suffix}" if options.log else None
     cfg = _session_config(
         options, bus="virtual", iface=f"embedrl-{os.getpid()}-{work.name}", log=str(log) if log else None,
-        results=str(work / "results.json"),
+        results=str(work / "results.json"), progress=str(work / "progress"),
     )  # fmt: skip
-    results = run_session(cfg)
+    with episode_bar(work / "progress", options.episodes):
+        results = run_session(cfg)
     _move_log(log, options.log)
     return {**results, "sandbox": "none", "sandbox_detail": "python-can virtual bus (Python reference node)"}
 
@@ -307,14 +309,15 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
         cfg = _session_config(
             options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
+            progress=str(scratch / "progress"),
         )  # fmt: skip
         if options.node == "firmware":  # its watchdog is fixed in the image: built for this sandbox
             cfg = _with_firmware(options, cfg, work)
         config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
-        job = where.run(
-            [where.python, "-m", "embedrl.hil.session", str(config_file)], REPO, timeout_s=SESSION_TIMEOUT_S
-        )
+        with episode_bar(scratch / "progress", options.episodes):
+            argv = [where.python, "-m", "embedrl.hil.session", str(config_file)]
+            job = where.run(argv, REPO, timeout_s=SESSION_TIMEOUT_S)
         if job.status != 0 or not Path(cfg.results).is_file():
             why = where.diagnose(f"the HIL session failed (status {job.status}): {job.last_lines()}")
             raise HilError(str(why))

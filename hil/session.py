@@ -91,6 +91,9 @@ class SessionConfig:
     replayed :data:`OPEN_LOOP_STEPS` per episode."""
     inject: tuple[str, ...] = ()
     """The fault schedule: ``NAME`` or ``NAME@EPISODE:STEP`` (:func:`embedrl.hil.faults.parse_schedule`)."""
+    progress: str | None = None
+    """A file rewritten after each episode with ``DONE TOTAL`` (the host draws a bar from it while the session
+    runs in a guest: :func:`embedrl.hil.progress.episode_bar`)."""
     kill_node: tuple[int, int, int] | None = None
     """Several nodes: ``(node, episode, step)`` at which that node's process is killed (its robot then
     stops, the safe action; the other nodes go on)."""
@@ -343,6 +346,7 @@ def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
                     diffs = links[k].stats.diffs[marks[k] :]
                     row.update(node=k, injected=[], max_action_abs_diff=max(diffs, default=None))
                 episodes += rows
+                _progress(cfg, index + 1)
                 if not all(node.alive() for node in nodes):
                     break  # a node is gone: later episodes could only fail the same way
     finally:
@@ -505,6 +509,7 @@ def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
                         "node": k, "injected": ["kill"] if killed else [],
                         "max_action_abs_diff": max(diffs, default=None), "robots": list(env.outcomes),
                     })  # fmt: skip
+                _progress(cfg, index + 1)
                 if not all(node.alive() for node in nodes):
                     break  # a node is gone: its robot could only fault in later episodes
     finally:
@@ -533,6 +538,14 @@ def _write_nodes_results(
     )
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
+
+
+def _progress(cfg: SessionConfig, done: int) -> None:
+    """Episodes done so far, for whoever watches ``cfg.progress`` (replaced whole: never half-written)."""
+    if cfg.progress is not None:
+        path = Path(cfg.progress)
+        path.with_suffix(".tmp").write_text(f"{done} {cfg.episodes}\n")
+        path.with_suffix(".tmp").replace(path)
 
 
 def run(cfg: SessionConfig) -> dict[str, Any]:
@@ -589,6 +602,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             row["max_action_abs_diff"] = max(stats.diffs[first_diff:], default=None)
             first_diff = len(stats.diffs)
             episodes.append(row)
+            _progress(cfg, index + 1)
             if row["fault"] and not node.alive():
                 break  # the node is gone: later episodes could only fail the same way
         link.wait_status(0.3)

@@ -386,8 +386,12 @@ def _register_tune(sub: Any) -> None:
     p.add_argument("--max-steps", type=_positive, default=100_000, help="each trial's training budget")
     p.add_argument("--seed", type=int, default=0, help="the sampler's and every trial's training seed")
     p.add_argument("--out", type=Path, required=True, help="the study's folder (study.db, trials/, results)")
-    p.add_argument("--ray", metavar="ADDRESS", help="run the trials with Ray Tune: local (a Ray instance "
-                   "here), auto (the cluster this machine joined) or HOST:PORT; default: one by one here")
+    p.add_argument(
+        "--ray",
+        metavar="ADDRESS",
+        help="run the trials with Ray Tune: local (a Ray instance "
+        "here), auto (the cluster this machine joined) or HOST:PORT; default: one by one here",
+    )
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1,
                    help="with --ray local: trials at once (the CPUs Ray may use)")  # fmt: skip
     p.set_defaults(func=cmd_tune)

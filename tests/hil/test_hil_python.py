@@ -179,3 +179,33 @@ def test_policy_node_help_is_an_answer_not_an_error(export_dir: Path, tmp_path: 
     assert asked.returncode == 0 and asked.stdout.startswith("usage: policy_node --iface NAME")
     wrong = subprocess.run([str(tmp_path / "policy_node"), "--bogus"], capture_output=True, text=True)
     assert wrong.returncode == 2 and wrong.stderr.startswith("usage: policy_node")
+
+
+def test_a_session_reports_its_episodes_and_the_host_draws_them(
+    export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The session rewrites its progress file after each episode; on a terminal ``hil run`` draws a bar from
+    it (what shows progress while the session runs inside a guest), and nothing when not a terminal."""
+    from embedrl.hil.progress import episode_bar, read_done
+    from embedrl.hil.session import SessionConfig, run
+
+    progress = tmp_path / "progress"
+    cfg = SessionConfig(
+        onnx=str(export_dir / "policy.onnx"), interface=str(export_dir / "interface.json"), node="python",
+        bus="virtual", iface="embedrl-progress", episodes=3, results=str(tmp_path / "r.json"),
+        progress=str(progress),
+    )  # fmt: skip
+    run(cfg)
+    assert progress.read_text() == "3 3\n" and read_done(tmp_path / "nosuch") == 0
+    capsys.readouterr()
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True)
+    with episode_bar(progress, 3):
+        pass
+    assert "HIL episodes: 100%" in capsys.readouterr().err and "3/3" in progress.read_text().replace(" ", "/")
+    assert main(["hil", "run", "--export-dir", str(export_dir), "--node", "python", "--episodes", "2",
+                 "--json", str(tmp_path / "h.json")]) == 0  # fmt: skip
+    assert "HIL episodes: 100%" in capsys.readouterr().err
+    monkeypatch.setattr("sys.stderr.isatty", lambda: False)
+    assert main(["hil", "run", "--export-dir", str(export_dir), "--node", "python", "--episodes", "2",
+                 "--json", str(tmp_path / "h.json")]) == 0  # fmt: skip
+    assert "HIL episodes" not in capsys.readouterr().err
