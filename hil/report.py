@@ -204,7 +204,8 @@ def _plot(
 
     assert options.plot is not None
     if any(e.trajectory for e in episodes):  # envs with a map (the warehouse scenarios)
-        plot_trajectories(report, options.plot / "hil_trajectories.png", overlay=sim)
+        nodes = [e.get("node", 0) for e in results["episodes"]]
+        plot_trajectories(report, options.plot / "hil_trajectories.png", overlay=sim, nodes=nodes)
     interface = candb.load_interface(options.export_dir / INTERFACE_FILE)
     plot_latency(
         results["latencies_us"], options.plot / "hil_latency.png", results["sandbox"], options.realtime,

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
+from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from embedrl.common import atomic_write
@@ -15,14 +17,31 @@ from embedrl.train import layout
 from embedrl.train.evaluate import EvalReport
 
 OUTCOME_COLOURS = {"success": "tab:green", "collision": "tab:red", "timeout": "tab:orange"}
+NODE_STYLES = (("-", "o"), ("--", "s"), (":", "^"), ("-.", "D"))
+"""Line and start marker of each node's robot on a map of several nodes (colour stays the outcome's)."""
 
 
-def plot_trajectories(report: EvalReport, path: Path, overlay: EvalReport | None = None) -> None:
+def plot_trajectories(
+    report: EvalReport, path: Path, overlay: EvalReport | None = None, nodes: Sequence[int] | None = None
+) -> None:
     """Draw every episode's path over the map, coloured by outcome; write a PNG atomically.
 
     The moving-shelf scenario draws the fixed map and the band the moving shelf sweeps; two robots draw
     the second robot's path dashed. ``overlay`` (the simulation on the same seeds, beside a HIL run) is
-    drawn first, thick and grey, so that the run's paths show on top of it wherever they agree."""
+    drawn first, thick and grey, so that the run's paths show on top of it wherever they agree. ``nodes``
+    (a HIL run of several nodes: the node of each result) gives each node's paths their own line style
+    and start marker (:data:`NODE_STYLES`)."""
+    fig = trajectory_figure(report, overlay, nodes)
+    try:
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
+    finally:
+        plt.close(fig)
+
+
+def trajectory_figure(
+    report: EvalReport, overlay: EvalReport | None = None, nodes: Sequence[int] | None = None
+) -> Figure:
+    """The figure :func:`plot_trajectories` writes."""
     from embedrl.train.scenarios import has_moving_shelf
 
     fig, ax = plt.subplots(figsize=(9, 4.8))
@@ -39,32 +58,44 @@ def plot_trajectories(report: EvalReport, path: Path, overlay: EvalReport | None
         ax.plot([p[0] for p in r.trajectory], [p[1] for p in r.trajectory], "-", color="0.75", lw=4, zorder=1)
     if overlay:
         ax.plot([], [], "-", color="0.75", lw=4, label=f"{overlay.policy}, same seeds")
-    for r in report.results:
+    several = nodes is not None and len(set(nodes)) > 1
+    for i, r in enumerate(report.results):
         xs = [p[0] for p in r.trajectory]
         ys = [p[1] for p in r.trajectory]
         colour = OUTCOME_COLOURS[r.outcome]
-        ax.plot(xs, ys, "-", color=colour, lw=1, alpha=0.9, zorder=2)
-        ax.plot(xs[:1], ys[:1], "o", color=colour, ms=3)
+        line, marker = NODE_STYLES[nodes[i] % len(NODE_STYLES)] if several and nodes else ("-", "o")
+        ax.plot(xs, ys, line, color=colour, lw=1, alpha=0.9, zorder=2)
+        ax.plot(xs[:1], ys[:1], marker, color=colour, ms=3)
         for other in r.other_trajectories:
             ax.plot([p[0] for p in other], [p[1] for p in other], "--", color=colour, lw=1, alpha=0.7)
             ax.plot([p[0] for p in other][:1], [p[1] for p in other][:1], "s", color=colour, ms=3)
     for outcome, colour in OUTCOME_COLOURS.items():
         ax.plot([], [], color=colour, label=outcome)
-    ax.plot([], [], "o", color="k", ms=3, label="start")
+    if several and nodes:
+        for k in sorted(set(nodes)):
+            line, marker = NODE_STYLES[k % len(NODE_STYLES)]
+            ax.plot([], [], marker + line, color="k", ms=3, lw=1, label=f"node {k}: start, path")
+    else:
+        ax.plot([], [], "o", color="k", ms=3, label="start")
     if any(r.other_trajectories for r in report.results):
         ax.plot([], [], "s--", color="k", ms=3, lw=1, label="second robot: start, path")
     v = layout.VIEW
     ax.set(xlim=(v.x0, v.x1), ylim=(v.y0, v.y1), aspect="equal", xlabel="x [m]", ylabel="y [m]")
-    last_seed = report.seed + report.episodes - 1
     ax.set_title(
         f"{report.policy}: {report.successes}/{report.episodes} successes, "
-        f"mean return {report.mean_return:.3f} (seeds {report.seed}..{last_seed})"
+        f"mean return {report.mean_return:.3f} ({_seeds(report)})"
     )
-    ax.legend(loc="upper right", fontsize="small")
-    try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, bbox_inches="tight", format="png"))
-    finally:
-        plt.close(fig)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")  # beside: hides no path
+    return fig
+
+
+def _seeds(report: EvalReport) -> str:
+    """The episodes' seeds: a range when they are one (several HIL nodes each have their own)."""
+    seeds = sorted({r.seed for r in report.results})
+    if not seeds or seeds == list(range(seeds[0], seeds[-1] + 1)):
+        return f"seeds {report.seed}..{report.seed + report.episodes - 1}"
+    shown = ", ".join(str(s) for s in seeds[:6])
+    return f"seeds {shown}{', ...' if len(seeds) > 6 else ''}"
 
 
 def plot_progress(curve_csv: Path, path: Path, title: str, warmup_steps: int = 0) -> None:

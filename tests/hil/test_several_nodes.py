@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from embedrl.hil.sandbox import Guest
@@ -47,3 +48,33 @@ def test_two_c_nodes_on_one_vcan(guest: Guest, export_dir: Path, tmp_path: Path)
         guest, export_dir, tmp_path, "--nodes", str(NODES), "--episodes", str(EPISODES), "--log", str(log)
     )
     _check(report, log)
+
+
+def test_the_map_of_several_nodes_tells_them_apart(export_dir: Path, tmp_path: Path) -> None:
+    """Each node's robot: its own line style and start marker, named in the legend; one node: plain paths."""
+    import matplotlib.pyplot as plt
+
+    from embedrl.train.evaluate import EpisodeResult, EvalReport
+    from embedrl.train.plots import NODE_STYLES, trajectory_figure
+
+    path = [(0.0, -2.0, 0.0), (0.1, -1.0, 0.0), (0.0, 1.0, 0.0)]
+    results = [EpisodeResult(s, "success", 3, 1.0, 0.9, None, path) for s in (0, 0, 1, 1)]
+    report = EvalReport.from_results(results, 0, "HIL")
+    fig = trajectory_figure(report, nodes=[0, 1, 0, 1])
+    ax = fig.axes[0]
+    paths = [line for line in ax.lines if np.size(line.get_xdata()) == 3]
+    styles = {(line.get_linestyle(), line.get_color()) for line in paths}
+    assert styles == {("-", "tab:green"), ("--", "tab:green")}
+    legend = ax.get_legend()
+    assert legend is not None
+    labels = [t.get_text() for t in legend.get_texts()]
+    assert "node 0: start, path" in labels and "node 1: start, path" in labels and "start" not in labels
+    assert NODE_STYLES[1] == ("--", "s")
+    plt.close(fig)
+    fig = trajectory_figure(report, nodes=[0, 0, 0, 0])
+    legend = fig.axes[0].get_legend()
+    assert legend is not None and "start" in [t.get_text() for t in legend.get_texts()]
+    plt.close(fig)
+    report_json = hil(None, export_dir, tmp_path, "--node", "python", "--nodes", "2", "--episodes", "1",
+                      "--plot", str(tmp_path / "plots"))  # fmt: skip
+    assert report_json["episodes"] == 2 and (tmp_path / "plots" / "hil_trajectories.png").is_file()
