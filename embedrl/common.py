@@ -32,6 +32,11 @@ ROLLOUT_SEED_OFFSET = 1_000_000
 PROVENANCE_PACKAGES = ("embedrl", "gymnasium", "pymunk", "numpy", "stable-baselines3", "torch")
 
 
+def on_terminal() -> bool:
+    """Whether progress bars are drawn: only when stderr is a terminal (a log or a pipe gets none)."""
+    return sys.stderr.isatty()
+
+
 def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
     """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``.
 

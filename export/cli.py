@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
-from embedrl.common import parse_json, table
+from embedrl.common import on_terminal, parse_json, table
 from embedrl.export.errors import ExportError
 from embedrl.train.arguments import add_model_file_arguments, add_scenario_argument
 from embedrl.train.scenarios import DEFAULT_SCENARIO
@@ -109,7 +108,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         force=args.force,
         targets=tuple(args.target or ()),
         quantize=args.quantize,
-        progress=sys.stderr.isatty(),
+        progress=on_terminal(),
         limits=Limits(max_bytes=int(args.max_model_mb * 2**20), max_parameters=args.max_params),
         obs_range=args.obs_range,
         act_range=args.act_range,

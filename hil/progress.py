@@ -7,11 +7,12 @@ terminal (a log or a test).
 
 from __future__ import annotations
 
-import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from embedrl.common import on_terminal
 
 POLL_S = 0.5
 """How often the file is read."""
@@ -20,7 +21,7 @@ POLL_S = 0.5
 @contextmanager
 def episode_bar(path: Path, total: int, desc: str = "HIL episodes") -> Iterator[None]:
     """While the block runs, a bar of the episodes ``path`` says are done (of ``total``)."""
-    if not sys.stderr.isatty():
+    if not on_terminal():
         yield
         return
     from tqdm import tqdm

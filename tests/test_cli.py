@@ -203,3 +203,16 @@ def test_a_missing_folder_is_named_as_missing(
 def test_python_dash_m_runs_the_command() -> None:
     result = subprocess.run([sys.executable, "-m", "embedrl", "--version"], capture_output=True, text=True)
     assert result.returncode == 0 and result.stdout.startswith("embedrl ")
+
+
+@pytest.mark.parametrize("terminal", [True, False])
+def test_progress_bars_only_on_a_terminal(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, terminal: bool
+) -> None:
+    monkeypatch.setattr("sys.stderr.isatty", lambda: terminal)
+    argv = ["eval", "--controller", "potential-field", "--episodes", "2", "--json", str(tmp_path / "e.json")]
+    assert main(argv) == 0
+    argv = ["train", "--algo", "td3", "--max-steps", "200", "--out", str(tmp_path / "run")]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert ("eval potential-field: 100%" in err) == terminal and ("train: 100%" in err) == terminal

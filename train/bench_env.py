@@ -7,7 +7,6 @@ warehouse's pymunk physics and collision checks cost against a minimal control e
 
 from __future__ import annotations
 
-import sys
 import time
 from dataclasses import dataclass
 
@@ -15,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 from tqdm import tqdm
 
+from embedrl.common import on_terminal
 from embedrl.train import ENV_ID
 
 TARGET_STEPS_PER_SECOND = 10_000
@@ -45,9 +45,7 @@ def measure(env_id: str, steps: int, seed: int, repeats: int = 3) -> SpeedResult
     actions = rng.uniform(space.low, space.high, size=(steps, *space.shape)).astype(space.dtype)
     best = float("inf")
     # a bar per round, outside the timed loop; quiet when not a terminal
-    for r in tqdm(
-        range(repeats), desc=f"{env_id}: rounds of {steps:,} steps", disable=not sys.stderr.isatty()
-    ):
+    for r in tqdm(range(repeats), desc=f"{env_id}: rounds of {steps:,} steps", disable=not on_terminal()):
         env.reset(seed=seed + r)
         start = time.perf_counter()
         for a in actions:

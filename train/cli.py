@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from embedrl.common import on_terminal
 from embedrl.train.arguments import (
     PORTABLE_HELP,
     add_policy_arguments,
@@ -37,7 +38,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     policy = policy_from(args)
     name = args.controller or str(args.model)
-    report = evaluate(policy, args.episodes, args.seed, name, progress=True, env_id=env_id_of(args))
+    report = evaluate(policy, args.episodes, args.seed, name, progress=on_terminal(), env_id=env_id_of(args))
     print(report.table())
     if args.json:
         write_json(report.to_json(), args.json)
@@ -212,7 +213,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         out,
         budget,
         resume=args.resume is not None,
-        progress=True,
+        progress=on_terminal(),
         overrides=args.set,
         scenario=values["scenario"],
     )

@@ -15,6 +15,8 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from embedrl.common import on_terminal
+
 Job = TypeVar("Job")
 CPUS_PER_RUN = 1
 """The resources a run declares to Ray: one core (torch is limited to one thread per run)."""
@@ -38,7 +40,7 @@ def run_all(
 
     results: list[dict[str, Any] | None] = [None] * len(jobs)
     failures: list[Failure] = []
-    bar = tqdm(total=len(jobs), desc="runs", unit="run")
+    bar = tqdm(total=len(jobs), desc="runs", unit="run", disable=not on_terminal())
 
     def record(index: int, outcome: Callable[[], dict[str, Any]]) -> None:
         try:

@@ -11,13 +11,12 @@ train --preset FILE`` reads, with the trials' table (``DIR/trials.md``).
 from __future__ import annotations
 
 import json
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from embedrl.common import VALIDATION_SEED, write_json
+from embedrl.common import VALIDATION_SEED, on_terminal, write_json
 
 RUNGS = 3
 """Evaluations per trial (at 1/3, 2/3 and all of the budget): what the pruner compares."""
@@ -93,7 +92,7 @@ def run_tune(search: Search, trials: int, optimize: Optimize | None = None) -> d
         study = optuna.load_study(study_name=search.name, storage=search.storage)
     elif left > 0:
         study.optimize(lambda trial: _objective(trial, search, fields), n_trials=left,
-                       show_progress_bar=sys.stderr.isatty())  # fmt: skip
+                       show_progress_bar=on_terminal())  # fmt: skip
     best = _best(study)
     result = {
         "algo": search.algo, "scenario": search.scenario, "base_preset": search.base,

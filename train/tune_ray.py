@@ -14,6 +14,7 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
+from embedrl.common import on_terminal
 from embedrl.train.sweep import CPUS_PER_RUN
 from embedrl.train.tune import SPACE, Search, overrides_of, train_trial
 
@@ -67,7 +68,7 @@ def _progress_callback(total: int) -> Any:
 
         def on_trial_start(self, iteration: int, trials: list[Any], trial: Any, **info: Any) -> None:
             if self.bar is None:
-                self.bar = tqdm(total=total, desc="trials", unit="trial")
+                self.bar = tqdm(total=total, desc="trials", unit="trial", disable=not on_terminal())
 
         def on_trial_complete(self, iteration: int, trials: list[Any], trial: Any, **info: Any) -> None:
             self.bar.update()
