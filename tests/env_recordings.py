@@ -46,7 +46,7 @@ class _Digest:
 def _random_single(env_id: str) -> list[str]:
     import gymnasium as gym
 
-    env = gym.make(env_id).unwrapped
+    env: Any = gym.make(env_id).unwrapped
     rng = np.random.default_rng(12345)
     digests = []
     for episode in range(RANDOM_EPISODES):

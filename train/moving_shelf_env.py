@@ -11,7 +11,7 @@ from embedrl.train import layout
 from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 from embedrl.train.scenarios import MOVING_SHELF
 from embedrl.train.warehouse_env import WarehouseRobotEnv
-from embedrl.train.world import Pose, ShelfMotion, World
+from embedrl.train.world import Pose, ShelfMotion, World, clipped
 
 ROBOT_REACH = math.hypot(ROBOT_LENGTH, ROBOT_WIDTH) / 2
 """The robot's outline lies within this distance of its centre [m]."""
@@ -91,7 +91,10 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
             motion = _checked_shelf(options["shelf"])
         else:
             motion = self._draw_shelf(pose)
-        return World([pose], layout.FIXED_OBSTACLES, motion)
+        if self._world is None:
+            return World([pose], layout.FIXED_OBSTACLES, motion)
+        self._world.reset([pose], motion)
+        return self._world
 
     def _draw_shelf(self, pose: Pose) -> ShelfMotion:
         rng = self.np_random
@@ -116,8 +119,8 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
         world = self._world
         assert world is not None and world.shelf is not None
         x, y, *rest = world.robot_state(0)
-        state = (x, y, *rest, world.shelf.position.x - x, world.shelf_y0 - y, world.shelf.velocity.x)
-        return np.clip(np.array(state, dtype=np.float32), self._low, self._high)
+        shelf_x, shelf_vx = world.shelf_state()
+        return clipped((x, y, *rest, shelf_x - x, world.shelf_y0 - y, shelf_vx), self._low, self._high)
 
 
 def _fair_start(x: float, y0: float, vx: float, pose: Pose) -> bool:

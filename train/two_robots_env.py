@@ -14,7 +14,7 @@ from pettingzoo import ParallelEnv
 from embedrl.train import layout, rewards
 from embedrl.train.robot import PHYSICS_SUBSTEPS, SAMPLE_TIME
 from embedrl.train.scenarios import TWO_ROBOTS
-from embedrl.train.world import Pose, World, checked_pose
+from embedrl.train.world import Pose, World, checked_pose, clipped, held_action
 
 AGENTS = ("robot_0", "robot_1")
 NAME = "warehouse_two_robots_v0"
@@ -146,8 +146,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
             other = (ox - x, oy - y, os_, oc, ov, 1.0)
         else:
             other = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        obs = np.array((x, y, s, c, v, w, *other), dtype=np.float32)
-        return np.clip(obs, TWO_ROBOTS.obs_low, TWO_ROBOTS.obs_high)
+        return clipped((x, y, s, c, v, w, *other), TWO_ROBOTS.obs_low, TWO_ROBOTS.obs_high)
 
     def _info(self, i: int) -> dict[str, Any]:
         assert self._world is not None
@@ -179,10 +178,15 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
                 x = sign * rng.uniform(layout.START_X_MIN, layout.START_X_MAX)
                 y = rng.uniform(layout.START_Y_MIN, layout.START_Y_MAX)
                 poses.append((x, y, rng.uniform(-math.pi, math.pi)))
-        world = World(poses)
+        if self._world is None:
+            world = World(poses)
+        else:
+            world = self._world
+            world.reset(poses)
         for i in range(2):
             overlaps = world.overlaps(i)
             if overlaps:
+                self._world = None  # a failed reset leaves no episode to step
                 raise ValueError(f"start pose {poses[i]} of {AGENTS[i]} overlaps {', '.join(overlaps)}")
         self._world = world
         self._steps = 0
@@ -208,17 +212,15 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
         forces: list[np.ndarray | None] = [None, None]
         for i, agent in enumerate(AGENTS):
             if agent in acting:
-                a = np.clip(np.asarray(actions[agent], dtype=np.float32).reshape(2), -1.0, 1.0)
-                if not np.all(np.isfinite(a)):
-                    raise ValueError(f"action of {agent} must be finite, got {actions[agent]!r}")
-                forces[i] = a
+                forces[i] = held_action(actions[agent], f"action of {agent}")
         through = [False, False]
+        world.hold(forces)
         for _ in range(PHYSICS_SUBSTEPS):
-            world.substep(forces)
+            world.substep()
             if any(h is not None for h in world.hits):
                 break
             for i in range(2):
-                if world.active[i] and world.robots[i].position.y < layout.GOAL_Y:
+                if world.active[i] and world.y(i) < layout.GOAL_Y:
                     through[i] = True
                     world.remove(i)  # it drives on out of the arena
         self._steps += 1

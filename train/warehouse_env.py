@@ -11,9 +11,9 @@ from gymnasium import spaces
 
 from embedrl.train import layout, rewards
 from embedrl.train.rewards import COLLISION_PENALTY, SUCCESS_BONUS
-from embedrl.train.robot import PHYSICS_SUBSTEPS, SAMPLE_TIME
+from embedrl.train.robot import SAMPLE_TIME
 from embedrl.train.scenarios import STATIC
-from embedrl.train.world import Pose, World, checked_pose
+from embedrl.train.world import Pose, World, checked_pose, clipped, held_action
 
 MAX_EPISODE_STEPS = STATIC.max_steps
 reward = rewards.thesis
@@ -137,9 +137,8 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _observe(self) -> np.ndarray:
         assert self._world is not None
-        obs = np.array(self._world.robot_state(0), dtype=np.float32)
         # A contact impulse in the last physics step can push v or w past their bounds.
-        return np.clip(obs, self._low, self._high)
+        return clipped(self._world.robot_state(0), self._low, self._high)
 
     # -- gymnasium API -----------------------------------------------------------------------
 
@@ -179,7 +178,10 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _make_world(self, pose: Pose, options: dict[str, Any]) -> World:
         """The world of a new episode with the robot at ``pose``."""
-        return World([pose])
+        if self._world is None:
+            return World([pose])
+        self._world.reset([pose])
+        return self._world
 
     def _obstacles(self) -> tuple[layout.Rect, ...]:
         """Every obstacle where it is now (the potential-field reward's contours)."""
@@ -192,18 +194,10 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         if self._world is None:
             raise RuntimeError("call reset() before step()")
-        a = np.clip(np.asarray(action, dtype=np.float32).reshape(2), -1.0, 1.0)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"action must be finite, got {action!r}")
+        a = held_action(action)
         world = self._world
-        made_it = False
-        for _ in range(PHYSICS_SUBSTEPS):
-            world.substep([a])
-            if world.hits[0] is not None:
-                break
-            if world.robots[0].position.y < layout.GOAL_Y:
-                made_it = True
-                break
+        world.hold([a])
+        made_it = world.drive_one(layout.GOAL_Y)
         self._steps += 1
         hit = world.hits[0]
         collided = hit is not None
