@@ -23,3 +23,24 @@ def test_recorded_episodes_replay_bit_for_bit(
     recorded = json.loads(GOLDEN.read_text())[scenario][kind]
     differing = [i for i, (a, b) in enumerate(zip(played[scenario][kind], recorded, strict=True)) if a != b]
     assert not differing, f"{scenario} {kind}: episodes {differing[:10]} differ from the recording"
+
+
+@pytest.mark.parametrize("scenario", ["static", "moving-shelf"])
+def test_an_env_pickled_mid_episode_goes_on_the_same(scenario: str) -> None:
+    """A training checkpoint pickles the env: the copy steps exactly as the original does."""
+    import pickle
+
+    import gymnasium as gym
+    import numpy as np
+
+    from embedrl.train.scenarios import SCENARIOS
+
+    env = gym.make(SCENARIOS[scenario].env_id).unwrapped
+    env.reset(seed=3)
+    rng = np.random.default_rng(0)
+    for action in rng.uniform(-1, 1, (3, 2)):
+        env.step(action)
+    copy = pickle.loads(pickle.dumps(env))
+    actions = rng.uniform(-1, 1, (12, 2))
+    original = [env.step(a)[0].tobytes() for a in actions]
+    assert [copy.step(a)[0].tobytes() for a in actions] == original

@@ -154,6 +154,19 @@ class World:
         self.hits: list[str | None] = [None] * len(self.robots)
         self.active = [True] * len(self.robots)
 
+    _POINTERS = ("_space_ptr", "_body_ptrs", "_shelf_ptr")
+    """Chipmunk's pointers, which a pickle (a training checkpoint) leaves out and a load finds again."""
+
+    def __getstate__(self) -> dict[str, Any]:
+        return {k: v for k, v in self.__dict__.items() if k not in self._POINTERS}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._space_ptr = self.space._space
+        self._body_ptrs = [body._body for body in self.robots]
+        self._shelf_ptr = self.shelf._body if self.shelf is not None else None
+        self._pending = True
+
     # -- contacts ----------------------------------------------------------------------------------
 
     def _on_obstacle(self, arbiter: pymunk.Arbiter, space: pymunk.Space, data: Any) -> None:
