@@ -10,6 +10,7 @@ import pytest
 
 from embedrl.cli import main
 from embedrl.train.bench import MIN_SEEDS_FOR_INTERVAL, median_ci
+from embedrl.train.errors import TrainError
 from embedrl.train.sweep import run_all
 
 
@@ -48,6 +49,22 @@ def test_the_pool_keeps_order_and_reports_each_failure(workers: int) -> None:
     results, failures = run_all(_double, [1, 2, 3, 4], workers)
     assert results == [{"x": 2}, {"x": 4}, None, {"x": 8}]
     assert [(f.job, f.error) for f in failures] == [(3, "ValueError: three is not allowed")]
+
+
+def test_a_sweep_where_every_run_failed_says_so_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(TrainError, match=r"every run failed \(1\); the first: 3: ValueError: three"):
+        run_all(_double, [3], 1)
+    broken = tmp_path / "b" / "runs" / "td3-seed0"
+    broken.mkdir(parents=True)
+    (broken / "config.json").write_text("{damaged")  # the only run cannot resume: it fails
+    assert (
+        main(["bench", "--algos", "td3", "--seeds", "1", "--max-steps", "100", "--out", str(tmp_path / "b")])
+        == 2
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: every run failed (1); the first: td3 seed 0:"), err
 
 
 def test_intervals_need_three_seeds_and_contain_the_median() -> None:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from embedrl.common import on_terminal
+from embedrl.train.errors import TrainError
 
 Job = TypeVar("Job")
 CPUS_PER_RUN = 1
@@ -33,9 +34,10 @@ def run_all(
     fn: Callable[[Job], dict[str, Any]], jobs: Sequence[Job], workers: int, ray: str | None = None,
     label: Callable[[Job], str] = str,
 ) -> tuple[list[dict[str, Any] | None], list[Failure]]:  # fmt: skip
-    """``fn`` on every job: results in job order (None where it failed) and the failures. One worker runs
-    them here; more run in a pool of fresh interpreters (``spawn``: a forked child can inherit a lock some
-    thread of this process held); ``ray`` runs them as Ray tasks."""
+    """``fn`` on every job: results in job order (None where it failed) and the failures; TrainError when
+    every job failed (there is nothing to tabulate). One worker runs them here; more run in a pool of
+    fresh interpreters (``spawn``: a forked child can inherit a lock some thread of this process held);
+    ``ray`` runs them as Ray tasks."""
     from tqdm import tqdm
 
     results: list[dict[str, Any] | None] = [None] * len(jobs)
@@ -64,6 +66,10 @@ def run_all(
                     record(futures[future], future.result)
     finally:
         bar.close()
+    if jobs and len(failures) == len(jobs):
+        raise TrainError(
+            f"every run failed ({len(jobs)}); the first: {label(failures[0].job)}: {failures[0].error}"
+        )
     return results, failures
 
 
