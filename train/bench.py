@@ -12,6 +12,7 @@ ends, so the table can be rebuilt from the folders (``--from``).
 from __future__ import annotations
 
 import json
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -246,15 +247,19 @@ def run_bench(
 
 
 def table_from(folders: list[Path], out: Path) -> str:
-    """The table again from finished runs' folders (``runs/*/result.json`` under each of ``folders``, as a
-    bench on any machine of a cluster wrote them), written into ``out``."""
+    """The table again from finished runs (``runs/*/result.json`` under each of ``folders``, as a bench on
+    any machine of a cluster wrote them, or a run folder's own ``result.json``), written into ``out``."""
     from embedrl.common import parse_json
 
-    runs = [
-        parse_json(p.read_text()) for folder in folders for p in sorted(folder.glob(f"runs/*/{RESULT_FILE}"))
-    ]
+    found = []
+    for folder in folders:
+        own = folder / RESULT_FILE
+        found += [own] if own.is_file() else sorted(folder.glob(f"runs/*/{RESULT_FILE}"))
+    runs = [parse_json(p.read_text()) for p in found]
     if not runs:
-        raise ValueError(f"no finished runs (runs/*/{RESULT_FILE}) under {', '.join(map(str, folders))}")
+        raise ValueError(
+            f"no finished runs ({RESULT_FILE} or runs/*/{RESULT_FILE}) under {', '.join(map(str, folders))}"
+        )
     presets = sorted({r["preset"] for r in runs})
     steps = sorted({r.get("max_steps", r["total_steps"]) for r in runs})
     budgets = ", ".join(map(str, steps))
@@ -327,7 +332,8 @@ def plot_learning_curves(runs: list[dict[str, Any]], algos: list[str], path: Pat
     from embedrl.train import curves
     from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
 
-    fig, axes = plt.subplots(1, len(algos), figsize=(5.5 * len(algos), 4.8), sharey=True, squeeze=False)
+    width = max(5.5 * len(algos), 9.0)  # room for the legend and the title with a single panel
+    fig, axes = plt.subplots(1, len(algos), figsize=(width, 4.8), sharey=True, squeeze=False)
     for ax, algo in zip(axes[0], algos, strict=True):
         mine = [r for r in runs if r["algo"] == algo]
         end = max(r["total_steps"] for r in mine)
@@ -358,11 +364,11 @@ def plot_learning_curves(runs: list[dict[str, Any]], algos: list[str], path: Pat
         ax.set(title=algo.upper(), xlabel="env steps", xlim=(0, end))
     axes[0][0].set_ylabel(f"return, {STOP_WINDOW}-episode training average")
     handles, labels = axes[0][0].get_legend_handles_labels()  # the same marks in every panel
-    fig.legend(handles, labels, loc="lower center", ncols=3, fontsize="small")
-    fig.suptitle(title, fontsize="small")
-    fig.tight_layout(rect=(0, 0.14, 1, 1))
+    fig.legend(handles, labels, loc="lower center", ncols=2 if len(algos) == 1 else 3, fontsize="small")
+    fig.suptitle("\n".join(textwrap.wrap(title, width=int(14 * width))), fontsize="small")
+    fig.tight_layout(rect=(0, 0.2 if len(algos) == 1 else 0.14, 1, 1))
     try:
-        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
+        atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, bbox_inches="tight", format="png"))
     finally:
         plt.close(fig)
 
