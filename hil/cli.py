@@ -143,6 +143,7 @@ def register(sub: Any) -> None:
         "(runtime_c/cortex_m/targets.mk)",
     )
     r.set_defaults(func=cmd_run)
+    _register_bench(hil_sub)
     _register_doctor(hil_sub)
     _register_report(sub)
     _register_scope(sub)
@@ -193,6 +194,43 @@ def _register_report(sub: Any) -> None:
     )  # fmt: skip
     p.add_argument("--out", type=Path, required=True, help="the HTML file to write")
     p.set_defaults(func=cmd_report)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from embedrl.common import print_measurement
+    from embedrl.hil.bench import run_bench
+    from embedrl.hil.options import RunOptions
+
+    if args.exchanges < 1 or args.episodes < 1:
+        raise HilError("--exchanges and --episodes must be at least 1")
+    options = RunOptions(export_dir=args.export_dir, episodes=args.episodes, sandbox=args.sandbox)
+    result = run_bench(options, args.exchanges)
+    floor, hil = result["floor"], result["lockstep"]
+    print_measurement(
+        {
+            "sandbox": result["sandbox"],
+            "bus_floor_exchanges_per_second": round(floor["per_second"]),
+            "bus_floor_us_per_exchange": round(1e6 / floor["per_second"], 1),
+            "hil_lockstep_steps_per_second": round(hil["per_second"]),
+            "hil_lockstep_us_per_step": round(1e6 / hil["per_second"], 1),
+            "hil_steps": hil["steps"],
+            "ratio_to_floor": round(result["ratio"], 3),
+        },
+        args.json,
+    )
+    return 0
+
+
+def _register_bench(hil_sub: Any) -> None:
+    b = hil_sub.add_parser(
+        "bench", help="the HIL lock-step rate against the bus's floor (a trivial C responder), same sandbox"
+    )
+    b.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
+    b.add_argument("--episodes", type=int, default=20, help="HIL episodes of the lock-step measurement")
+    b.add_argument("--exchanges", type=int, default=2000, help="exchanges of the floor measurement")
+    b.add_argument("--sandbox", choices=MODES, default="auto", help="where vcan0 comes from (as hil run)")
+    b.add_argument("--json", type=Path, help="write the measurement here")
+    b.set_defaults(func=cmd_bench)
 
 
 def _register_doctor(hil_sub: Any) -> None:

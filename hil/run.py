@@ -1,7 +1,7 @@
 """One HIL run: the options checked against the export, the node built, the session run in a sandbox (or in
 this process for the Python node), then the report and its verdict (:func:`run`).
 
-The steps, each a function: :func:`check` (options alone, before any cost), :func:`_check_export` (options
+The steps, each a function: :func:`check` (options alone, before any cost), :func:`check_export` (options
 against the export's interface), :func:`_build_and_run` (node build, sandbox, session), then
 :func:`embedrl.hil.report.hil_report` and :func:`embedrl.hil.verdict.verdict`.
 """
@@ -91,7 +91,7 @@ def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
     schedule = check(options)
     if schedule and not options.allow_faults:
         print("note: injected faults change their episodes; without --allow-faults the run fails")
-    options = _check_export(options, schedule)
+    options = check_export(options, schedule)
     data = hil_report(options, _in_work_folder(options, guest))
     fired = {(r["kind"], r["episode"], r["step"]) for r in data["injections"] or []}
     data["injections_not_fired"] = [
@@ -155,7 +155,7 @@ def _export_interface(export_dir: Path) -> Interface:
     return candb.load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
 
 
-def _check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
+def check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
     """The options against the export's interface; the options to run (the export folder resolved, two
     nodes for the two-robot scenario)."""
     options = replace(options, export_dir=options.export_dir.resolve())
@@ -212,7 +212,7 @@ def _in_work_folder(options: RunOptions, guest: Guest | None) -> dict[str, Any]:
     return results
 
 
-def _session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) -> SessionConfig:
+def session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) -> SessionConfig:
     """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the default
     watchdog and the wait for an answer."""
     from embedrl.export.reference import OBSERVATIONS_FILE
@@ -259,11 +259,11 @@ def _build_and_run(options: RunOptions, guest: Guest | None, work: Path) -> dict
     if options.node == "python":
         return _python_session(options, work)
     if options.node == "c":
-        _make_node(options, work, {"FD": "1"} if options.fd else {})
+        make_node(options, work, {"FD": "1"} if options.fd else {})
     return _guest_session(options, guest, work)
 
 
-def _make_node(options: RunOptions, work: Path, extra: dict[str, str]) -> Path:
+def make_node(options: RunOptions, work: Path, extra: dict[str, str]) -> Path:
     """``make -C runtime_c node``: the host node, or with ``TARGET`` the firmware image; its path."""
     from embedrl.export import build
     from embedrl.export.errors import BuildError
@@ -284,7 +284,7 @@ def _python_session(options: RunOptions, work: Path) -> dict[str, Any]:
     from embedrl.hil.session import run as run_session
 
     log = work / f"frames{options.log.suffix}" if options.log else None
-    cfg = _session_config(
+    cfg = session_config(
         options, bus="virtual", iface=f"embedrl-{os.getpid()}-{work.name}", log=str(log) if log else None,
         results=str(work / "results.json"), progress=str(work / "progress"),
     )  # fmt: skip
@@ -306,7 +306,7 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
             )
         scratch = where.scratch()  # the session's results and log: writable from inside the guest
         log = scratch / f"frames{options.log.suffix}" if options.log else None
-        cfg = _session_config(
+        cfg = session_config(
             options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
             progress=str(scratch / "progress"),
@@ -339,7 +339,7 @@ def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> Sessi
 
     extra = {"TARGET": options.target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
-    elf = _make_node(options, work, extra)
+    elf = make_node(options, work, extra)
     return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.target].qemu_machine)
 
 

@@ -312,7 +312,7 @@ def _nodes_on_one_bus(
     try:
         for k in range(count):
             codec = Codec(interface, k, cfg.fd)
-            links.append(Link(_open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
+            links.append(Link(open_bus(cfg, codec), codec, Stats(), cfg.iface, None, logger))
             nodes.append(_start_node(cfg, interface, k))
             policies.append(BusPolicy(cfg, interface, links[k], nodes[k]))
         for link in links:
@@ -451,7 +451,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
 
 
-def _open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
+def open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
     """The simulator's socket for one node: only that node's IDs pass (in the kernel on SocketCAN)."""
     return can.Bus(
         interface=cfg.bus, channel=cfg.iface, receive_own_messages=False, fd=cfg.fd,
@@ -563,7 +563,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
     episodes: list[dict[str, Any]] = []
     with ExitStack() as cleanup:  # whatever was started is stopped, even when interrupted while starting
         codec = Codec(interface, fd=cfg.fd)
-        bus = _open_bus(cfg, codec)
+        bus = open_bus(cfg, codec)
         cleanup.callback(bus.shutdown)  # at once: an interrupt may land before the link owns it
         link = Link(bus, codec, stats, cfg.iface, cfg.log)
         cleanup.callback(link.close)
@@ -576,6 +576,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             cleanup.callback(env.close)
         link.wait_status(NODE_BOOT_S)
         first_diff = 0
+        loop_start = time.perf_counter()
         for index in range(cfg.episodes):
             seed = cfg.seed + index
             policy.begin_episode()
@@ -605,8 +606,10 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
             _progress(cfg, index + 1)
             if row["fault"] and not node.alive():
                 break  # the node is gone: later episodes could only fail the same way
+        loop_seconds = time.perf_counter() - loop_start
         link.wait_status(0.3)
     results = _results(cfg, stats, episodes, policy.injections, interface.sample_time_s)
+    results["loop_seconds"] = loop_seconds  # the episodes' wall-clock time, start-up and wind-down left out
     if isinstance(node, FirmwareNode):
         results["firmware"] = {
             "machine": cfg.qemu_machine,
