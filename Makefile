@@ -95,9 +95,11 @@ format: $(STAMP)
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
-bench: $(STAMP)
+bench: deps $(STAMP)
 	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --json $(OUT)/bench/export.json
+	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
+	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes 60 --exchanges 6000 --json $(OUT)/bench/hil.json
 
 # Peer code generators for the target benchmark, in their own environment under tools/ (never a dependency
 # of embedrl): emx-onnx-cgen, pinned.

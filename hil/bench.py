@@ -2,10 +2,11 @@
 
 The floor: the simulator's side of an exchange (one step's observation frames encoded and sent through the
 same :class:`~embedrl.hil.link.Link` and socket, the answer received and decoded) against a trivial C
-responder (``runtime_c/bench/can_responder.c``: answers a step's last observation frame with one action
-frame at once: no E2E check, no inference). The lock-step rate: the HIL session with the C node
-(:func:`embedrl.hil.session.run`), steps per second of its episodes' wall-clock time (the environment, the
-reference policy and every check included). Their ratio says how much of the bus's speed a HIL step uses.
+responder (``runtime_c/bench/can_responder.c``: receives a step's observation frames as the node does and
+answers the last with one action frame at once: no E2E check, no inference). The lock-step rate: the HIL
+session with the C node (:func:`embedrl.hil.session.run`), steps per second of its episodes' wall-clock
+time (the environment, the reference policy and every check included). Their ratio says how much of the
+bus's speed a HIL step uses.
 
 Inside the guest this module runs as ``python -m embedrl.hil.bench CONFIG.json``.
 """
@@ -18,6 +19,7 @@ import sys
 import time
 from dataclasses import asdict
 from pathlib import Path
+from statistics import median
 from typing import Any
 
 import numpy as np
@@ -25,6 +27,8 @@ import numpy as np
 WARMUP_EXCHANGES = 50
 """Exchanges before the floor's clock starts (sockets, caches, the responder's first wake-up)."""
 EXCHANGE_TIMEOUT_S = 2.0
+ROUNDS = 3
+"""Interleaved rounds of the two measurements; each reported figure is the median over them."""
 
 
 def floor(session: dict[str, Any], responder: str, exchanges: int) -> dict[str, Any]:
@@ -37,10 +41,12 @@ def floor(session: dict[str, Any], responder: str, exchanges: int) -> dict[str, 
     cfg = SessionConfig(**session)
     interface = candb.load_interface(Path(cfg.interface))
     codec = Codec(interface)
-    trigger = codec.plan.observation[-1][1]
+    ids = [frame_id for _, frame_id, _ in codec.plan.observation]
+    if ids != list(range(ids[0], ids[0] + len(ids))):
+        raise ValueError(f"the responder takes consecutive observation IDs, not {ids}")
     reply = codec.plan.action[0][1]
     length = codec.db.get_message_by_frame_id(reply).length
-    argv = [responder, cfg.iface, f"{trigger:x}", f"{reply:x}", str(length)]
+    argv = [responder, cfg.iface, f"{ids[0]:x}", str(len(ids)), f"{reply:x}", str(length)]
     process = subprocess.Popen(argv, stdout=subprocess.PIPE, text=True)
     try:
         if process.stdout is None or process.stdout.readline().strip() != "ready":
@@ -82,9 +88,22 @@ def lockstep(session: dict[str, Any]) -> dict[str, Any]:
 
 
 def measure(config: dict[str, Any]) -> dict[str, Any]:
-    """Both, in this order, in this process (the guest)."""
-    bus_floor = floor(config["session"], config["responder"], config["exchanges"])
-    hil = lockstep(config["session"])
+    """Both, in :data:`ROUNDS` interleaved rounds in this process (the guest): the medians and their ratio
+    (the guest's speed drifts: interleaving puts the same drift on both sides)."""
+    session, rounds = config["session"], config.get("rounds", ROUNDS)
+    per_round = max(1, session["episodes"] // rounds)
+    floors, hils = [], []
+    for r in range(rounds):
+        floors.append(floor(session, config["responder"], max(1, config["exchanges"] // rounds)))
+        hils.append(lockstep({**session, "episodes": per_round, "seed": session["seed"] + r * per_round}))
+    bus_floor = {
+        **floors[-1], "per_second": median(f["per_second"] for f in floors),
+        "exchanges": sum(f["exchanges"] for f in floors), "rounds": [f["per_second"] for f in floors],
+    }  # fmt: skip
+    hil = {
+        "per_second": median(h["per_second"] for h in hils), "steps": sum(h["steps"] for h in hils),
+        "faults": sum(h["faults"] for h in hils), "rounds": [h["per_second"] for h in hils],
+    }  # fmt: skip
     return {"floor": bus_floor, "lockstep": hil, "ratio": hil["per_second"] / bus_floor["per_second"]}
 
 

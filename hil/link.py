@@ -84,8 +84,9 @@ class Link:
         self.owns_log = logger is None
 
     def send(self, frames: list[can.Message]) -> None:
+        stamp = time.time() if self.log else 0.0  # only the log shows it: no clock read without one
         for frame in frames:
-            frame.timestamp = time.time()
+            frame.timestamp = stamp
             frame.channel = self.channel
             frame.is_rx = False
             try:
@@ -124,19 +125,21 @@ class Link:
         return decoded
 
     def wait_action(
-        self, step: int, timeout_s: float, alive: Callable[[], bool] | None = None
+        self, step: int, until: float, alive: Callable[[], bool] | None = None, now: float | None = None
     ) -> Action | None:
-        """Drain the bus until the action for ``step`` arrives or the timeout passes; stop early once
-        ``alive()`` says the node is gone (checked every :data:`ALIVE_POLL_S` of silence)."""
-        deadline = time.monotonic() + timeout_s
-        while (remaining := deadline - time.monotonic()) > 0:
+        """Drain the bus until the action for ``step`` arrives or ``until`` (``time.monotonic`` seconds)
+        passes; stop early once ``alive()`` says the node is gone (checked every :data:`ALIVE_POLL_S` of
+        silence). ``now``: a clock reading just taken (the step's send time), so that the common case, the
+        action as the next frame, reads no clock here (under UML every clock read is a system call)."""
+        if now is None:
+            now = time.monotonic()
+        while (remaining := until - now) > 0:
             decoded = self.receive(min(remaining, ALIVE_POLL_S) if alive else remaining)
-            if decoded is False:
-                if alive is not None and not alive():
-                    return None
-                continue
             if isinstance(decoded, Action) and decoded.step == step % STEP_MODULO:
                 return decoded
+            if decoded is False and alive is not None and not alive():
+                return None
+            now = time.monotonic()
         return None
 
     def wait_status(self, timeout_s: float) -> Status | None:

@@ -144,7 +144,7 @@ class BusPolicy:
         """Injections still running (a flood), with the record each completes when its episode ends."""
         self.unresolved: list[tuple[dict[str, Any], Injector, dict[str, Any], Any, float]] = []
         """Injection records still waiting for the node's status after them."""
-        self.sent: tuple[list[can.Message], np.ndarray, int, float] = ([], np.zeros(0), 0, 0.0)
+        self.sent: tuple[list[can.Message], np.ndarray, int] = ([], np.zeros(0), 0)
 
     def end_episode(self) -> None:
         self._resolve()
@@ -162,26 +162,25 @@ class BusPolicy:
         frames, decoded = self.link.codec.encode_observation(obs, self.step)
         if self.cfg.realtime:
             self._pace()
-        start = time.perf_counter_ns()
-        sent_at = time.monotonic()
+        start = time.monotonic_ns()  # one clock read per side of a step: under UML each is a system call
         scheduled = self.schedule.get((self.episode, self.in_episode))
         if scheduled is None:
             self.link.send(frames)
-            action = self._answer(obs)
+            action = self._answer(obs, start)
         else:
             action = self._inject(scheduled, frames, obs)
-        return self._accept(action, decoded, frames, start, sent_at)
+        return self._accept(action, decoded, frames, start)
 
     def send(self, obs: np.ndarray) -> None:
         """The first half of a step in lock-step with other nodes: the observation goes out."""
         frames, decoded = self.link.codec.encode_observation(obs, self.step)
-        self.sent = (frames, decoded, time.perf_counter_ns(), time.monotonic())
+        self.sent = (frames, decoded, time.monotonic_ns())
         self.link.send(frames)
 
     def collect(self, obs: np.ndarray) -> np.ndarray:
         """The second half: the node's action for the observation :meth:`send` sent (or NodeFault)."""
-        frames, decoded, start, sent_at = self.sent
-        return self._accept(self._answer(obs), decoded, frames, start, sent_at)
+        frames, decoded, start = self.sent
+        return self._accept(self._answer(obs, start), decoded, frames, start)
 
     def _accept(
         self,
@@ -189,14 +188,13 @@ class BusPolicy:
         decoded: np.ndarray,
         frames: list[can.Message],
         start: int,
-        sent_at: float,
     ) -> np.ndarray:
         """Record the node's answer to this step against the ONNX policy; an unanswered step is a fault."""
         stats = self.link.stats
         if action is None:
             stats.rx_timeouts += 1
-            raise NodeFault(self._silence_reason(sent_at))
-        stats.latencies_us.append((time.perf_counter_ns() - start) / 1000.0)
+            raise NodeFault(self._silence_reason(start / 1e9))
+        stats.latencies_us.append((time.monotonic_ns() - start) / 1000.0)
         reference = np.asarray(self.reference(decoded.reshape(1, -1).astype(np.float32))).reshape(-1)
         if not action_ok(reference, self.interface):  # what a correct node sends instead
             reference = np.asarray(self.interface.safe_action, dtype=np.float32)
@@ -210,14 +208,19 @@ class BusPolicy:
         self.in_episode += 1
         return action.action
 
-    def _answer(self, obs: np.ndarray) -> Action | None:
-        """The node's action for this step; unanswered, the step is sent again every ``retry_s``."""
-        deadline = time.monotonic() + self.cfg.action_timeout_s
+    def _answer(self, obs: np.ndarray, sent_ns: int | None = None) -> Action | None:
+        """The node's action for this step (its observation sent at ``sent_ns``, ``time.monotonic_ns``;
+        None: now); unanswered, the step is sent again every ``retry_s``."""
+        sent = time.monotonic() if sent_ns is None else sent_ns / 1e9
+        deadline = sent + self.cfg.action_timeout_s
+        until = sent + self.retry_s
+        now: float | None = sent
         while True:
-            remaining = deadline - time.monotonic()
-            action = self.link.wait_action(self.step, min(self.retry_s, remaining), self.node.alive)
-            if action is not None or remaining <= self.retry_s or not self.node.alive():
+            action = self.link.wait_action(self.step, min(until, deadline), self.node.alive, now)
+            if action is not None or until >= deadline or not self.node.alive():
                 return action
+            now = None
+            until += self.retry_s
             frames, _ = self.link.codec.encode_observation(obs, self.step)
             self.link.stats.retries += 1
             self.link.send(frames)

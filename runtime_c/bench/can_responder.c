@@ -1,11 +1,11 @@
 /* The trivial responder of `embedrl hil bench`: the bus's floor, without a policy.
  *
- *   can_responder IFACE TRIGGER_ID REPLY_ID REPLY_LEN
+ *   can_responder IFACE FIRST_ID COUNT REPLY_ID REPLY_LEN
  *
- * Every frame with TRIGGER_ID (hex; a step's last observation frame) is answered at once with one frame of
- * REPLY_ID (hex) and REPLY_LEN zero bytes (a classic frame, at most 8): the same frames out and back as a
- * lock-step exchange with the node, with no decoding, no check and no inference in between. It reads only
- * TRIGGER_ID (a kernel filter) and runs until killed. */
+ * It receives the COUNT frames FIRST_ID .. FIRST_ID + COUNT - 1 (hex; a step's observation frames, as the
+ * node's kernel filter passes them) and answers the last of them at once with one frame of REPLY_ID (hex)
+ * and REPLY_LEN zero bytes (a classic frame, at most 8): the same frames out and back as a lock-step
+ * exchange with the node, with no decoding, no check and no inference in between. Runs until killed. */
 #define _DEFAULT_SOURCE
 #include <linux/can.h>
 #include <linux/can/raw.h>
@@ -17,24 +17,29 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#define MAX_FRAMES 64u
+
 static int usage(void)
 {
-    fprintf(stderr, "usage: can_responder IFACE TRIGGER_ID REPLY_ID REPLY_LEN (ids in hex, length 0..8)\n");
+    fprintf(stderr, "usage: can_responder IFACE FIRST_ID COUNT REPLY_ID REPLY_LEN (ids in hex, length 0..8)\n");
     return 2;
 }
 
 int main(int argc, char **argv)
 {
-    if (argc != 5 || strlen(argv[1]) >= IFNAMSIZ) {
+    if (argc != 6 || strlen(argv[1]) >= IFNAMSIZ) {
         return usage();
     }
     char *end = NULL;
-    const unsigned long trigger = strtoul(argv[2], &end, 16);
-    const unsigned long reply_id = strtoul(argv[3], &end, 16);
-    const long reply_len = strtol(argv[4], &end, 10);
-    if (trigger > CAN_SFF_MASK || reply_id > CAN_SFF_MASK || reply_len < 0 || reply_len > CAN_MAX_DLEN) {
+    const unsigned long first = strtoul(argv[2], &end, 16);
+    const unsigned long count = strtoul(argv[3], &end, 10);
+    const unsigned long reply_id = strtoul(argv[4], &end, 16);
+    const long reply_len = strtol(argv[5], &end, 10);
+    if (count < 1u || count > MAX_FRAMES || first + count - 1u > CAN_SFF_MASK || reply_id > CAN_SFF_MASK ||
+        reply_len < 0 || reply_len > CAN_MAX_DLEN) {
         return usage();
     }
+    const canid_t last = (canid_t)(first + count - 1u);
     const int sock = socket(PF_CAN, SOCK_RAW, CAN_RAW);
     if (sock < 0) {
         perror("socket(PF_CAN)");
@@ -47,8 +52,12 @@ int main(int argc, char **argv)
         perror(argv[1]);
         return 1;
     }
-    struct can_filter filter = {(canid_t)trigger, CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG};
-    (void)setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FILTER, &filter, sizeof filter);
+    struct can_filter filters[MAX_FRAMES];
+    for (unsigned long k = 0u; k < count; ++k) {
+        filters[k].can_id = (canid_t)(first + k);
+        filters[k].can_mask = CAN_SFF_MASK | CAN_EFF_FLAG | CAN_RTR_FLAG;
+    }
+    (void)setsockopt(sock, SOL_CAN_RAW, CAN_RAW_FILTER, filters, (socklen_t)(count * sizeof filters[0]));
     struct sockaddr_can addr;
     memset(&addr, 0, sizeof addr);
     addr.can_family = AF_CAN;
@@ -68,6 +77,9 @@ int main(int argc, char **argv)
         if (read(sock, &frame, sizeof frame) < 0) {
             perror("read");
             return 1;
+        }
+        if (frame.can_id != last) {
+            continue;
         }
         if (write(sock, &reply, sizeof reply) != (ssize_t)sizeof reply) {
             perror("write");

@@ -117,17 +117,22 @@ int main(int argc, char **argv)
     }
     node_t node;
     node_init(&node, &config, clock_ms());
+    /* One clock read per wake-up, used for the frame and for the next wait: a read is a system call on
+     * some kernels (User-Mode Linux: ~70 us), and the handling in between takes microseconds. */
+    uint32_t now = clock_ms();
     while (!stop) {
-        uint32_t wait_ms = node_poll(&node, clock_ms());
+        uint32_t wait_ms = node_poll(&node, now);
         can_frame_t frame;
         uint8_t bus_state = 0;
         transport_event event = transport_recv(&frame, &bus_state, wait_ms);
+        now = clock_ms();
         if (event == TRANSPORT_FRAME) {
-            node_on_frame(&node, &frame, clock_ms());
+            node_on_frame(&node, &frame, now);
         } else if (event == TRANSPORT_BUS_STATE) {
             node_on_bus_state(&node, (node_bus_state)bus_state);
         } else if (event == TRANSPORT_FAILED) {
             reopen(&node, iface, ids);
+            now = clock_ms();
         }
     }
     transport_close();
