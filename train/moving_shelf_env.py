@@ -11,7 +11,7 @@ from embedrl.train import layout
 from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
 from embedrl.train.scenarios import MOVING_SHELF
 from embedrl.train.warehouse_env import WarehouseRobotEnv
-from embedrl.train.world import Pose, ShelfMotion, World, clipped
+from embedrl.train.world import Pose, ShelfMotion, World
 
 ROBOT_REACH = math.hypot(ROBOT_LENGTH, ROBOT_WIDTH) / 2
 """The robot's outline lies within this distance of its centre [m]."""
@@ -120,7 +120,7 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
         assert world is not None and world.shelf is not None
         x, y, *rest = world.robot_state(0)
         shelf_x, shelf_vx = world.shelf_state()
-        return clipped((x, y, *rest, shelf_x - x, world.shelf_y0 - y, shelf_vx), self._low, self._high)
+        return self._bounds.clip((x, y, *rest, shelf_x - x, world.shelf_y0 - y, shelf_vx))
 
 
 def _fair_start(x: float, y0: float, vx: float, pose: Pose) -> bool:

@@ -14,9 +14,10 @@ from pettingzoo import ParallelEnv
 from embedrl.train import layout, rewards
 from embedrl.train.robot import PHYSICS_SUBSTEPS, SAMPLE_TIME
 from embedrl.train.scenarios import TWO_ROBOTS
-from embedrl.train.world import Pose, World, checked_pose, clipped, held_action
+from embedrl.train.world import ObsBounds, Pose, World, checked_pose, held_action
 
 AGENTS = ("robot_0", "robot_1")
+_BOUNDS = ObsBounds(TWO_ROBOTS.obs_low, TWO_ROBOTS.obs_high)
 NAME = "warehouse_two_robots_v0"
 
 Obs = dict[str, np.ndarray]
@@ -146,7 +147,7 @@ class WarehouseTwoRobotsEnv(ParallelEnv):  # type: ignore[misc]
             other = (ox - x, oy - y, os_, oc, ov, 1.0)
         else:
             other = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        return clipped((x, y, s, c, v, w, *other), TWO_ROBOTS.obs_low, TWO_ROBOTS.obs_high)
+        return _BOUNDS.clip((x, y, s, c, v, w, *other))
 
     def _info(self, i: int) -> dict[str, Any]:
         assert self._world is not None

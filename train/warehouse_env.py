@@ -13,7 +13,7 @@ from embedrl.train import layout, rewards
 from embedrl.train.rewards import COLLISION_PENALTY, SUCCESS_BONUS
 from embedrl.train.robot import SAMPLE_TIME
 from embedrl.train.scenarios import STATIC
-from embedrl.train.world import Pose, World, checked_pose, clipped, held_action
+from embedrl.train.world import ObsBounds, Pose, World, checked_pose, held_action
 
 MAX_EPISODE_STEPS = STATIC.max_steps
 reward = rewards.thesis
@@ -124,6 +124,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         low, high = self.SPEC.obs_low, self.SPEC.obs_high
         self.observation_space = spaces.Box(low, high, dtype=np.float32)
         self._low, self._high = low, high
+        self._bounds = ObsBounds(low, high)
         self._world: World | None = None
         self._phi = 0.0
         """The shaping potential of the state before the step (``reward="shaped"``)."""
@@ -138,7 +139,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     def _observe(self) -> np.ndarray:
         assert self._world is not None
         # A contact impulse in the last physics step can push v or w past their bounds.
-        return clipped(self._world.robot_state(0), self._low, self._high)
+        return self._bounds.clip(self._world.robot_state(0))
 
     # -- gymnasium API -----------------------------------------------------------------------
 
