@@ -1,9 +1,13 @@
-"""Inference speed of an export: generated C (-O2) vs onnxruntime vs torch, measured in one run.
+"""Inference speed of an export: generated C (-O2), onnxruntime, torch and the hardware's limit, one run.
 
 Single-observation latency, the number an embedded control loop cares about: the C timing
 comes from ``runtime_c/bench/bench_policy.c`` (a compiled loop over the observations), the
-onnxruntime and torch timings from one call per observation in this process. The median over
-repeats is reported.
+onnxruntime and torch timings from one call per observation in this process, onnxruntime's batched
+time from one call on :data:`BATCH` observations. The median over repeats is reported. The limit comes
+from ``runtime_c/bench/limit_probe.c`` on this CPU: the time of the model's multiply-adds at the
+measured fused multiply-add throughput, and of reading its weights once at the measured cache bandwidth;
+the larger bounds any inference, and every time is also given as its ratio to it. The peers' actions are
+checked against the C's on :data:`AGREEMENT_SAMPLES` observations.
 """
 
 from __future__ import annotations
@@ -31,6 +35,10 @@ STUDY_ARCH = [100, 100]
 C_REPEATS = 21
 PY_REPEATS = 5
 PY_SAMPLES = 2_000
+BATCH = 1_000
+"""Observations per batched onnxruntime call."""
+AGREEMENT_SAMPLES = 256
+AGREEMENT_TOLERANCE = 1e-5
 TARGET_SPEEDUP_VS_ONNXRUNTIME = 5.0
 TARGET_C_NS = 1_200.0
 
@@ -78,58 +86,134 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
         report = json.loads(report_path.read_text())
         if report["name"] != "policy":
             raise ExportError("the benchmark harness needs an export with the default --name policy")
-        obs_dim = report["observation_dim"]
         rng = np.random.default_rng(seed)
         space = gym.make(report["env_id"]).observation_space
         assert isinstance(space, gym.spaces.Box)
-        samples = rng.uniform(space.low, space.high, size=(10_000, obs_dim)).astype(np.float32)
-        obs_file = work / "obs.bin"
-        samples.tofile(obs_file)
-
-        build.make("bench", export_dir / "c", work / "build")
-        build.make("obj", export_dir / "c", work / "build")
-        out = subprocess.run(
-            [str(work / "build" / "bench_policy"), str(obs_file), str(C_REPEATS)],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout
-        c_ns = float(out.split("ns_per_inference")[1].split()[0])
-
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = 1
+        samples = rng.uniform(space.low, space.high, size=(10_000, report["observation_dim"])).astype(
+            np.float32
+        )
+        c_ns, c_actions = _c_time(export_dir, report, samples, work)
         onnx_file = export_dir / "policy.onnx"
         if not onnx_file.is_file():
             onnx_file = Path(report["source"]["path"])
-        session = ort.InferenceSession(str(onnx_file), options, providers=["CPUExecutionProvider"])
-        name = session.get_inputs()[0].name
-        few = samples[:PY_SAMPLES]
-        ort_ns = _median_ns(lambda x: session.run(None, {name: x.reshape(1, -1)}), few)
-
-        torch_ns = None
-        if report["source"]["kind"] == "sb3":
-            policy = load_sb3(Path(report["source"]["path"])).policy
-            torch.set_num_threads(1)
-
-            def torch_step(x: np.ndarray) -> None:
-                with torch.no_grad():
-                    policy._predict(torch.as_tensor(x).reshape(1, -1), deterministic=True)
-
-            torch_ns = _median_ns(torch_step, few)
-
+        peers = _peers(onnx_file, report, samples, c_actions)
+        limit = _limit(onnx_file, work)
         size = build.object_size(work / "build" / "policy.o")
     return {
+        "cpu": cpu_name(),
         "export_dir": str(export_dir) if export_dir.parent != work else "(fresh export of the study's actor)",
         "ops": report["ops"],
         "c_ns_per_inference": round(c_ns, 1),
-        "onnxruntime_ns_per_inference": round(ort_ns, 1),
-        "torch_ns_per_inference": None if torch_ns is None else round(torch_ns, 1),
-        "speedup_vs_onnxruntime": round(ort_ns / c_ns, 2),
-        "speedup_vs_torch": None if torch_ns is None else round(torch_ns / c_ns, 2),
+        "c_ratio_to_limit": round(c_ns / limit["limit_ns"], 2),
+        **{k: v for k, v in limit.items()},
+        **peers,
+        "onnxruntime_ratio_to_limit": round(peers["onnxruntime_ns_per_inference"] / limit["limit_ns"], 2),
+        "onnxruntime_batched_ratio_to_fma_limit": round(
+            peers["onnxruntime_batched_ns_per_observation"] / limit["limit_fma_ns"], 2
+        ),  # a batch reads the weights once for all its observations: only the arithmetic bounds it
+        "speedup_vs_onnxruntime": round(peers["onnxruntime_ns_per_inference"] / c_ns, 2),
+        "speedup_vs_torch": None if peers["torch_ns_per_inference"] is None
+        else round(peers["torch_ns_per_inference"] / c_ns, 2),
         "target_speedup_vs_onnxruntime": TARGET_SPEEDUP_VS_ONNXRUNTIME,
         "target_c_ns": TARGET_C_NS,
         "object_text_bytes": size["text"],
         "object_data_bytes": size["data"],
         "object_bss_bytes": size["bss"],
         "compiler": build.compiler()["command"],
+    }  # fmt: skip
+
+
+def cpu_name() -> str:
+    """The CPU as ``/proc/cpuinfo`` names it (its ``model name``), else as Python's platform module does."""
+    import platform
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _c_time(
+    export_dir: Path, report: dict[str, Any], samples: np.ndarray, work: Path
+) -> tuple[float, np.ndarray]:
+    """The C's median ns per inference (the compiled harness) and its actions on the first samples."""
+    obs_file = work / "obs.bin"
+    samples.tofile(obs_file)
+    for target in ("bench", "obj", "lib"):
+        build.make(target, export_dir / "c", work / "build")
+    out = subprocess.run(
+        [str(work / "build" / "bench_policy"), str(obs_file), str(C_REPEATS)],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    c_policy = build.CPolicy(work / "build" / "libpolicy.so", "policy", report["observation_dim"],
+                             report["action_dim"])  # fmt: skip
+    actions, _ = c_policy.batch(samples[:AGREEMENT_SAMPLES])
+    return float(out.split("ns_per_inference")[1].split()[0]), actions
+
+
+def _peers(
+    onnx_file: Path, report: dict[str, Any], samples: np.ndarray, c_actions: np.ndarray
+) -> dict[str, Any]:
+    """onnxruntime (one observation per call, and :data:`BATCH` per call) and torch (SB3 sources): times
+    and their largest difference from the C's actions."""
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    session = ort.InferenceSession(str(onnx_file), options, providers=["CPUExecutionProvider"])
+    name = session.get_inputs()[0].name
+    few, check = samples[:PY_SAMPLES], samples[:AGREEMENT_SAMPLES]
+    ort_ns = _median_ns(lambda x: session.run(None, {name: x.reshape(1, -1)}), few)
+    batch = samples[:BATCH]
+    ort_batch_ns = _median_ns(lambda _: session.run(None, {name: batch}), np.zeros((PY_REPEATS, 1))) / BATCH
+    ort_actions = np.asarray(session.run(None, {name: check})[0], dtype=np.float32)
+    result: dict[str, Any] = {
+        "onnxruntime_ns_per_inference": round(ort_ns, 1),
+        "onnxruntime_batched_ns_per_observation": round(ort_batch_ns, 1),
+        "onnxruntime_max_abs_diff_from_c": float(np.max(np.abs(ort_actions - c_actions))),
+        "torch_ns_per_inference": None,
+        "torch_max_abs_diff_from_c": None,
     }
+    if report["source"]["kind"] == "sb3":
+        policy = load_sb3(Path(report["source"]["path"])).policy
+        torch.set_num_threads(1)
+
+        def torch_step(x: np.ndarray) -> Any:
+            with torch.no_grad():
+                return policy._predict(torch.as_tensor(x).reshape(1, -1), deterministic=True)
+
+        result["torch_ns_per_inference"] = round(_median_ns(torch_step, few), 1)
+        torch_actions = np.asarray(
+            policy.predict(check, deterministic=True)[0], dtype=np.float32
+        )  # env units
+        result["torch_max_abs_diff_from_c"] = float(np.max(np.abs(torch_actions - c_actions)))
+    for key in ("onnxruntime_max_abs_diff_from_c", "torch_max_abs_diff_from_c"):
+        if result[key] is not None and not result[key] <= AGREEMENT_TOLERANCE:
+            raise ExportError(
+                f"{key} = {result[key]:.3g} exceeds {AGREEMENT_TOLERANCE:g}: the timings would compare "
+                "different functions"
+            )
+    return result
+
+
+def _limit(onnx_file: Path, work: Path) -> dict[str, Any]:
+    """The model's multiply-adds and weight bytes (its 2-D float initializers: the matrices), and the
+    times the probe puts on them on this CPU."""
+    import onnx
+    from onnx import numpy_helper
+
+    matrices = [numpy_helper.to_array(t) for t in onnx.load(str(onnx_file)).graph.initializer]
+    macs = sum(int(m.size) for m in matrices if m.ndim == 2)
+    weight_bytes = sum(int(m.nbytes) for m in matrices if m.ndim == 2)
+    build.make("probe", work, work / "build")
+    out = subprocess.run([str(work / "build" / "limit_probe"), str(max(weight_bytes, 64))],
+                         capture_output=True, text=True, check=True).stdout  # fmt: skip
+    probe = dict(line.split() for line in out.splitlines())
+    fma_ns = macs / float(probe["fma_gmacs"])
+    stream_ns = float(probe["stream_ns_per_pass"])
+    return {
+        "model_multiply_adds": macs, "model_weight_bytes": weight_bytes,
+        "limit_fma_ns": round(fma_ns, 2), "limit_weight_read_ns": round(stream_ns, 2),
+        "limit_ns": round(max(fma_ns, stream_ns), 2),
+    }  # fmt: skip
