@@ -123,11 +123,18 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
 
     from embedrl.export import build
     from embedrl.export.errors import BuildError
-    from embedrl.hil import sandbox
+    from embedrl.hil import candb, sandbox
     from embedrl.hil.errors import HilError
     from embedrl.hil.run import REPO, SESSION_TIMEOUT_S, check, check_export, make_node, session_config
+    from embedrl.train.interface import INTERFACE_FILE
+    from embedrl.train.scenarios import TWO_ROBOTS
 
     options = check_export(options, check(options))
+    if candb.load_interface(options.export_dir / INTERFACE_FILE).env_id == TWO_ROBOTS.env_id:
+        raise HilError(
+            f"{options.export_dir}: hil bench measures one node on one robot; this export runs one node per "
+            "robot of the two-robot scenario (export a one-robot policy)"
+        )
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-bench-"))
     try:
         make_node(options, work, {})

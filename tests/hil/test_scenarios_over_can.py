@@ -147,3 +147,13 @@ def test_two_robot_runs_refuse_what_does_not_apply(
     err = capsys.readouterr().err
     assert said in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_hil_bench_refuses_the_two_robot_scenario_in_one_line(
+    two_robots_export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "b.json"
+    assert main(["hil", "bench", "--export-dir", str(two_robots_export), "--json", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "one node on one robot" in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
