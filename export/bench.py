@@ -97,7 +97,8 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
         if not onnx_file.is_file():
             onnx_file = Path(report["source"]["path"])
         peers = _peers(onnx_file, report, samples, c_actions)
-        limit = _limit(onnx_file, work)
+        _check_agreement(export_dir, samples[:AGREEMENT_SAMPLES], c_actions, peers)
+        limit = _limit(onnx_file, work, report.get("quantize"))
         size = build.object_size(work / "build" / "policy.o")
     return {
         "cpu": cpu_name(),
@@ -188,24 +189,46 @@ def _peers(
             policy.predict(check, deterministic=True)[0], dtype=np.float32
         )  # env units
         result["torch_max_abs_diff_from_c"] = float(np.max(np.abs(torch_actions - c_actions)))
-    for key in ("onnxruntime_max_abs_diff_from_c", "torch_max_abs_diff_from_c"):
-        if result[key] is not None and not result[key] <= AGREEMENT_TOLERANCE:
-            raise ExportError(
-                f"{key} = {result[key]:.3g} exceeds {AGREEMENT_TOLERANCE:g}: the timings would compare "
-                "different functions"
-            )
     return result
 
 
-def _limit(onnx_file: Path, work: Path) -> dict[str, Any]:
-    """The model's multiply-adds and weight bytes (its 2-D float initializers: the matrices), and the
-    times the probe puts on them on this CPU."""
+def _check_agreement(
+    export_dir: Path, check: np.ndarray, c_actions: np.ndarray, peers: dict[str, Any]
+) -> None:
+    """The C must compute its export's function (the reference for its precision), and in float32 so must
+    the peers; a quantised export's difference from the float peers is its precision's error, reported."""
+    from embedrl.export.reference import precision_of, reference_policy
+
+    precision = precision_of(export_dir)
+    peers["precision"] = precision
+    own = float(np.max(np.abs(reference_policy(export_dir)(check) - c_actions)))
+    checked = {"reference_max_abs_diff_from_c": own}
+    if precision == "float32":
+        checked.update(
+            {k: peers[k] for k in ("onnxruntime_max_abs_diff_from_c", "torch_max_abs_diff_from_c")}
+        )
+    for key, value in checked.items():
+        if value is not None and not value <= AGREEMENT_TOLERANCE:
+            raise ExportError(
+                f"{key} = {value:.3g} exceeds {AGREEMENT_TOLERANCE:g}: the timings would compare "
+                "different functions"
+            )
+    peers["reference_max_abs_diff_from_c"] = own
+
+
+WEIGHT_BYTES = {None: 4, "int8": 1, "q15": 2}
+"""Bytes per matrix weight in the generated C, per precision."""
+
+
+def _limit(onnx_file: Path, work: Path, quantize: str | None) -> dict[str, Any]:
+    """The model's multiply-adds and weight bytes (its 2-D initializers, the matrices, at the C's
+    precision), and the times the probe puts on them on this CPU."""
     import onnx
     from onnx import numpy_helper
 
     matrices = [numpy_helper.to_array(t) for t in onnx.load(str(onnx_file)).graph.initializer]
     macs = sum(int(m.size) for m in matrices if m.ndim == 2)
-    weight_bytes = sum(int(m.nbytes) for m in matrices if m.ndim == 2)
+    weight_bytes = macs * WEIGHT_BYTES[quantize]
     build.make("probe", work, work / "build")
     out = subprocess.run([str(work / "build" / "limit_probe"), str(max(weight_bytes, 64))],
                          capture_output=True, text=True, check=True).stdout  # fmt: skip
