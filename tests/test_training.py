@@ -432,9 +432,16 @@ def test_set_overrides_a_presets_hyperparameters_by_type() -> None:
         ("learning_rate", "expected NAME=VALUE"),
         ("batch_size=1.5", "--set batch_size=1.5: invalid literal"),
         ("learning_rate=nan", "not a finite number"),
+        ("learning_rate=0", r"--set learning_rate=0.0: must be > 0"),
+        ("tau=2", r"--set tau=2.0: must be in \(0, 1\]"),
+        ("gamma=1.5", r"must be in \(0, 1\]"),
+        ("noise_sigma=-0.1", "must be >= 0"),
+        ("batch_size=0", "must be at least 1"),
+        ("net_arch=64,0", "every size must be at least 1"),
     ):
         with pytest.raises(ValueError, match=message):
             with_overrides(base, [bad])
+    assert with_overrides(base, ["gamma=1", "noise_sigma=0"]).gamma == 1.0  # the closed ends are allowed
 
 
 def test_set_is_recorded_in_the_runs_config_and_bad_names_exit_2(

@@ -273,10 +273,36 @@ def _preset(algo: str, name: str) -> AlgoConfig:
     return tuned[algo]
 
 
+RANGES: dict[str, tuple[float, float, str]] = {
+    "learning_rate": (0.0, math.inf, "> 0"),
+    "actor_learning_rate": (0.0, math.inf, "> 0"),
+    "gamma": (0.0, 1.0, "in (0, 1]"),
+    "tau": (0.0, 1.0, "in (0, 1]"),
+    "gae_lambda": (0.0, 1.0, "in (0, 1]"),
+    "clip_range": (0.0, math.inf, "> 0"),
+    "target_success": (0.0, 1.0, "in (0, 1]"),
+}
+"""Fields whose values must lie in ``(low, high]``, with the rule as the error states it."""
+NON_NEGATIVE = ("noise_sigma", "noise_theta", "target_policy_noise", "demonstration_noise", "ent_coef")
+"""Fields that may be zero but not negative."""
+AT_LEAST_ONE = (
+    "batch_size",
+    "buffer_size",
+    "n_steps",
+    "n_epochs",
+    "train_freq",
+    "policy_delay",
+    "eval_episodes",
+)
+"""Counts that must be at least one."""
+
+
 def with_overrides(config: AlgoConfig, assignments: Sequence[str]) -> AlgoConfig:
     """``config`` with ``NAME=VALUE`` assignments applied (``--set``), each parsed as its field's type.
 
-    Numbers must be finite; tuples are comma-separated (``net_arch=64,64``); booleans are true/false.
+    Numbers must be finite and inside their field's range (:data:`RANGES`, :data:`NON_NEGATIVE`,
+    :data:`AT_LEAST_ONE`); tuples are comma-separated (``net_arch=64,64``, positive); booleans are
+    true/false.
     """
     names = {f.name for f in fields(config)}
     changes: dict[str, Any] = {}
@@ -288,7 +314,21 @@ def with_overrides(config: AlgoConfig, assignments: Sequence[str]) -> AlgoConfig
                 f"--set {text!r}: expected NAME=VALUE with NAME one of {', '.join(sorted(names))}"
             )
         changes[key] = _parse(key, raw.strip(), getattr(config, key))
+        _check_range(key, changes[key])
     return replace(config, **changes)
+
+
+def _check_range(key: str, value: Any) -> None:
+    if key in RANGES:
+        low, high, rule = RANGES[key]
+        if not low < value <= high:
+            raise ValueError(f"--set {key}={value}: must be {rule}")
+    elif key in NON_NEGATIVE and value < 0:
+        raise ValueError(f"--set {key}={value}: must be >= 0")
+    elif key in AT_LEAST_ONE and value < 1:
+        raise ValueError(f"--set {key}={value}: must be at least 1")
+    elif isinstance(value, tuple) and any(v < 1 for v in value):
+        raise ValueError(f"--set {key}={','.join(map(str, value))}: every size must be at least 1")
 
 
 def _parse(key: str, raw: str, current: Any) -> Any:
