@@ -68,3 +68,26 @@ def test_a_tiny_search_on_ray_tune_shares_its_study_with_the_local_search(
     assert len((out / "trials.md").read_text().splitlines()) == 2 + 3
     assert (out / "trials" / "trial-2").is_dir() and not (out / "trials" / "trial-0").exists()
     assert "wrote my study/best_preset.json" in capsys.readouterr().out
+
+
+def test_no_cluster_to_join_is_one_line_and_leaves_no_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    out = tmp_path / "study"
+    argv = [
+        "tune",
+        "--algo",
+        "td3",
+        "--trials",
+        "1",
+        "--max-steps",
+        "300",
+        "--out",
+        str(out),
+        "--ray",
+        "auto",
+    ]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Ray instance" in err and not out.exists()

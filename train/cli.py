@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -139,10 +140,15 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
         optimize = functools.partial(optimize_on_ray, address=args.ray, workers=args.workers)
     search = Search(args.algo, args.scenario, args.max_steps, args.out, args.seed, args.preset)
+    fresh = not args.out.exists()
     try:
         best = run_tune(search, args.trials, optimize)
-    except RuntimeError as exc:  # no trial finished its budget
-        raise UsageError(str(exc)) from None
+    except BaseException as exc:
+        if fresh and not any((args.out / "trials").glob("*")):  # nothing trained: leave nothing behind
+            shutil.rmtree(args.out, ignore_errors=True)
+        if isinstance(exc, RuntimeError):  # no trial finished its budget
+            raise UsageError(str(exc)) from None
+        raise
     print(f"best: trial {best['trial']}, validation success {100 * best['validation_success']:.0f}%, "
           f"{' '.join(best['overrides'])}")  # fmt: skip
     preset_file = args.out / "best_preset.json"
