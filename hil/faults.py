@@ -33,7 +33,7 @@ from embedrl.hil import candb, e2e
 if TYPE_CHECKING:  # the command lists the injectors without loading the session's machinery
     import can
 
-    from embedrl.hil.codec import Codec
+    from embedrl.hil.codec import Codec, Status
     from embedrl.hil.link import Link
     from embedrl.hil.nodes import Node
     from embedrl.train.interface import Interface
@@ -55,7 +55,12 @@ takes frames."""
 FLOOD_ID = 0x050
 """A foreign ID of higher priority than every one of the policy's."""
 DELAY_FACTOR = 1.5
-"""A delayed observation is held this many watchdog timeouts."""
+"""A delayed observation is held at least this many watchdog timeouts."""
+DELAY_MAX_FACTOR = 10.0
+"""... and on, at most this many, until the node reports its timeout: the watchdog runs on the node's clock,
+and the firmware's (QEMU's instruction-counted time) can fall behind the host's on a loaded machine."""
+DELAY_POLL_FACTOR = 0.1
+"""While held on, the bus is read in slices of this many watchdog timeouts."""
 CAN_ERR_CRTL, CAN_ERR_BUSOFF, CAN_ERR_RESTARTED = 0x04, 0x40, 0x100
 CAN_ERR_CRTL_RX_PASSIVE = 0x10
 """Error-frame classes and the controller byte's passive flag (linux/can/error.h)."""
@@ -182,15 +187,27 @@ class Reorder(Injector):
 
 class Delay(Injector):
     name = "delay"
-    description = f"the step's frames held for {DELAY_FACTOR} watchdog timeouts"
+    description = f"the step's frames held for {DELAY_FACTOR} watchdog timeouts (on the node's clock)"
     expected = "SAFE at the timeout with the safe action; the late step answered with the safe action"
     detects = "timeouts"
 
     def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
-        held_s = DELAY_FACTOR * ctx.node_timeout_ms / 1000
-        ctx.link.drain(held_s)
+        timeout_s = ctx.node_timeout_ms / 1000
+        start = time.monotonic()
+        before = ctx.link.stats.last_status
+        ctx.link.drain(DELAY_FACTOR * timeout_s)
+        give_up = start + DELAY_MAX_FACTOR * timeout_s
+        while not _timed_out_since(before, ctx.link.stats.last_status) and time.monotonic() < give_up:
+            ctx.link.drain(DELAY_POLL_FACTOR * timeout_s)
         ctx.link.send(frames)
-        return {"held_ms": held_s * 1000}
+        return {"held_ms": round((time.monotonic() - start) * 1000, 1)}
+
+
+def _timed_out_since(before: Status | None, now: Status | None) -> bool:
+    """Whether the node's status reports a watchdog timeout after ``before`` (None: no status yet)."""
+    if now is None:
+        return False
+    return now.timeouts > (before.timeouts if before is not None else 0)
 
 
 class Corrupt(Injector):

@@ -10,6 +10,8 @@ import json
 import shutil
 import signal
 import subprocess
+import time
+import types
 from pathlib import Path
 
 import can
@@ -144,6 +146,25 @@ def test_the_summary_prints_the_nodes_own_counters(
         f"{status['crc_errors']} / {status['sequence_errors']} / {status['timeouts']}"
     )
     assert rows["steps the node left unanswered"].strip() == str(report["rx_timeouts"])
+
+
+def test_a_delay_is_held_until_a_node_with_a_slow_clock_times_out(
+    export_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The watchdog runs on the node's clock, which can run behind the host's (the firmware's instruction-
+    counted time on a loaded machine): the delayed step is held until the node reports its timeout."""
+    real = time.monotonic
+    origin = real()
+    slow = types.SimpleNamespace(
+        monotonic=lambda: origin + (real() - origin) * 0.4, perf_counter_ns=time.perf_counter_ns
+    )
+    monkeypatch.setattr("embedrl.hil.nodes.time", slow)  # the node's clock at 0.4x the host's
+    out = tmp_path / "x.json"
+    argv = ["hil", "run", "--export-dir", str(export_dir), "--json", str(out), "--node", "python"]
+    assert main([*argv, "--inject", "delay", "--allow-faults", "--timeout-ms", "200"]) == 0
+    record = json.loads(out.read_text())["injections"][0]
+    assert record["detected"] and record["answer_is_safe_action"]
+    assert 200 / 0.4 <= record["held_ms"] < 10 * 200  # beyond 1.5 timeouts on the host's clock (300 ms)
 
 
 def test_the_python_node_counts_a_late_frame_as_a_timeout_as_the_c_node_does(export_dir: Path) -> None:
