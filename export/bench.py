@@ -92,7 +92,7 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
         samples = rng.uniform(space.low, space.high, size=(10_000, report["observation_dim"])).astype(
             np.float32
         )
-        c_ns, c_actions = _c_time(export_dir, report, samples, work)
+        c_ns, c_batched_ns, c_actions = _c_time(export_dir, report, samples, work)
         onnx_file = export_dir / "policy.onnx"
         if not onnx_file.is_file():
             onnx_file = Path(report["source"]["path"])
@@ -106,6 +106,10 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
         "ops": report["ops"],
         "c_ns_per_inference": round(c_ns, 1),
         "c_ratio_to_limit": round(c_ns / limit["limit_ns"], 2),
+        "c_batched_ns_per_observation": round(c_batched_ns, 1),
+        "c_batched_ratio_to_onnxruntime_batched": round(
+            c_batched_ns / peers["onnxruntime_batched_ns_per_observation"], 2
+        ),
         **{k: v for k, v in limit.items()},
         **peers,
         "onnxruntime_ratio_to_limit": round(peers["onnxruntime_ns_per_inference"] / limit["limit_ns"], 2),
@@ -139,8 +143,9 @@ def cpu_name() -> str:
 
 def _c_time(
     export_dir: Path, report: dict[str, Any], samples: np.ndarray, work: Path
-) -> tuple[float, np.ndarray]:
-    """The C's median ns per inference (the compiled harness) and its actions on the first samples."""
+) -> tuple[float, float, np.ndarray]:
+    """The C's median ns per inference and per observation through ``policy_step_batch`` (the compiled
+    harness), and its actions on the first samples."""
     obs_file = work / "obs.bin"
     samples.tofile(obs_file)
     for target in ("bench", "obj", "lib"):
@@ -151,8 +156,12 @@ def _c_time(
     ).stdout  # fmt: skip
     c_policy = build.CPolicy(work / "build" / "libpolicy.so", "policy", report["observation_dim"],
                              report["action_dim"])  # fmt: skip
-    actions, _ = c_policy.batch(samples[:AGREEMENT_SAMPLES])
-    return float(out.split("ns_per_inference")[1].split()[0]), actions
+    actions, _ = c_policy.rows(samples[:AGREEMENT_SAMPLES])
+    batched, _ = c_policy.batch(samples[:AGREEMENT_SAMPLES])
+    if batched.tobytes() != actions.tobytes():
+        raise ExportError("policy_step_batch and policy_step disagree: the generated C is broken")
+    single = float(out.split("ns_per_inference")[1].split()[0])
+    return single, float(out.split("ns_per_observation_batched")[1].split()[0]), actions
 
 
 def _peers(

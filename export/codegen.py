@@ -22,6 +22,7 @@ from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
 from embedrl.export.ops.base import c_float
 from embedrl.export.ops.deterministic import helper_source
+from embedrl.export.ops.linear import per_row
 from embedrl.train.interface import Interface
 
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]{0,30}")
@@ -41,6 +42,14 @@ RUNTIME_FILES = "node e2e platform policy_io policy_dbc main startup"
 """The C runtime's own files, compiled beside the policy."""
 RESERVED_NAMES = frozenset(f"{C_KEYWORDS} {STANDARD_HEADERS} {RUNTIME_FILES}".split())
 """Names a generated ``{name}.h``/``{name}_step`` would collide with."""
+
+
+BATCH_ROWS = 8
+"""Observations ``{name}_step_batch`` runs through the network together."""
+TARGET_CLONES = ("default", "avx2")
+"""Instruction sets the x86-64 step is compiled for (``target_clones``): the baseline and AVX2, neither with
+fused multiply-add in gcc (AVX-512 always brings it, and gcc 12's vectoriser then fuses lanes that alternate
+add and subtract into ``vfmaddsub`` even under ``-ffp-contract=off``, which changes the bits)."""
 
 
 def check_name(name: str) -> None:
@@ -130,6 +139,8 @@ class _Context:
     def __init__(self, graph: Graph, prefix: str, plan: _Plan, quantize: str | None = None) -> None:
         self.graph, self.prefix, self.plan = graph, prefix, plan
         self.quantize = quantize
+        self.rows: str | None = None
+        """Set while the block of rows is emitted (see :attr:`export.ops.EmitContext.rows`)."""
         self.helpers: dict[str, str] = {}
         """Deterministic math helpers emitted so far: name -> C definition."""
         self.declarations: list[str] = []
@@ -141,6 +152,8 @@ class _Context:
             array = self.graph.constants[value]
             return self.const(value, array.reshape(-1), "constant")
         where = self.plan.storage[value]
+        if self.rows is not None:
+            return f"{self.prefix}_b{where}[r]"  # the block's copy of the input, or its buffer
         return where if not where.isdigit() else f"{self.prefix}_buf{where}"
 
     def const(self, key: str, array: np.ndarray, comment: str) -> str:
@@ -290,6 +303,7 @@ def generate(
         plan = _with_section_output(graph, plan_buffers(graph, "obs", section.nodes), section)
     ctx = _Context(graph, name, plan, quantize)
     body, int16_decls = _body(graph, ctx, section)
+    block = _block(graph, ctx) if section is None else None
     ram = 4 * sum(plan.buffer_sizes) + (2 * sum(_int16_buffer_sizes(section)) if section else 0)
     banner = "\n".join(
         [
@@ -305,10 +319,20 @@ def generate(
         ]
     )
     buffers = [f"static float {name}_buf{i}[{size}];" for i, size in enumerate(plan.buffer_sizes)]
+    source = _source(banner, name, ctx, body, [*buffers, *int16_decls], ram)
     return {
         f"{name}.h": _header(banner, graph, name, safe, interface),
-        f"{name}.c": _source(banner, name, ctx, body, [*buffers, *int16_decls], ram),
+        f"{name}.c": source + (_batch_source(name, ctx, block) if block is not None else _row_batch(name)),
     }
+
+
+def _block(graph: Graph, ctx: _Context) -> list[str]:
+    """The body once more for a block of up to :data:`BATCH_ROWS` observations (float32 and int8)."""
+    ctx.rows = "rows"
+    try:
+        return _body(graph, ctx, None)[0]
+    finally:
+        ctx.rows = None
 
 
 def _safe_action(graph: Graph, safe_action: Sequence[float] | None) -> list[float]:
@@ -348,7 +372,8 @@ def _body(graph: Graph, ctx: _Context, section: FixedSection | None) -> tuple[li
         body.append(
             f"/* {node.op} '{node.name}' [{shape_in}] -> [{shape_out}]{' ' + attrs if attrs else ''}{note} */"
         )
-        body += emitter.emit(node, ctx, graph.size(node.outputs[0]))
+        lines = emitter.emit(node, ctx, graph.size(node.outputs[0]))
+        body += lines if ctx.rows is None or emitter.batched or not lines else per_row(lines, ctx.rows)
     return body, int16_decls
 
 
@@ -374,8 +399,120 @@ def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: 
  * safe action ({safe_text}) and returns an error code: no NaN ever leaves it. */
 int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
 
+/* Run the policy on n observations (obs: n rows of {up}_OBS_DIM, act: n rows of {up}_ACT_DIM, row-major),
+ * each row's actions bit for bit those of {name}_step, which also gives each row's code in status[] (if
+ * not NULL). Returns the number of rows answered with the safe action. For host-side evaluation: it
+ * reads each weight once per block of {BATCH_ROWS} rows, from its own buffers (not reentrant either). */
+int {name}_step_batch(int n, const float *obs, float *act, int *status);
+
 #endif /* {up}_H */
 """
+
+
+def _batch_source(name: str, ctx: _Context, block: list[str]) -> str:
+    """The block of rows and ``{name}_step_batch`` over blocks, the finite checks per row after it."""
+    up = name.upper()
+    sizes = [ctx.graph.size(ctx.graph.input), *ctx.plan.buffer_sizes]
+    names = ["obs", *(str(i) for i in range(len(ctx.plan.buffer_sizes)))]
+    buffers = "\n".join(
+        f"static float {name}_b{b}[{BATCH_ROWS}][{size}];" for b, size in zip(names, sizes, strict=True)
+    )
+    ctx.rows = "rows"
+    out = ctx.ref(ctx.graph.output)  # row r of the block's output (its input, if the graph computes nothing)
+    ctx.rows = None
+    indented = "\n".join(("    " + line) if line else "" for line in block)
+    return f"""
+/* A block of rows ({4 * BATCH_ROWS * sum(sizes)} bytes, {name}_step_batch only): the observations, then the
+ * step's buffers, one row each. */
+{buffers}
+
+{up}_TARGETS
+static void {name}_block(int rows)
+{{
+    (void)rows; /* a graph of shape-only ops computes nothing */
+{indented}
+}}
+
+/* Each row's code as {name}_step returns it, and its actions or the safe action. */
+static int {name}_finish(const float obs[{up}_OBS_DIM], const float out[{up}_ACT_DIM],
+                         float act[{up}_ACT_DIM])
+{{
+    for (int i = 0; i < {up}_OBS_DIM; ++i) {{
+        if (!{name}_finite(obs[i])) {{
+            return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
+        }}
+    }}
+    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+        if (!{name}_finite(out[i])) {{
+            return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
+        }}
+    }}
+    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+        act[i] = out[i];
+    }}
+    return {up}_OK;
+}}
+
+int {name}_step_batch(int n, const float *obs, float *act, int *status)
+{{
+    int refused = 0;
+    for (int start = 0; start < n; start += {BATCH_ROWS}) {{
+        const int rows = n - start < {BATCH_ROWS} ? n - start : {BATCH_ROWS};
+        for (int r = 0; r < rows; ++r) {{
+            for (int i = 0; i < {up}_OBS_DIM; ++i) {{
+                {name}_bobs[r][i] = obs[(start + r) * {up}_OBS_DIM + i];
+            }}
+        }}
+        {name}_block(rows);
+        for (int r = 0; r < rows; ++r) {{
+            const int row = start + r;
+            const int code = {name}_finish(&obs[row * {up}_OBS_DIM], {out}, &act[row * {up}_ACT_DIM]);
+            if (status != NULL) {{
+                status[row] = code;
+            }}
+            refused += code != {up}_OK ? 1 : 0;
+        }}
+    }}
+    return refused;
+}}
+"""
+
+
+def _row_batch(name: str) -> str:
+    """``{name}_step_batch`` as one step per row (q15: its int16 section works on one row)."""
+    up = name.upper()
+    return f"""
+int {name}_step_batch(int n, const float *obs, float *act, int *status)
+{{
+    int refused = 0;
+    for (int row = 0; row < n; ++row) {{
+        const int code = {name}_step(&obs[row * {up}_OBS_DIM], &act[row * {up}_ACT_DIM]);
+        if (status != NULL) {{
+            status[row] = code;
+        }}
+        refused += code != {up}_OK ? 1 : 0;
+    }}
+    return refused;
+}}
+"""
+
+
+def _targets(up: str) -> str:
+    """The step's function attribute: on x86-64 Linux, compiled by gcc, one clone per instruction set in
+    :data:`TARGET_CLONES`, the CPU's picked when the program loads (an ifunc). No clone has a fused
+    multiply-add instruction, so each rounds every product and sum of the source's fixed order and all
+    give the same bits. The clones weigh vectorising by gcc's dynamic cost model: -O2's default takes no
+    loop that needs a remainder after its whole vectors, which leaves a pass over 100 outputs to SSE."""
+    clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
+    return f"""/* x86-64 Linux, gcc: compiled for each of {", ".join(TARGET_CLONES)}, the CPU's picked at load
+ * time; none has fused multiply-add, so every clone rounds the same operations in the same order and all
+ * give the same bits. -D{up}_ONE_TARGET: the compiler's target only. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \\
+    !defined({up}_ONE_TARGET)
+#define {up}_TARGETS __attribute__((target_clones({clones}), optimize("vect-cost-model=dynamic")))
+#else
+#define {up}_TARGETS
+#endif"""
 
 
 def _source(banner: str, name: str, ctx: _Context, body: list[str], buffers: list[str], ram: int) -> str:
@@ -414,6 +551,8 @@ static int {name}_safe(float act[{up}_ACT_DIM], int code)
     return code;
 }}
 
+{_targets(up)}
+{up}_TARGETS
 int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
 {{
     for (int i = 0; i < {up}_OBS_DIM; ++i) {{

@@ -43,6 +43,10 @@ class EmitContext(Protocol):
 
     quantize: str | None
     """None for float32 code, "int8" for int8 weights (see export.quantize)."""
+    rows: str | None
+    """None for one observation; for a block of observations, the C expression of its row count: then
+    :meth:`ref` of a runtime value names row ``r`` of its block buffer, and an emitter that is not
+    :attr:`Emitter.batched` has its statements run once per row."""
 
     def helper(self, name: str) -> str:
         """Emit the named deterministic math helper (``exp_det``, ``tanh_det``, ``sigmoid_det``) once."""
@@ -99,6 +103,9 @@ class Emitter:
     """True if the output is the input's data unchanged (no code, same storage)."""
     in_place = False
     """True if the output may overwrite its first runtime input's storage (element-wise)."""
+    batched: ClassVar[bool] = False
+    """True if :meth:`emit` writes its own loop over a block's rows (``ctx.rows``): a matrix product reads
+    each weight once per block; otherwise the generator runs the op's statements once per row."""
 
     def check(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
         unknown = sorted(set(node.attrs) - set(self.attrs))

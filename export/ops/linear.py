@@ -50,29 +50,44 @@ K_BLOCK = 4
 """Inputs folded into one pass over the outputs: fewer loads and stores of the accumulator row."""
 
 
-def _matmul_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str = "") -> list[str]:
+def per_row(lines: list[str], rows: str | None) -> list[str]:
+    """``lines`` once per row of a block (``rows`` its C row count), or as they are for one observation."""
+    if rows is None:
+        return lines
+    return [f"for (int r = 0; r < {rows}; ++r) {{", *(f"    {line}" for line in lines), "}"]
+
+
+def _matmul_lines(
+    x: str, y: str, w: str, k: int, n: int, init: str, cast: str = "", rows: str | None = None
+) -> list[str]:
     # Per output the sum runs in a fixed order (init, then k = 0, 1, ...): the blocked pass
     # y[n] = y[n] + x0*w0[n] + x1*w1[n] + ... evaluates left to right, and vectorising over n
-    # never reassociates it, so the result does not depend on the optimisation level.
-    lines = [f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"]
+    # never reassociates it, so the result does not depend on the optimisation level or vector width.
+    # In a block of rows the row loop runs inside the pass over k: each row's sums are the same, and the
+    # K_BLOCK weight rows of a pass are read from memory once for the whole block.
+    lines = per_row([f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"], rows)
     full = k - k % K_BLOCK
     if full:
-        rows = ["k", *(f"k + {j}" for j in range(1, K_BLOCK))]  # no "k + 0": MISRA 2.2 (no effect)
-        terms = " + ".join(f"x{j} * {cast}{w}[{row}][n]" for j, row in enumerate(rows))
+        ks = ["k", *(f"k + {j}" for j in range(1, K_BLOCK))]  # no "k + 0": MISRA 2.2 (no effect)
+        terms = " + ".join(f"x{j} * {cast}{w}[{kj}][n]" for j, kj in enumerate(ks))
+        block = [
+            *[f"const float x{j} = {x}[{kj}];" for j, kj in enumerate(ks)],
+            f"for (int n = 0; n < {n}; ++n) {{",
+            f"    {y}[n] = {y}[n] + {terms};",
+            "}",
+        ]
         lines += [
             f"for (int k = 0; k < {full}; k += {K_BLOCK}) {{",
-            *[f"    const float x{j} = {x}[{row}];" for j, row in enumerate(rows)],
-            f"    for (int n = 0; n < {n}; ++n) {{",
-            f"        {y}[n] = {y}[n] + {terms};",
-            "    }",
+            *(f"    {line}" for line in per_row(block, rows)),
             "}",
         ]
     for k0 in range(full, k):
-        lines += [
+        step = [
             f"for (int n = 0; n < {n}; ++n) {{",
             f"    {y}[n] = {y}[n] + {x}[{k0}] * {cast}{w}[{k0}][n];",
             "}",
         ]
+        lines += per_row(step, rows)
     return lines
 
 
@@ -84,13 +99,18 @@ def _quantized_lines(
     k = w.shape[0]
     qsym = ctx.const(node.inputs[1] + "#int8", q, f"{node.name} weights, int8, input-major [{k}][{n}]")
     ssym = ctx.const(node.inputs[1] + "#scale", scale, f"{node.name} per-output scales [{n}]")
-    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)")
+    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)", rows=ctx.rows)
     scaled = f"{ssym}[n] * {y}[n]"
     return [
         *lines,
-        f"for (int n = 0; n < {n}; ++n) {{",
-        f"    {y}[n] = {bias + ' + ' if bias else ''}{scaled};",
-        "}",
+        *per_row(
+            [
+                f"for (int n = 0; n < {n}; ++n) {{",
+                f"    {y}[n] = {bias + ' + ' if bias else ''}{scaled};",
+                "}",
+            ],
+            ctx.rows,
+        ),
     ]
 
 
@@ -167,6 +187,7 @@ class Linear(Emitter):
     in q15 it runs as a :class:`Q15Layer`."""
 
     linear = True
+    batched = True
 
     def bounds(self, node: Node, x: Interval, constants: Mapping[str, np.ndarray], size: int) -> Interval:
         a = self.affine(node, constants)
@@ -247,12 +268,15 @@ class Gemm(Linear):
         if ctx.quantize:
             return _quantized_lines(node, ctx, w, bias, x, y, n)
         if alpha == 1.0 and beta == 1.0:
-            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f")
-        lines = _matmul_lines(x, y, wsym, k, n, "0.0f")
+            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f", rows=ctx.rows)
+        lines = _matmul_lines(x, y, wsym, k, n, "0.0f", rows=ctx.rows)
         scaled = f"{ctx.literal(alpha)} * {y}[n]"
         if bias is not None:
             scaled += f" + {ctx.literal(beta)} * {bias}"
-        return [*lines, f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {scaled};", "}"]
+        return [
+            *lines,
+            *per_row([f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {scaled};", "}"], ctx.rows),
+        ]
 
     def reference(
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
@@ -305,7 +329,7 @@ class MatMul(Linear):
         if ctx.quantize:
             return _quantized_lines(node, ctx, w, None, x, y, n)
         wsym = ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights [{w.shape[0]}][{n}]")
-        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f")
+        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f", rows=ctx.rows)
 
     def reference(
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str

@@ -6,7 +6,8 @@
  * OBS_FILE holds N observations as raw little-endian float32, POLICY_OBS_DIM per row. The harness
  * runs policy_step once per observation, REPEATS times over the file, and prints the median over
  * the repeats of the nanoseconds per single-observation inference, and a checksum of the actions
- * (so the calls cannot be optimised away).
+ * (so the calls cannot be optimised away); then the same for policy_step_batch on the whole file
+ * (ns_per_observation_batched).
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -18,6 +19,7 @@
 #define MAX_REPEATS 101
 
 static float observations[MAX_OBS][POLICY_OBS_DIM];
+static float actions[MAX_OBS][POLICY_ACT_DIM];
 
 static double now_ns(void)
 {
@@ -63,5 +65,14 @@ int main(int argc, char **argv)
     }
     qsort(per_call, (size_t)repeats, sizeof(double), compare);
     printf("ns_per_inference %.1f\nchecksum %.6f\nobservations %zu\n", per_call[repeats / 2], checksum, n);
+    double batch_checksum = 0.0;
+    for (int r = 0; r < repeats; ++r) {
+        double start = now_ns();
+        policy_step_batch((int)n, &observations[0][0], &actions[0][0], NULL);
+        per_call[r] = (now_ns() - start) / (double)n;
+        batch_checksum += (double)actions[n - 1][0];
+    }
+    qsort(per_call, (size_t)repeats, sizeof(double), compare);
+    printf("ns_per_observation_batched %.1f\nbatch_checksum %.6f\n", per_call[repeats / 2], batch_checksum);
     return 0;
 }

@@ -37,6 +37,10 @@ def test_bench_export_reports_ratios_from_one_run(tmp_path: Path) -> None:
     assert data["model_multiply_adds"] == 12 and data["model_weight_bytes"] == 48 and data["cpu"]
     assert data["limit_ns"] == max(data["limit_fma_ns"], data["limit_weight_read_ns"]) > 0
     assert data["c_ratio_to_limit"] == pytest.approx(data["c_ns_per_inference"] / data["limit_ns"], rel=0.1)
+    assert data["c_batched_ns_per_observation"] > 0
+    assert data["c_batched_ratio_to_onnxruntime_batched"] == pytest.approx(
+        data["c_batched_ns_per_observation"] / data["onnxruntime_batched_ns_per_observation"], rel=0.1
+    )
     assert (
         data["onnxruntime_max_abs_diff_from_c"] <= 1e-5 and data["onnxruntime_batched_ns_per_observation"] > 0
     )

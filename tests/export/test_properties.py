@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import platform
+import re
+import subprocess
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -50,11 +54,51 @@ def test_float_literals_round_trip_exactly(bits: int) -> None:
     assert np.float32(float(text[:-1])).tobytes() == value.tobytes()
 
 
-def test_results_do_not_depend_on_the_optimisation_level(tmp_path: Path) -> None:
-    # The study's 6-100-100-2 shape: the blocked, vectorised loops keep every output's summation order.
+def _cpu_flags() -> set[str]:
+    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    line = next((row for row in text.splitlines() if row.startswith("flags")), "")
+    return set(line.split(":", 1)[-1].split())
+
+
+def test_results_do_not_depend_on_the_optimisation_level_or_the_instruction_set(tmp_path: Path) -> None:
+    """The study's 6-100-100-2 shape and odd widths: the blocked, vectorised loops keep every output's
+    summation order at -O0 and -O3, in each target clone the default build picks from (compiled alone
+    here, on the instruction sets this CPU runs) and in the batched entry point."""
     rng = np.random.default_rng(5)
-    model = mlp_model([6, 100, 100, 2], seed=5)
-    x = rng.uniform(-2, 2, size=(2000, 6)).astype(np.float32)
-    o0, _ = compile_model(model, tmp_path, opt="-O0").batch(x)
-    o3, _ = compile_model(model, tmp_path, opt="-O3").batch(x)
-    assert o0.tobytes() == o3.tobytes()
+    builds = ["-O0", "-O2", "-O3", "-O2 -DPOLICY_ONE_TARGET"]
+    builds += ["-O2 -DPOLICY_ONE_TARGET -mavx2"] if "avx2" in _cpu_flags() else []
+    for widths in ([6, 100, 100, 2], [5, 37, 17, 3]):
+        model = mlp_model(widths, seed=5)
+        x = rng.uniform(-2, 2, size=(2000, widths[0])).astype(np.float32)
+        reference, _ = compile_model(model, tmp_path, opt="-O0").rows(x)
+        for opt in builds:
+            policy = compile_model(model, tmp_path, opt=opt)
+            assert policy.rows(x)[0].tobytes() == reference.tobytes(), opt
+            assert policy.batch(x)[0].tobytes() == reference.tobytes(), f"{opt}, batched"
+
+
+@pytest.mark.skipif(platform.machine() != "x86_64", reason="the target clones are x86-64's")
+def test_the_default_build_has_an_avx2_clone_and_no_fused_multiply_add(tmp_path: Path) -> None:
+    """The clones' bits agree because none can fuse a multiply and an add (AVX-512 would bring FMA)."""
+    compile_model(mlp_model([6, 100, 100, 2], seed=1), tmp_path)
+    library = next(tmp_path.glob("m*/build/libpolicy.so"))
+    listing = subprocess.run(
+        ["objdump", "-d", str(library)], capture_output=True, text=True, check=True
+    ).stdout
+    assert "<policy_step.avx2>:" in listing and "<policy_block.avx2>:" in listing
+    assert re.search(r"\bvfn?m(add|sub)", listing) is None
+
+
+def test_the_batched_entry_point_answers_each_row_as_the_step_does(tmp_path: Path) -> None:
+    """Blocks of 8 rows and a partial last one; a row with NaN gets the safe action and its code, the rows
+    around it are untouched; no rows, no work."""
+    model = mlp_model([6, 100, 100, 2], seed=3)
+    policy = compile_model(model, tmp_path)
+    x = np.random.default_rng(3).uniform(-2, 2, size=(13, 6)).astype(np.float32)
+    x[9, 2] = np.nan
+    acts, codes = policy.batch(x)
+    row_acts, row_codes = policy.rows(x)
+    assert acts.tobytes() == row_acts.tobytes() and codes.tolist() == row_codes.tolist()
+    assert codes.tolist() == [0] * 9 + [1] + [0] * 3
+    np.testing.assert_array_equal(acts[9], np.zeros(2, np.float32))
+    assert policy.batch(x[:0])[0].shape == (0, 2)

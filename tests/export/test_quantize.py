@@ -49,7 +49,10 @@ def test_generated_int8_c_equals_the_python_model_bit_for_bit(spec: tuple[list[i
     model = mlp_model(widths, acts, seed)
     x = np.random.default_rng(seed).normal(scale=3.0, size=(200, widths[0])).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
-        got, codes = _compile_int8(model, Path(tmp)).batch(x)
+        policy = _compile_int8(model, Path(tmp))
+        got, codes = policy.batch(x)
+        assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
+        assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
     assert not codes.any()
     assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x)) == 0
 
@@ -128,6 +131,7 @@ def test_generated_q15_c_equals_the_integer_model_bit_for_bit(spec: tuple[list[i
     with tempfile.TemporaryDirectory() as tmp:
         policy, section = _compile_q15(model, calibration, Path(tmp))
         got, codes = policy.batch(x)
+        assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
     assert not codes.any()
     assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x, section)) == 0
 

@@ -78,6 +78,16 @@ static int policy_safe(float act[POLICY_ACT_DIM], int code)
     return code;
 }
 
+/* x86-64 Linux, gcc: compiled for each of default, avx2, the CPU's picked at load
+ * time; none has fused multiply-add, so every clone rounds the same operations in the same order and all
+ * give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \
+    !defined(POLICY_ONE_TARGET)
+#define POLICY_TARGETS __attribute__((target_clones("default", "avx2"), optimize("vect-cost-model=dynamic")))
+#else
+#define POLICY_TARGETS
+#endif
+POLICY_TARGETS
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
     for (int i = 0; i < POLICY_OBS_DIM; ++i) {
@@ -143,4 +153,130 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         act[i] = policy_buf0[i];
     }
     return POLICY_OK;
+}
+
+/* A block of rows (320 bytes, policy_step_batch only): the observations, then the
+ * step's buffers, one row each. */
+static float policy_bobs[8][3];
+static float policy_b0[8][3];
+static float policy_b1[8][4];
+
+POLICY_TARGETS
+static void policy_block(int rows)
+{
+    (void)rows; /* a graph of shape-only ops computes nothing */
+    /* Sub 'normalize.sub' [1x3] -> [1x3] */
+    for (int r = 0; r < rows; ++r) {
+        for (int i = 0; i < 3; ++i) {
+            policy_b0[r][i] = policy_bobs[r][i] - policy_w0_mean[i];
+        }
+    }
+    /* Div 'normalize.div' [1x3] -> [1x3] */
+    for (int r = 0; r < rows; ++r) {
+        for (int i = 0; i < 3; ++i) {
+            policy_b0[r][i] = policy_b0[r][i] / policy_w1_std[i];
+        }
+    }
+    /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
+    for (int r = 0; r < rows; ++r) {
+        for (int n = 0; n < 4; ++n) {
+            policy_b1[r][n] = policy_w3_b1[n];
+        }
+    }
+    for (int r = 0; r < rows; ++r) {
+        for (int n = 0; n < 4; ++n) {
+            policy_b1[r][n] = policy_b1[r][n] + policy_b0[r][0] * policy_w2_W1[0][n];
+        }
+    }
+    for (int r = 0; r < rows; ++r) {
+        for (int n = 0; n < 4; ++n) {
+            policy_b1[r][n] = policy_b1[r][n] + policy_b0[r][1] * policy_w2_W1[1][n];
+        }
+    }
+    for (int r = 0; r < rows; ++r) {
+        for (int n = 0; n < 4; ++n) {
+            policy_b1[r][n] = policy_b1[r][n] + policy_b0[r][2] * policy_w2_W1[2][n];
+        }
+    }
+    /* Relu 'relu1' [1x4] -> [1x4] */
+    for (int r = 0; r < rows; ++r) {
+        for (int i = 0; i < 4; ++i) {
+            policy_b1[r][i] = policy_b1[r][i] > 0.0f ? policy_b1[r][i] : 0.0f;
+        }
+    }
+    /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
+    for (int r = 0; r < rows; ++r) {
+        for (int n = 0; n < 2; ++n) {
+            policy_b0[r][n] = policy_w5_b2[n];
+        }
+    }
+    for (int k = 0; k < 4; k += 4) {
+        for (int r = 0; r < rows; ++r) {
+            const float x0 = policy_b1[r][k];
+            const float x1 = policy_b1[r][k + 1];
+            const float x2 = policy_b1[r][k + 2];
+            const float x3 = policy_b1[r][k + 3];
+            for (int n = 0; n < 2; ++n) {
+                policy_b0[r][n] = policy_b0[r][n] + x0 * policy_w4_W2[k][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
+            }
+        }
+    }
+    /* Tanh 'squash' [1x2] -> [1x2] */
+    for (int r = 0; r < rows; ++r) {
+        for (int i = 0; i < 2; ++i) {
+            policy_b0[r][i] = tanhf(policy_b0[r][i]);
+        }
+    }
+    /* Clip 'clip' [1x2] -> [1x2] */
+    for (int r = 0; r < rows; ++r) {
+        for (int i = 0; i < 2; ++i) {
+            float v = policy_b0[r][i];
+            v = v < -0.899999976f ? -0.899999976f : v;
+            v = v > 0.899999976f ? 0.899999976f : v;
+            policy_b0[r][i] = v;
+        }
+    }
+}
+
+/* Each row's code as policy_step returns it, and its actions or the safe action. */
+static int policy_finish(const float obs[POLICY_OBS_DIM], const float out[POLICY_ACT_DIM],
+                         float act[POLICY_ACT_DIM])
+{
+    for (int i = 0; i < POLICY_OBS_DIM; ++i) {
+        if (!policy_finite(obs[i])) {
+            return policy_safe(act, POLICY_ERR_OBS_NOT_FINITE);
+        }
+    }
+    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
+        if (!policy_finite(out[i])) {
+            return policy_safe(act, POLICY_ERR_ACT_NOT_FINITE);
+        }
+    }
+    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
+        act[i] = out[i];
+    }
+    return POLICY_OK;
+}
+
+int policy_step_batch(int n, const float *obs, float *act, int *status)
+{
+    int refused = 0;
+    for (int start = 0; start < n; start += 8) {
+        const int rows = n - start < 8 ? n - start : 8;
+        for (int r = 0; r < rows; ++r) {
+            for (int i = 0; i < POLICY_OBS_DIM; ++i) {
+                policy_bobs[r][i] = obs[(start + r) * POLICY_OBS_DIM + i];
+            }
+        }
+        policy_block(rows);
+        for (int r = 0; r < rows; ++r) {
+            const int row = start + r;
+            const int code = policy_finish(&obs[row * POLICY_OBS_DIM], policy_b0[r], &act[row * POLICY_ACT_DIM]);
+            if (status != NULL) {
+                status[row] = code;
+            }
+            refused += code != POLICY_OK ? 1 : 0;
+        }
+    }
+    return refused;
 }

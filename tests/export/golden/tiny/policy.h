@@ -23,4 +23,10 @@
  * safe action (0.0f, 0.0f) and returns an error code: no NaN ever leaves it. */
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
 
+/* Run the policy on n observations (obs: n rows of POLICY_OBS_DIM, act: n rows of POLICY_ACT_DIM, row-major),
+ * each row's actions bit for bit those of policy_step, which also gives each row's code in status[] (if
+ * not NULL). Returns the number of rows answered with the safe action. For host-side evaluation: it
+ * reads each weight once per block of 8 rows, from its own buffers (not reentrant either). */
+int policy_step_batch(int n, const float *obs, float *act, int *status);
+
 #endif /* POLICY_H */
