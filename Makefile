@@ -95,18 +95,18 @@ format: $(STAMP)
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
-bench: deps $(STAMP)
-	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
-	$(VENV)/bin/embedrl bench-export --json $(OUT)/bench/export.json
-	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
-	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes 60 --exchanges 6000 --json $(OUT)/bench/hil.json
-
-# Peer code generators for the target benchmark, in their own environment under tools/ (never a dependency
-# of embedrl): emx-onnx-cgen, pinned.
+# Peer code generators for the benchmarks (host and Cortex-M), in their own environment under tools/ (never a
+# dependency of embedrl): emx-onnx-cgen, pinned.
 EMX := tools/emx/bin/emx-onnx-cgen
 $(EMX):
 	$(PYTHON) -m venv tools/emx
 	tools/emx/bin/pip install --quiet emx-onnx-cgen==1.4.0
+
+bench: deps $(STAMP) $(EMX)
+	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
+	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
+	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
+	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes 60 --exchanges 6000 --json $(OUT)/bench/hil.json
 
 # Instructions and estimated cycles per inference on the Cortex-M cores: embedrl's C against emx-onnx-cgen's
 # C of the same shipped policy, both on QEMU in one run.

@@ -1,13 +1,18 @@
-"""Inference speed of an export: generated C (-O2), onnxruntime, torch and the hardware's limit, one run.
+"""Inference speed of an export: generated C (-O2), onnxruntime, torch, emx-onnx-cgen's C and the hardware's
+limit, one run.
 
-Single-observation latency, the number an embedded control loop cares about: the C timing
-comes from ``runtime_c/bench/bench_policy.c`` (a compiled loop over the observations), the
-onnxruntime and torch timings from one call per observation in this process, onnxruntime's batched
-time from one call on :data:`BATCH` observations. The median over repeats is reported. The limit comes
-from ``runtime_c/bench/limit_probe.c`` on this CPU: the time of the model's multiply-adds at the
-measured fused multiply-add throughput, and of reading its weights once at the measured cache bandwidth;
-the larger bounds any inference, and every time is also given as its ratio to it. The peers' actions are
-checked against the C's on :data:`AGREEMENT_SAMPLES` observations.
+Single-observation latency, the number an embedded control loop cares about: the C timing comes from
+``runtime_c/bench/bench_policy.c`` (a compiled loop over the observations), then the same harness on
+``policy_step_batch`` over all of them; the onnxruntime and torch timings from one call per observation in
+this process, onnxruntime's batched time from one call on :data:`BATCH` observations; emx-onnx-cgen's C
+(with ``--emx``) in the same harness at the same optimisation level. The median over repeats is reported.
+The limit comes from ``runtime_c/bench/limit_probe.c`` on this CPU: the time of the model's multiply-adds
+at the measured fused multiply-add throughput, and of reading its weights once at the measured cache
+bandwidth; the larger bounds any inference, and every time is also given as its ratio to it. The C gives the
+same bits in every build, the baseline's (no fused multiply-add) included, so its own ceiling is the larger
+of the weight read and the multiply-adds as a multiply then an add in AVX2 vectors
+(``limit_without_fma_ns``). The peers' actions are checked against the C's on :data:`AGREEMENT_SAMPLES`
+observations.
 """
 
 from __future__ import annotations
@@ -70,8 +75,11 @@ def _median_ns(fn: Any, samples: np.ndarray) -> float:
     return float(np.median(times))
 
 
-def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
-    """Measure an export (or a fresh export of the study's actor shape) and return the numbers."""
+def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict[str, Any]:
+    """Measure an export (or a fresh export of the study's actor shape) and return the numbers; ``emx``:
+    emx-onnx-cgen's command, whose C of the same ONNX is timed as a peer (None: not measured)."""
+    if emx is not None and not emx.is_file():
+        raise ExportError(f"no emx-onnx-cgen at {emx}: `make bench` installs it into tools/emx")
     with tempfile.TemporaryDirectory(prefix="embedrl-bench-") as tmp:
         work = Path(tmp)
         if export_dir is None:
@@ -97,6 +105,7 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
         if not onnx_file.is_file():
             onnx_file = Path(report["source"]["path"])
         peers = _peers(onnx_file, report, samples, c_actions)
+        peers.update(_emx(emx, onnx_file, export_dir, work, c_actions))
         _check_agreement(export_dir, samples[:AGREEMENT_SAMPLES], c_actions, peers)
         limit = _limit(onnx_file, work, report.get("quantize"))
         size = build.object_size(work / "build" / "policy.o")
@@ -106,6 +115,8 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
         "ops": report["ops"],
         "c_ns_per_inference": round(c_ns, 1),
         "c_ratio_to_limit": round(c_ns / limit["limit_ns"], 2),
+        "c_ratio_to_limit_without_fma": None if limit["limit_without_fma_ns"] is None
+        else round(c_ns / limit["limit_without_fma_ns"], 2),
         "c_batched_ns_per_observation": round(c_batched_ns, 1),
         "c_batched_ratio_to_onnxruntime_batched": round(
             c_batched_ns / peers["onnxruntime_batched_ns_per_observation"], 2
@@ -117,6 +128,8 @@ def run(export_dir: Path | None, seed: int = 0) -> dict[str, Any]:
             peers["onnxruntime_batched_ns_per_observation"] / limit["limit_fma_ns"], 2
         ),  # a batch reads the weights once for all its observations: only the arithmetic bounds it
         "speedup_vs_onnxruntime": round(peers["onnxruntime_ns_per_inference"] / c_ns, 2),
+        "speedup_vs_emx_onnx_cgen": None if peers["emx_onnx_cgen_ns_per_inference"] is None
+        else round(peers["emx_onnx_cgen_ns_per_inference"] / c_ns, 2),
         "speedup_vs_torch": None if peers["torch_ns_per_inference"] is None
         else round(peers["torch_ns_per_inference"] / c_ns, 2),
         "target_speedup_vs_onnxruntime": TARGET_SPEEDUP_VS_ONNXRUNTIME,
@@ -201,6 +214,38 @@ def _peers(
     return result
 
 
+def _emx(
+    emx: Path | None, onnx_file: Path, export_dir: Path, work: Path, c_actions: np.ndarray
+) -> dict[str, Any]:
+    """emx-onnx-cgen's C of the same ONNX in the same harness at the same optimisation level: its time per
+    observation, one per call and all in one call, and its largest difference from embedrl's actions."""
+    if emx is None:
+        return {"emx_onnx_cgen_ns_per_inference": None, "emx_onnx_cgen_batched_ns_per_observation": None,
+                "emx_onnx_cgen_max_abs_diff_from_c": None}  # fmt: skip
+    peer_c = work / "peer.c"
+    generated = subprocess.run(
+        [str(emx), "compile", str(onnx_file), str(peer_c), "--model-name", "peer"],
+        capture_output=True,
+        text=True,
+    )
+    if generated.returncode != 0:
+        raise ExportError(f"emx-onnx-cgen could not compile the policy: {generated.stderr.strip()[-300:]}")
+    build.make("bench-peer", export_dir / "c", work / "peer", extra={"PEER_C": str(peer_c)})
+    actions_file = work / "peer_actions.bin"
+    out = subprocess.run(
+        [str(work / "peer" / "bench_peer"), str(work / "obs.bin"), str(C_REPEATS), str(actions_file)],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    actions = np.fromfile(actions_file, dtype="<f4").reshape(-1, c_actions.shape[1])[: len(c_actions)]
+    return {
+        "emx_onnx_cgen_ns_per_inference": float(out.split("ns_per_inference")[1].split()[0]),
+        "emx_onnx_cgen_batched_ns_per_observation": float(
+            out.split("ns_per_observation_batched")[1].split()[0]
+        ),
+        "emx_onnx_cgen_max_abs_diff_from_c": float(np.max(np.abs(actions - c_actions))),
+    }
+
+
 def _check_agreement(
     export_dir: Path, check: np.ndarray, c_actions: np.ndarray, peers: dict[str, Any]
 ) -> None:
@@ -214,8 +259,14 @@ def _check_agreement(
     checked = {"reference_max_abs_diff_from_c": own}
     if precision == "float32":
         checked.update(
-            {k: peers[k] for k in ("onnxruntime_max_abs_diff_from_c", "torch_max_abs_diff_from_c")}
-        )
+            {
+                k: peers[k]
+                for k in (
+                    "onnxruntime_max_abs_diff_from_c", "torch_max_abs_diff_from_c",
+                    "emx_onnx_cgen_max_abs_diff_from_c",
+                )
+            }
+        )  # fmt: skip
     for key, value in checked.items():
         if value is not None and not value <= AGREEMENT_TOLERANCE:
             raise ExportError(
@@ -244,8 +295,11 @@ def _limit(onnx_file: Path, work: Path, quantize: str | None) -> dict[str, Any]:
     probe = dict(line.split() for line in out.splitlines())
     fma_ns = macs / float(probe["fma_gmacs"])
     stream_ns = float(probe["stream_ns_per_pass"])
+    mul_add = float(probe["mul_add_gmacs"])
+    mul_add_ns = max(macs / mul_add, stream_ns) if mul_add > 0 else None
     return {
         "model_multiply_adds": macs, "model_weight_bytes": weight_bytes,
         "limit_fma_ns": round(fma_ns, 2), "limit_weight_read_ns": round(stream_ns, 2),
         "limit_ns": round(max(fma_ns, stream_ns), 2),
+        "limit_without_fma_ns": None if mul_add_ns is None else round(mul_add_ns, 2),
     }  # fmt: skip

@@ -244,7 +244,7 @@ def cmd_bench_export(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
     from embedrl.export.bench import run
 
-    print_measurement(run(args.export_dir, args.seed), args.json)
+    print_measurement(run(args.export_dir, args.seed, args.emx), args.json)
     return 0
 
 
@@ -333,6 +333,9 @@ def _register_benchmarks(sub: Any) -> None:
         "--export-dir", type=Path, help="an export folder (default: the study's 6-100-100-2 actor)"
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--emx", type=Path, help="emx-onnx-cgen's command: its C timed as a peer (make bench: tools/emx)"
+    )
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_export)
 

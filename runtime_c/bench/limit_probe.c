@@ -2,9 +2,13 @@
  *
  *   limit_probe WEIGHT_BYTES
  *
- * Two probes, each the median of 21 rounds, printed as "name value" lines:
+ * Three probes, each the median of 21 rounds, printed as "name value" lines:
  *   fma_gmacs           multiply-adds per nanosecond of independent fused multiply-adds in the widest
  *                       vectors the compiler targets (-march=native): the arithmetic ceiling;
+ *   mul_add_gmacs       the same with each product rounded before its sum (a multiply, then an add) in
+ *                       AVX2 vectors, on x86-64 with AVX2 (0 elsewhere): the ceiling of code that must give
+ *                       the bits of the baseline build, which has no fused multiply-add (the generated C's
+ *                       AVX2 clone);
  *   stream_ns_per_pass  nanoseconds to read WEIGHT_BYTES of floats once, from a buffer read over and over
  *                       (it stays in the nearest cache it fits): the memory ceiling of reading the weights.
  * A dense layer's inference cannot beat either: it multiplies every weight once and reads every weight
@@ -72,6 +76,64 @@ static double fma_round(void)
     return (double)FMA_ITERATIONS * CHAINS * LANES / ns;
 }
 
+#if defined(__x86_64__)
+#define NARROW_LANES 8
+typedef float narrow __attribute__((vector_size(NARROW_LANES * sizeof(float))));
+
+/* The empty asm keeps the product in a register between the multiply and the add: no fusing. */
+#define MUL_ADD(c) \
+    do { \
+        narrow t = (c) * a; \
+        __asm__("" : "+x"(t)); \
+        (c) = t + b; \
+    } while (0)
+
+__attribute__((target("avx2"))) static double mul_add_round(void)
+{
+    narrow a, b;
+    for (int i = 0; i < NARROW_LANES; ++i) {
+        a[i] = 0.999999f;
+        b[i] = 1e-7f;
+    }
+    narrow c0 = a, c1 = a * 2.0f, c2 = a * 3.0f, c3 = a * 4.0f, c4 = a * 5.0f, c5 = a * 6.0f;
+    narrow c6 = a * 7.0f, c7 = a * 8.0f, c8 = a * 9.0f, c9 = a * 10.0f, c10 = a * 11.0f, c11 = a * 12.0f;
+    const double start = now_ns();
+    for (long n = 0; n < FMA_ITERATIONS; ++n) {
+        MUL_ADD(c0);
+        MUL_ADD(c1);
+        MUL_ADD(c2);
+        MUL_ADD(c3);
+        MUL_ADD(c4);
+        MUL_ADD(c5);
+        MUL_ADD(c6);
+        MUL_ADD(c7);
+        MUL_ADD(c8);
+        MUL_ADD(c9);
+        MUL_ADD(c10);
+        MUL_ADD(c11);
+    }
+    const double ns = now_ns() - start;
+    const narrow total = c0 + c1 + c2 + c3 + c4 + c5 + c6 + c7 + c8 + c9 + c10 + c11;
+    float sum = 0.0f;
+    for (int i = 0; i < NARROW_LANES; ++i) {
+        sum += total[i];
+    }
+    sink = sum;
+    return (double)FMA_ITERATIONS * CHAINS * NARROW_LANES / ns;
+}
+
+static double mul_add_probe(void)
+{
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("avx2") ? mul_add_round() : 0.0;
+}
+#else
+static double mul_add_probe(void)
+{
+    return 0.0;
+}
+#endif
+
 static double stream_round(const vec *weights, size_t count, int passes)
 {
     vec s0 = {0}, s1 = {0}, s2 = {0}, s3 = {0};
@@ -117,15 +179,17 @@ int main(int argc, char **argv)
         }
     }
     const int passes = (int)(200000000L / bytes) + 1;
-    double fma[ROUNDS], stream[ROUNDS];
+    double fma[ROUNDS], mul_add[ROUNDS], stream[ROUNDS];
     for (int r = 0; r < ROUNDS; ++r) {
         fma[r] = fma_round();
+        mul_add[r] = mul_add_probe();
         stream[r] = stream_round(weights, count, passes);
     }
     qsort(fma, ROUNDS, sizeof(double), compare);
+    qsort(mul_add, ROUNDS, sizeof(double), compare);
     qsort(stream, ROUNDS, sizeof(double), compare);
-    printf("fma_gmacs %.3f\nstream_ns_per_pass %.2f\nvector_bytes %zu\n", fma[ROUNDS / 2], stream[ROUNDS / 2],
-           sizeof(vec));
+    printf("fma_gmacs %.3f\nmul_add_gmacs %.3f\nstream_ns_per_pass %.2f\nvector_bytes %zu\n", fma[ROUNDS / 2],
+           mul_add[ROUNDS / 2], stream[ROUNDS / 2], sizeof(vec));
     free(weights);
     return 0;
 }

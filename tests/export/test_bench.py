@@ -37,7 +37,10 @@ def test_bench_export_reports_ratios_from_one_run(tmp_path: Path) -> None:
     assert data["model_multiply_adds"] == 12 and data["model_weight_bytes"] == 48 and data["cpu"]
     assert data["limit_ns"] == max(data["limit_fma_ns"], data["limit_weight_read_ns"]) > 0
     assert data["c_ratio_to_limit"] == pytest.approx(data["c_ns_per_inference"] / data["limit_ns"], rel=0.1)
-    assert data["c_batched_ns_per_observation"] > 0
+    assert data["c_batched_ns_per_observation"] > 0 and data["emx_onnx_cgen_ns_per_inference"] is None
+    assert (
+        data["limit_without_fma_ns"] is None or data["limit_without_fma_ns"] >= data["limit_weight_read_ns"]
+    )
     assert data["c_batched_ratio_to_onnxruntime_batched"] == pytest.approx(
         data["c_batched_ns_per_observation"] / data["onnxruntime_batched_ns_per_observation"], rel=0.1
     )
@@ -64,3 +67,50 @@ def test_a_quantised_export_is_checked_against_its_own_reference(tmp_path: Path)
 def test_bench_export_needs_an_export_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench-export", "--export-dir", str(tmp_path)]) == 2
     assert "not an export folder" in capsys.readouterr().err
+
+
+def _fake_emx(folder: Path, offset: str) -> Path:
+    """A stand-in for emx-onnx-cgen's command line: its C answers through the export's own step (plus
+    ``offset``), so the harness, the time and the agreement check are tested without the peer installed."""
+    script = folder / "emx"
+    script.write_text(
+        "#!/bin/sh\n"
+        "# emx-onnx-cgen compile MODEL OUT --model-name peer\n"
+        f"cat > \"$3\" <<'C'\n"
+        '#include "policy.c"\n'
+        "void peer(int batch, const float obs[][POLICY_OBS_DIM], float act[][POLICY_ACT_DIM])\n"
+        "{\n"
+        "    for (int i = 0; i < batch; ++i) {\n"
+        "        (void)policy_step(obs[i], act[i]);\n"
+        f"        act[i][0] += {offset};\n"
+        "    }\n"
+        "}\n"
+        "C\n"
+    )
+    script.chmod(0o755)
+    return script
+
+
+def test_bench_export_times_emx_onnx_cgen_in_the_same_harness_and_checks_its_actions(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = make_model(
+        [helper.make_node("Gemm", ["x", "W"], ["y"], transB=1)], {"W": np.eye(2, 6, dtype=np.float32)}, 6, 2
+    )
+    onnx.save(model, str(tmp_path / "m.onnx"))
+    assert main(["export", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "exp"), "--episodes", "0"]) == 0
+    bench = ["bench-export", "--export-dir", str(tmp_path / "exp"), "--json", str(tmp_path / "b.json")]
+    assert main([*bench, "--emx", str(_fake_emx(tmp_path, "0.0f"))]) == 0
+    data = json.loads((tmp_path / "b.json").read_text())
+    assert data["emx_onnx_cgen_max_abs_diff_from_c"] == 0.0
+    assert data["emx_onnx_cgen_ns_per_inference"] > 0 and data["emx_onnx_cgen_batched_ns_per_observation"] > 0
+    assert data["speedup_vs_emx_onnx_cgen"] == pytest.approx(
+        data["emx_onnx_cgen_ns_per_inference"] / data["c_ns_per_inference"], rel=0.01
+    )
+    capsys.readouterr()
+    (tmp_path / "b.json").unlink()
+    assert main([*bench, "--emx", str(_fake_emx(tmp_path, "1e-3f"))]) == 2  # a peer computing another policy
+    assert "emx_onnx_cgen_max_abs_diff_from_c" in capsys.readouterr().err
+    assert not (tmp_path / "b.json").exists()
+    assert main([*bench, "--emx", str(tmp_path / "nosuch")]) == 2
+    assert "no emx-onnx-cgen at" in capsys.readouterr().err
