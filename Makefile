@@ -105,6 +105,11 @@ $(EMX):
 bench: deps $(STAMP) $(EMX)
 	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
+	for q in int8 q15; do \
+	    $(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-$$q --force --episodes 0 \
+	        --quantize $$q && $(VENV)/bin/embedrl bench-export --export-dir $(OUT)/bench/td3-$$q \
+	        --json $(OUT)/bench/export-$$q.json || exit 1; \
+	done
 	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
 	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes 60 --exchanges 6000 --json $(OUT)/bench/hil.json
 

@@ -106,6 +106,7 @@ def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict
             onnx_file = Path(report["source"]["path"])
         peers = _peers(onnx_file, report, samples, c_actions)
         peers.update(_emx(emx, onnx_file, export_dir, work, c_actions))
+        peers.update(_native(export_dir, work, c_actions))
         _check_agreement(export_dir, samples[:AGREEMENT_SAMPLES], c_actions, peers)
         limit = _limit(onnx_file, work, report.get("quantize"))
         size = build.object_size(work / "build" / "policy.o")
@@ -214,6 +215,28 @@ def _peers(
     return result
 
 
+NATIVE_OPT = "-O3 -march=native"
+"""The build a user tuning for this one machine would make: the same C, every instruction set of the CPU."""
+
+
+def _native(export_dir: Path, work: Path, c_actions: np.ndarray) -> dict[str, Any]:
+    """The same C and harness built with :data:`NATIVE_OPT`: its times and its largest difference from the
+    default build's actions (gcc may fuse multiply-adds there, so the bits may differ)."""
+    build.make("bench", export_dir / "c", work / "native", NATIVE_OPT)
+    actions_file = work / "native_actions.bin"
+    out = subprocess.run(
+        [str(work / "native" / "bench_policy"), str(work / "obs.bin"), str(C_REPEATS), str(actions_file)],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    actions = np.fromfile(actions_file, dtype="<f4").reshape(-1, c_actions.shape[1])[: len(c_actions)]
+    return {
+        "c_native_flags": NATIVE_OPT,
+        "c_native_ns_per_inference": float(out.split("ns_per_inference")[1].split()[0]),
+        "c_native_batched_ns_per_observation": float(out.split("ns_per_observation_batched")[1].split()[0]),
+        "c_native_max_abs_diff_from_c": float(np.max(np.abs(actions - c_actions))),
+    }
+
+
 def _emx(
     emx: Path | None, onnx_file: Path, export_dir: Path, work: Path, c_actions: np.ndarray
 ) -> dict[str, Any]:
@@ -256,7 +279,10 @@ def _check_agreement(
     precision = precision_of(export_dir)
     peers["precision"] = precision
     own = float(np.max(np.abs(reference_policy(export_dir)(check) - c_actions)))
-    checked = {"reference_max_abs_diff_from_c": own}
+    checked = {
+        "reference_max_abs_diff_from_c": own,
+        "c_native_max_abs_diff_from_c": peers["c_native_max_abs_diff_from_c"],
+    }
     if precision == "float32":
         checked.update(
             {

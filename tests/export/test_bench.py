@@ -38,6 +38,7 @@ def test_bench_export_reports_ratios_from_one_run(tmp_path: Path) -> None:
     assert data["limit_ns"] == max(data["limit_fma_ns"], data["limit_weight_read_ns"]) > 0
     assert data["c_ratio_to_limit"] == pytest.approx(data["c_ns_per_inference"] / data["limit_ns"], rel=0.1)
     assert data["c_batched_ns_per_observation"] > 0 and data["emx_onnx_cgen_ns_per_inference"] is None
+    assert data["c_native_ns_per_inference"] > 0 and data["c_native_max_abs_diff_from_c"] <= 1e-5
     assert (
         data["limit_without_fma_ns"] is None or data["limit_without_fma_ns"] >= data["limit_weight_read_ns"]
     )
