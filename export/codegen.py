@@ -498,16 +498,17 @@ int {name}_step_batch(int n, const float *obs, float *act, int *status)
 
 
 def _targets(up: str) -> str:
-    """The step's function attribute: on x86-64 Linux, compiled by gcc, one clone per instruction set in
-    :data:`TARGET_CLONES`, the CPU's picked when the program loads (an ifunc). No clone has a fused
-    multiply-add instruction, so each rounds every product and sum of the source's fixed order and all
-    give the same bits. The clones weigh vectorising by gcc's dynamic cost model: -O2's default takes no
-    loop that needs a remainder after its whole vectors, which leaves a pass over 100 outputs to SSE."""
+    """The step's function attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl
+    has none), compiled by gcc, one clone per instruction set in :data:`TARGET_CLONES`, the CPU's picked
+    when the program loads. No clone has a fused multiply-add instruction, so each rounds every product
+    and sum of the source's fixed order and all give the same bits. The clones weigh vectorising by gcc's
+    dynamic cost model: -O2's default takes no loop that needs a remainder after its whole vectors, which
+    leaves a pass over 100 outputs to SSE."""
     clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
-    return f"""/* x86-64 Linux, gcc: compiled for each of {", ".join(TARGET_CLONES)}, the CPU's picked at load
- * time; none has fused multiply-add, so every clone rounds the same operations in the same order and all
- * give the same bits. -D{up}_ONE_TARGET: the compiler's target only. */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \\
+    return f"""/* x86-64 glibc, gcc: compiled for each of {", ".join(TARGET_CLONES)}, the CPU's picked at load
+ * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
+ * order and all give the same bits. -D{up}_ONE_TARGET: the compiler's target only. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \\
     !defined({up}_ONE_TARGET)
 #define {up}_TARGETS __attribute__((target_clones({clones}), optimize("vect-cost-model=dynamic")))
 #else

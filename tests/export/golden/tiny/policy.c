@@ -78,10 +78,10 @@ static int policy_safe(float act[POLICY_ACT_DIM], int code)
     return code;
 }
 
-/* x86-64 Linux, gcc: compiled for each of default, avx2, the CPU's picked at load
- * time; none has fused multiply-add, so every clone rounds the same operations in the same order and all
- * give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__linux__) && \
+/* x86-64 glibc, gcc: compiled for each of default, avx2, the CPU's picked at load
+ * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
+ * order and all give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */
+#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \
     !defined(POLICY_ONE_TARGET)
 #define POLICY_TARGETS __attribute__((target_clones("default", "avx2"), optimize("vect-cost-model=dynamic")))
 #else
