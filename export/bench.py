@@ -174,8 +174,7 @@ def _c_time(
     batched, _ = c_policy.batch(samples[:AGREEMENT_SAMPLES])
     if batched.tobytes() != actions.tobytes():
         raise ExportError("policy_step_batch and policy_step disagree: the generated C is broken")
-    single = float(out.split("ns_per_inference")[1].split()[0])
-    return single, float(out.split("ns_per_observation_batched")[1].split()[0]), actions
+    return _printed(out, "ns_per_inference"), _printed(out, "ns_per_observation_batched"), actions
 
 
 def _peers(
@@ -223,18 +222,32 @@ def _native(export_dir: Path, work: Path, c_actions: np.ndarray) -> dict[str, An
     """The same C and harness built with :data:`NATIVE_OPT`: its times and its largest difference from the
     default build's actions (gcc may fuse multiply-adds there, so the bits may differ)."""
     build.make("bench", export_dir / "c", work / "native", NATIVE_OPT)
-    actions_file = work / "native_actions.bin"
+    return {
+        "c_native_flags": NATIVE_OPT,
+        **_harness(work / "native" / "bench_policy", work, c_actions, "c_native"),
+    }
+
+
+def _harness(binary: Path, work: Path, c_actions: np.ndarray, prefix: str) -> dict[str, Any]:
+    """Run a built ``bench_policy`` harness on the observations in ``work``: ``{prefix}_ns_per_inference``,
+    ``{prefix}_batched_ns_per_observation`` and ``{prefix}_max_abs_diff_from_c`` (its actions against the
+    default build's on the first samples)."""
+    actions_file = work / f"{prefix}_actions.bin"
     out = subprocess.run(
-        [str(work / "native" / "bench_policy"), str(work / "obs.bin"), str(C_REPEATS), str(actions_file)],
+        [str(binary), str(work / "obs.bin"), str(C_REPEATS), str(actions_file)],
         capture_output=True, text=True, check=True,
     ).stdout  # fmt: skip
     actions = np.fromfile(actions_file, dtype="<f4").reshape(-1, c_actions.shape[1])[: len(c_actions)]
     return {
-        "c_native_flags": NATIVE_OPT,
-        "c_native_ns_per_inference": float(out.split("ns_per_inference")[1].split()[0]),
-        "c_native_batched_ns_per_observation": float(out.split("ns_per_observation_batched")[1].split()[0]),
-        "c_native_max_abs_diff_from_c": float(np.max(np.abs(actions - c_actions))),
+        f"{prefix}_ns_per_inference": _printed(out, "ns_per_inference"),
+        f"{prefix}_batched_ns_per_observation": _printed(out, "ns_per_observation_batched"),
+        f"{prefix}_max_abs_diff_from_c": float(np.max(np.abs(actions - c_actions))),
     }
+
+
+def _printed(out: str, name: str) -> float:
+    """The value of the harness's ``name value`` line."""
+    return float(out.split(f"{name} ")[1].split()[0])
 
 
 def _emx(
@@ -254,19 +267,7 @@ def _emx(
     if generated.returncode != 0:
         raise ExportError(f"emx-onnx-cgen could not compile the policy: {generated.stderr.strip()[-300:]}")
     build.make("bench-peer", export_dir / "c", work / "peer", extra={"PEER_C": str(peer_c)})
-    actions_file = work / "peer_actions.bin"
-    out = subprocess.run(
-        [str(work / "peer" / "bench_peer"), str(work / "obs.bin"), str(C_REPEATS), str(actions_file)],
-        capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
-    actions = np.fromfile(actions_file, dtype="<f4").reshape(-1, c_actions.shape[1])[: len(c_actions)]
-    return {
-        "emx_onnx_cgen_ns_per_inference": float(out.split("ns_per_inference")[1].split()[0]),
-        "emx_onnx_cgen_batched_ns_per_observation": float(
-            out.split("ns_per_observation_batched")[1].split()[0]
-        ),
-        "emx_onnx_cgen_max_abs_diff_from_c": float(np.max(np.abs(actions - c_actions))),
-    }
+    return _harness(work / "peer" / "bench_peer", work, c_actions, "emx_onnx_cgen")
 
 
 def _check_agreement(
