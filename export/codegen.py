@@ -326,11 +326,12 @@ def generate(
     }
 
 
-def _block(graph: Graph, ctx: _Context) -> list[str]:
-    """The body once more for a block of up to :data:`BATCH_ROWS` observations (float32 and int8)."""
+def _block(graph: Graph, ctx: _Context) -> tuple[list[str], str]:
+    """The body once more for a block of up to :data:`BATCH_ROWS` observations (float32 and int8), and row
+    ``r`` of the block's output (its input, if the graph computes nothing)."""
     ctx.rows = "rows"
     try:
-        return _body(graph, ctx, None)[0]
+        return _body(graph, ctx, None)[0], ctx.ref(graph.output)
     finally:
         ctx.rows = None
 
@@ -409,7 +410,7 @@ int {name}_step_batch(int n, const float *obs, float *act, int *status);
 """
 
 
-def _batch_source(name: str, ctx: _Context, block: list[str]) -> str:
+def _batch_source(name: str, ctx: _Context, block: tuple[list[str], str]) -> str:
     """The block of rows and ``{name}_step_batch`` over blocks, the finite checks per row after it."""
     up = name.upper()
     sizes = [ctx.graph.size(ctx.graph.input), *ctx.plan.buffer_sizes]
@@ -417,10 +418,8 @@ def _batch_source(name: str, ctx: _Context, block: list[str]) -> str:
     buffers = "\n".join(
         f"static float {name}_b{b}[{BATCH_ROWS}][{size}];" for b, size in zip(names, sizes, strict=True)
     )
-    ctx.rows = "rows"
-    out = ctx.ref(ctx.graph.output)  # row r of the block's output (its input, if the graph computes nothing)
-    ctx.rows = None
-    indented = "\n".join(("    " + line) if line else "" for line in block)
+    lines, out = block
+    indented = "\n".join(("    " + line) if line else "" for line in lines)
     return f"""
 /* A block of rows ({4 * BATCH_ROWS * sum(sizes)} bytes, {name}_step_batch only): the observations, then the
  * step's buffers, one row each. */
