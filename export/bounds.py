@@ -37,13 +37,19 @@ def action_bounds(graph: Graph, obs_low: np.ndarray, obs_high: np.ndarray) -> In
     for node in graph.nodes:
         runtime = [i for i in node.inputs[1:] if i and i not in graph.constants]
         size = int(np.prod(graph.shapes[node.outputs[0]]))
-        if runtime:  # two runtime operands: no interval rule here
+        emitter = EMITTERS[node.op]
+        if runtime and not emitter.bounded_by_itself:  # two runtime operands: no interval rule here
             out = (np.full(size, -np.inf), np.full(size, np.inf))
         else:
-            out = EMITTERS[node.op].bounds(node, values[node.inputs[0]], graph.constants, size)
+            out = emitter.bounds(node, values[node.inputs[0]], graph.constants, size)
         lo, hi = out
         bad = np.isnan(lo) | np.isnan(hi)
         values[node.outputs[0]] = (np.where(bad, -np.inf, lo), np.where(bad, np.inf, hi))
+        later = node.outputs[1:]
+        extras = emitter.later_bounds(
+            node, values[node.outputs[0]], [graph.size(o) if o else 0 for o in later]
+        )
+        values.update((o, b) for o, b in zip(later, extras, strict=True) if o)
     return values[graph.output]
 
 

@@ -123,6 +123,9 @@ class CPolicy:
         self._batch = getattr(self._lib, f"{name}_step_batch")
         self._batch.argtypes = [ctypes.c_int, ptr, ptr, ctypes.POINTER(ctypes.c_int)]
         self._batch.restype = ctypes.c_int
+        self.reset = getattr(self._lib, f"{name}_reset")
+        """Zero the recurrent state (a new episode); nothing for a policy without memory."""
+        self.reset.argtypes, self.reset.restype = [], None
         self._ptr = ptr
         self.obs_dim, self.act_dim = obs_dim, act_dim
         self._act = np.zeros(act_dim, dtype=np.float32)

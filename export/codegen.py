@@ -96,6 +96,11 @@ def plan_buffers(graph: Graph, input_ref: str, skip: frozenset[str] = frozenset(
     plan = _Plan()
     plan.storage[graph.input] = input_ref
     storage_end: dict[str, int] = {input_ref: len(graph.nodes) + 1}  # the input is never overwritten
+    for k, (read, write) in enumerate(graph.states):
+        plan.storage[read] = f"state{k}"  # the module's static state: read all step, written after it
+        storage_end[f"state{k}"] = len(graph.nodes) + 1
+        last_use[write] = len(graph.nodes)
+    fixed = {input_ref, "fixed", *(f"state{k}" for k in range(len(graph.states)))}
     free: list[str] = []
 
     def end(value: str) -> int:
@@ -109,10 +114,19 @@ def plan_buffers(graph: Graph, input_ref: str, skip: frozenset[str] = frozenset(
             plan.storage[out] = "fixed"
             storage_end["fixed"] = len(graph.nodes) + 1
             continue
+        if len(node.outputs) > 1:
+            for extra in node.outputs[1:]:
+                if extra:
+                    buf = free.pop(0) if free else str(len(plan.buffer_sizes))
+                    if buf == str(len(plan.buffer_sizes)):
+                        plan.buffer_sizes.append(0)
+                    plan.storage[extra] = buf
+                    storage_end[buf] = end(extra)
+                    plan.buffer_sizes[int(buf)] = max(plan.buffer_sizes[int(buf)], graph.size(extra))
         if emitter.alias:
             plan.storage[out] = src
             storage_end[src] = max(storage_end[src], end(out))
-        elif emitter.in_place and src != input_ref and storage_end.get(src, -1) == index:
+        elif emitter.in_place and src not in fixed and storage_end.get(src, -1) == index:
             plan.storage[out] = src
             storage_end[src] = end(out)
         else:
@@ -124,10 +138,10 @@ def plan_buffers(graph: Graph, input_ref: str, skip: frozenset[str] = frozenset(
             plan.storage[out] = buf
             storage_end[buf] = end(out)
         buf = plan.storage[out]
-        if buf not in (input_ref, "fixed"):
+        if buf not in fixed:
             plan.buffer_sizes[int(buf)] = max(plan.buffer_sizes[int(buf)], graph.size(out))
         for s, e in list(storage_end.items()):
-            if e == index and s not in (input_ref, "fixed") and s not in free:
+            if e == index and s not in fixed and s not in free:
                 free.append(s)
                 free.sort(key=int)
     return plan
@@ -152,6 +166,8 @@ class _Context:
             array = self.graph.constants[value]
             return self.const(value, array.reshape(-1), "constant")
         where = self.plan.storage[value]
+        if where.startswith("state"):
+            return f"{self.prefix}_{where}"
         if self.rows is not None:
             return f"{self.prefix}_b{where}[r]"  # the block's copy of the input, or its buffer
         return where if not where.isdigit() else f"{self.prefix}_buf{where}"
@@ -303,8 +319,13 @@ def generate(
         plan = _with_section_output(graph, plan_buffers(graph, "obs", section.nodes), section)
     ctx = _Context(graph, name, plan, quantize)
     body, int16_decls = _body(graph, ctx, section)
-    block = _block(graph, ctx) if section is None else None
-    ram = 4 * sum(plan.buffer_sizes) + (2 * sum(_int16_buffer_sizes(section)) if section else 0)
+    # A recurrent step depends on the one before: its batch is a sequence, one step per row.
+    block = _block(graph, ctx) if section is None and not graph.states else None
+    ram = (
+        4 * sum(plan.buffer_sizes)
+        + (2 * sum(_int16_buffer_sizes(section)) if section else 0)
+        + 4 * graph.state_size
+    )
     banner = "\n".join(
         [
             "/*",
@@ -312,14 +333,19 @@ def generate(
             *(f" * {k}: {v}" for k, v in (provenance or {}).items()),
             f" * observation [{graph.size(graph.input)}] -> action [{graph.size(graph.output)}], "
             f"{len(graph.nodes)} ops{QUANTIZED_NOTE[quantize]}",
-            f" * RAM: {len(plan.buffer_sizes)} static buffer(s), {ram} bytes; "
-            f"weights: {ctx.const_bytes} bytes of const data",
+            f" * RAM: {len(plan.buffer_sizes)} static buffer(s), {ram} bytes"
+            + (f" with {4 * graph.state_size} bytes of recurrent state" if graph.states else "")
+            + f"; weights: {ctx.const_bytes} bytes of const data",
             f" * Not reentrant: {name}_step uses file-scope buffers (one call at a time).",
             " */",
         ]
     )
     buffers = [f"static float {name}_buf{i}[{size}];" for i, size in enumerate(plan.buffer_sizes)]
-    source = _source(banner, name, ctx, body, [*buffers, *int16_decls], ram)
+    states = [
+        f"static float {name}_state{k}[{graph.size(read)}]; /* {_sanitize(read)}, next: {_sanitize(write)} */"
+        for k, (read, write) in enumerate(graph.states)
+    ]
+    source = _source(banner, name, ctx, body, [*states, *buffers, *int16_decls], ram)
     return {
         f"{name}.h": _header(banner, graph, name, safe, interface),
         f"{name}.c": source + (_batch_source(name, ctx, block) if block is not None else _row_batch(name)),
@@ -387,6 +413,7 @@ def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: 
 
 #define {up}_OBS_DIM {graph.size(graph.input)}
 #define {up}_ACT_DIM {graph.size(graph.output)}
+#define {up}_STATE_DIM {graph.state_size} /* floats carried from one step to the next (0: no memory) */
 {_interface_block(up, interface)}
 /* What {name}_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
 #define {up}_SAFE_ACTION {{{safe_text}}}
@@ -397,13 +424,20 @@ def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: 
 #define {up}_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
 
 /* Run the policy on one observation. Writes {up}_ACT_DIM actions and returns {up}_OK, or writes the
- * safe action ({safe_text}) and returns an error code: no NaN ever leaves it. */
+ * safe action ({safe_text}) and returns an error code: no NaN ever leaves it.
+ * A recurrent policy ({up}_STATE_DIM > 0) reads its state and keeps the next one for the next call; a
+ * non-finite observation leaves the state as it was, a non-finite result resets it. */
 int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
+
+/* Start a new episode: the recurrent state back to zero (nothing to do for a policy without memory).
+ * Call it at start-up, at each episode start and whenever the safe state is entered. */
+void {name}_reset(void);
 
 /* Run the policy on n observations (obs: n rows of {up}_OBS_DIM, act: n rows of {up}_ACT_DIM, row-major),
  * each row's actions bit for bit those of {name}_step, which also gives each row's code in status[] (if
  * not NULL). Returns the number of rows answered with the safe action. For host-side evaluation: it
- * reads each weight once per block of {BATCH_ROWS} rows, from its own buffers (not reentrant either). */
+ * reads each weight once per block of {BATCH_ROWS} rows, from its own buffers (not reentrant either).
+ * With memory, the rows are one sequence: consecutive steps, the state carried from each to the next. */
 int {name}_step_batch(int n, const float *obs, float *act, int *status);
 
 #endif /* {up}_H */
@@ -515,9 +549,32 @@ def _targets(up: str) -> str:
 #endif"""
 
 
+def _state_lines(name: str, ctx: _Context) -> tuple[str, str, str]:
+    """The reset's body, the finite check of the next state, and its copy into the static state."""
+    graph = ctx.graph
+    if not graph.states:
+        return "    /* no recurrent state */", "", ""
+    reset, check, keep = [], [], []
+    for k, (read, write) in enumerate(graph.states):
+        n, src = graph.size(read), ctx.ref(write)
+        reset.append(f"    (void)memset({name}_state{k}, 0, sizeof {name}_state{k});")
+        check += [
+            f"    for (int i = 0; i < {n}; ++i) {{",
+            f"        if (!{name}_finite({src}[i])) {{",
+            f"            {name}_reset();",
+            f"            return {name}_safe(act, {name.upper()}_ERR_ACT_NOT_FINITE);",
+            "        }",
+            "    }",
+        ]
+        keep += [f"    for (int i = 0; i < {n}; ++i) {{", f"        {name}_state{k}[i] = {src}[i];", "    }"]
+    return "\n".join(reset), "\n".join(check) + "\n", "\n".join(keep) + "\n"
+
+
 def _source(banner: str, name: str, ctx: _Context, body: list[str], buffers: list[str], ram: int) -> str:
     up = name.upper()
     out_ref = ctx.ref(ctx.graph.output)
+    reset, check_state, keep_state = _state_lines(name, ctx)
+    act_bad = f"{name}_reset();\n            " if ctx.graph.states else ""
     safe_decl = f"static const float {name}_safe_action[{up}_ACT_DIM] = {up}_SAFE_ACTION;"
     indented = "\n".join(("    " + line) if line else "" for line in body)
     return f"""{banner}
@@ -551,6 +608,11 @@ static int {name}_safe(float act[{up}_ACT_DIM], int code)
     return code;
 }}
 
+void {name}_reset(void)
+{{
+{reset}
+}}
+
 {_targets(up)}
 {up}_TARGETS
 int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
@@ -563,10 +625,10 @@ int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
 {indented}
     for (int i = 0; i < {up}_ACT_DIM; ++i) {{
         if (!{name}_finite({out_ref}[i])) {{
-            return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
+            {act_bad}return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
         }}
     }}
-    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+{check_state}{keep_state}    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
         act[i] = {out_ref}[i];
     }}
     return {up}_OK;

@@ -8,6 +8,7 @@ model (:func:`embedrl.export.fixed_point.run`).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Protocol
 
 import numpy as np
@@ -36,13 +37,23 @@ class Section(Protocol):
 
 
 def run(
-    graph: Graph, obs: np.ndarray, precision: str, section: Section | None = None
+    graph: Graph,
+    obs: np.ndarray,
+    precision: str,
+    section: Section | None = None,
+    state: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
-    """Every value of ``graph`` for the observations ``obs`` [B, obs_dim], rows independent."""
+    """Every value of ``graph`` for the observations ``obs`` [B, obs_dim], rows independent; a recurrent
+    graph's state values from ``state`` (each [B, n]; zeros when absent)."""
     if precision not in PRECISIONS:
         raise ValueError(f"unknown precision {precision!r}; use one of {PRECISIONS}")
     dtype = np.float64 if precision == "float64" else np.float32
     values: dict[str, np.ndarray] = {graph.input: np.asarray(obs, dtype).reshape(len(obs), -1)}
+    for read, _ in graph.states:
+        given = (state or {}).get(read)
+        values[read] = (
+            np.zeros((len(obs), graph.size(read)), dtype) if given is None else np.asarray(given, dtype)
+        )
 
     def get(name: str) -> np.ndarray:
         return values[name] if name in values else np.asarray(graph.constants[name], dtype).reshape(-1)
@@ -56,5 +67,21 @@ def run(
         if precision == "int8" and not emitter.quantizable:
             raise UnsupportedOpError(f"{node.op} node '{node.name}' is not supported with --quantize int8")
         inputs = [get(name) for name in node.inputs if name]
-        values[node.outputs[0]] = emitter.reference(node, inputs, graph.constants, precision)
+        result = emitter.reference(node, inputs, graph.constants, precision)
+        if len(node.outputs) == 1:
+            values[node.outputs[0]] = result
+        else:
+            values.update((out, result[k]) for k, out in enumerate(node.outputs) if out)
     return values
+
+
+def run_sequence(graph: Graph, observations: np.ndarray, precision: str = "float64") -> np.ndarray:
+    """The actions [T, act_dim] of one episode's observations [T, obs_dim] from zero state, the state
+    carried from each step to the next (a feed-forward graph: each row on its own)."""
+    state: dict[str, np.ndarray] = {}
+    actions = []
+    for row in np.asarray(observations).reshape(len(observations), -1):
+        values = run(graph, row[None], precision, state=state)
+        actions.append(values[graph.output][0])
+        state = {read: values[write] for read, write in graph.states}
+    return np.asarray(actions).reshape(len(actions), -1)

@@ -1,8 +1,10 @@
 """ONNX -> IR: validate everything at the boundary so the code generator can run blindly.
 
-Accepted: one float32 input and one float32 output, static shapes except a dynamic batch
-(first) dimension, which is fixed to 1; ops from :data:`export.ops.EMITTERS` in the default
-domain; float32 weights (int64 only for Reshape shapes), all finite.
+Accepted: one float32 input (the observation) and one float32 output (the action), static shapes
+except a dynamic batch (first) dimension, which is fixed to 1; a recurrent policy's state as further
+inputs, each paired with the further output of the same position and shape that holds its next value
+(``obs, h, c -> action, h_next, c_next``); ops from :data:`export.ops.EMITTERS` in the default domain;
+float32 weights (int64 only for shape operands), all finite.
 """
 
 from __future__ import annotations
@@ -193,7 +195,7 @@ def _attr(attribute: onnx.AttributeProto) -> AttrValue | np.ndarray:
     if isinstance(value, onnx.TensorProto):
         return numpy_helper.to_array(value)
     if isinstance(value, list):
-        return tuple(value)
+        return tuple(v.decode() if isinstance(v, bytes) else v for v in value)
     if isinstance(value, int | float | str):
         return value
     raise UnsupportedOpError(f"attribute '{attribute.name}' of type {type(value).__name__} is not supported")
@@ -245,11 +247,13 @@ def to_ir(model: onnx.ModelProto) -> Graph:
     for init in g.initializer:
         constants[init.name] = _constant(init.name, numpy_helper.to_array(init), "initializer")
     inputs = [v for v in g.input if v.name not in constants]
-    if len(inputs) != 1 or len(g.output) != 1:
+    if not inputs or len(inputs) != len(g.output):
         raise UnsupportedOpError(
-            f"the graph must have exactly one input and one output, got {len(inputs)} and {len(g.output)}"
+            "the graph must have one input and one output (the observation and the action), and for a "
+            f"recurrent policy one more output per further input (its next state); got {len(inputs)} "
+            f"input(s) and {len(g.output)} output(s)"
         )
-    shapes: dict[str, tuple[int, ...]] = {inputs[0].name: _static_shape(inputs[0], "input")}
+    shapes: dict[str, tuple[int, ...]] = {v.name: _static_shape(v, "input") for v in inputs}
     shapes.update({k: tuple(int(d) for d in v.shape) for k, v in constants.items()})
 
     nodes = []
@@ -280,22 +284,34 @@ def to_ir(model: onnx.ModelProto) -> Graph:
         if emitter.commutative and len(ins) == 2 and ins[0] in constants and ins[1] not in constants:
             ins = (ins[1], ins[0])
         node = Node(proto.op_type, name, ins, tuple(proto.output), {k: v for k, v in attrs.items()})  # type: ignore[misc]
-        shapes[node.outputs[0]] = emitter.check(node, shapes, constants)
+        first = emitter.check(node, shapes, constants)
+        shapes.update(
+            (out, shape)
+            for out, shape in zip(node.outputs, emitter.output_shapes(node, first), strict=True)
+            if out
+        )
         nodes.append(node)
 
+    for value in g.output:
+        if value.name not in shapes or value.name in constants:
+            raise UnsupportedOpError(f"graph output '{value.name}' is not computed from the input")
+        if value.type.tensor_type.elem_type != onnx.TensorProto.FLOAT:
+            raise UnsupportedOpError(f"graph output '{value.name}' must be FLOAT (float32)")
+    states = tuple((read.name, write.name) for read, write in zip(inputs[1:], g.output[1:], strict=True))
+    for read, write in states:
+        if math.prod(shapes[read]) != math.prod(shapes[write]):
+            raise UnsupportedOpError(
+                f"state input '{read}' {list(shapes[read])} and its next value, output '{write}' "
+                f"{list(shapes[write])}, differ in size (inputs after the first pair with outputs in order)"
+            )
     output = g.output[0].name
-    if output not in shapes or output in constants:
-        raise UnsupportedOpError(f"graph output '{output}' is not computed from the input")
-    declared = g.output[0].type.tensor_type
-    if declared.elem_type != onnx.TensorProto.FLOAT:
-        raise UnsupportedOpError(f"graph output '{output}' must be FLOAT (float32)")
-    used_nodes = _live_nodes(nodes, output)
-    return Graph.freeze(inputs[0].name, output, used_nodes, shapes, constants)
+    used_nodes = _live_nodes(nodes, {value.name for value in g.output})
+    return Graph.freeze(inputs[0].name, output, used_nodes, shapes, constants, states)
 
 
-def _live_nodes(nodes: list[Node], output: str) -> list[Node]:
-    """Drop nodes whose results never reach the output (e.g. a value head in the same file)."""
-    needed = {output}
+def _live_nodes(nodes: list[Node], outputs: set[str]) -> list[Node]:
+    """Drop nodes whose results never reach an output (e.g. a value head in the same file)."""
+    needed = set(outputs)
     keep = []
     for node in reversed(nodes):
         if needed & set(node.outputs):

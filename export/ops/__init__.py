@@ -23,7 +23,8 @@ from embedrl.export.ops.elementwise import (
     Tanh,
 )  # fmt: skip
 from embedrl.export.ops.linear import Gemm, MatMul
-from embedrl.export.ops.shape import Constant, Flatten, Identity, Reshape
+from embedrl.export.ops.recurrent import GRU, LSTM
+from embedrl.export.ops.shape import Constant, Flatten, Gather, Identity, Reshape, Squeeze, Unsqueeze
 
 EMITTERS: dict[str, Emitter] = {
     "Gemm": Gemm(),
@@ -43,7 +44,12 @@ EMITTERS: dict[str, Emitter] = {
     "Identity": Identity(),
     "Flatten": Flatten(),
     "Reshape": Reshape(),
+    "Squeeze": Squeeze(),
+    "Gather": Gather(),
+    "Unsqueeze": Unsqueeze(),
     "Constant": Constant(),
+    "LSTM": LSTM(),
+    "GRU": GRU(),
 }
 """The supported ops: the only place an op is registered."""
 

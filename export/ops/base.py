@@ -99,6 +99,9 @@ class Emitter:
     """Supported attributes and their defaults; anything else is rejected."""
     min_inputs = 1
     max_inputs = 1
+    max_outputs = 1
+    """More than one for ops with several results (a recurrent cell's output and next state); the first is
+    required, later ones may be omitted (empty names)."""
     alias = False
     """True if the output is the input's data unchanged (no code, same storage)."""
     in_place = False
@@ -114,11 +117,16 @@ class Emitter:
                 node, f"unsupported attribute(s) {unknown}; supported: {sorted(self.attrs) or 'none'}"
             )
         present = [i for i in node.inputs if i != ""]
-        if not self.min_inputs <= len(present) <= self.max_inputs or len(node.outputs) != 1:
+        outputs = len(node.outputs)
+        if (
+            not self.min_inputs <= len(present) <= self.max_inputs
+            or not 1 <= outputs <= self.max_outputs
+            or not node.outputs[0]
+        ):
             raise _fail(
                 node,
-                f"takes {self.min_inputs}..{self.max_inputs} inputs and 1 output, "
-                f"got {len(present)} and {len(node.outputs)}",
+                f"takes {self.min_inputs}..{self.max_inputs} inputs and 1..{self.max_outputs} output(s), "
+                f"got {len(present)} and {outputs}",
             )
         if node.inputs[0] in constants:
             raise _fail(node, "the first input must be a runtime value, not a constant")
@@ -127,12 +135,19 @@ class Emitter:
     def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
         return shapes[node.inputs[0]]
 
+    def output_shapes(self, node: Node, first: Shape) -> tuple[Shape, ...]:
+        """The shape of every output, given the first's from :meth:`check` (ops with one output: just it)."""
+        return (first,)
+
     quantizable: ClassVar[bool] = True
     """Whether ``--quantize int8`` code and its ``int8`` reference exist for this op."""
     monotone: ClassVar[bool] = False
     """Whether each output element is monotone in its runtime input for fixed constant operands (then its
     interval is spanned by the reference at the input interval's two ends); otherwise :meth:`bounds` gives
     up unless the op overrides it."""
+    bounded_by_itself: ClassVar[bool] = False
+    """Whether :meth:`bounds` holds whatever the other runtime operands are (a recurrent cell's hidden
+    state is within [-1, 1] for any state it reads)."""
     linear: ClassVar[bool] = False
     commutative: ClassVar[bool] = False
     """Whether the two operands may swap (the importer puts a constant first operand second)."""
@@ -157,13 +172,19 @@ class Emitter:
         ]
         return np.minimum(*ends), np.maximum(*ends)
 
+    def later_bounds(self, node: Node, first: Interval, sizes: Sequence[int]) -> list[Interval]:
+        """Bounds of the outputs after the first (of ``sizes`` elements; 0 for an omitted one), given the
+        first's: unbounded."""
+        return [(np.full(n, -np.inf), np.full(n, np.inf)) for n in sizes]
+
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
-        """C statements computing ``node.outputs[0]`` (``n`` elements)."""
+        """C statements computing ``node.outputs`` (the first has ``n`` elements)."""
         raise NotImplementedError
 
     def reference(
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
     ) -> np.ndarray:
         """The output for a batch: ``inputs[0]`` is [B, n] (runtime), later inputs are runtime [B, m] or
-        flattened constants; ``precision`` is one of :data:`PRECISIONS`."""
+        flattened constants; ``precision`` is one of :data:`PRECISIONS`. An op with several outputs returns
+        them stacked on a leading axis ([outputs, B, n], all of one size)."""
         raise UnsupportedOpError(f"{node.op} node '{node.name}' has no {precision} reference")

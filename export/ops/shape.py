@@ -1,4 +1,5 @@
-"""Shape ops: Identity, Flatten, Reshape (the output is the input's data: no code) and Constant
+"""Shape ops: Identity, Flatten, Reshape, Squeeze, Unsqueeze and Gather of a size-1 axis (the output is the
+input's data: no code) and Constant
 (its value becomes a graph constant when the model is imported)."""
 
 from __future__ import annotations
@@ -69,6 +70,69 @@ class Reshape(Alias):
         if _size(tuple(target)) != _size(source):
             raise _fail(node, f"cannot reshape {list(source)} to {target}")
         return tuple(target)
+
+
+class _Axes(Alias):
+    """Squeeze and Unsqueeze: the axes as a constant second input (opset 13)."""
+
+    min_inputs = 1
+    max_inputs = 2
+
+    def axes(self, node: Node, constants: Mapping[str, np.ndarray], rank: int) -> list[int]:
+        if len(node.inputs) < 2 or not node.inputs[1]:
+            return []
+        if node.inputs[1] not in constants:
+            raise _fail(node, f"axes '{node.inputs[1]}' must be a constant (static shapes only)")
+        axes = [int(a) for a in constants[node.inputs[1]].reshape(-1)]
+        if any(not -rank <= a < rank for a in axes) or len({a % rank for a in axes}) != len(axes):
+            raise _fail(node, f"axes {axes} out of range or repeated for rank {rank}")
+        return sorted(a % rank for a in axes)
+
+
+class Squeeze(_Axes):
+    """Drops size-1 axes (all of them without ``axes``)."""
+
+    def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        source = shapes[node.inputs[0]]
+        axes = self.axes(node, constants, len(source)) or [i for i, d in enumerate(source) if d == 1]
+        if any(source[a] != 1 for a in axes):
+            raise _fail(node, f"cannot squeeze axes {axes} of shape {list(source)}: not of size 1")
+        return tuple(d for i, d in enumerate(source) if i not in axes)
+
+
+class Unsqueeze(_Axes):
+    """Inserts size-1 axes."""
+
+    min_inputs = 2
+
+    def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        source = list(shapes[node.inputs[0]])
+        for a in self.axes(
+            node, constants, len(source) + len(constants.get(node.inputs[1], np.zeros(0)).reshape(-1))
+        ):
+            source.insert(a, 1)
+        return tuple(source)
+
+
+class Gather(Alias):
+    """Gather with a constant scalar index into an axis of size 1 (``y[0]`` of a one-step sequence): the
+    axis dropped, the same data."""
+
+    attrs: ClassVar[Mapping[str, AttrValue]] = {"axis": 0}
+    min_inputs = max_inputs = 2
+
+    def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
+        source = shapes[node.inputs[0]]
+        axis = int(node.attr("axis", 0))
+        if not -len(source) <= axis < len(source):
+            raise _fail(node, f"axis {axis} out of range for rank {len(source)}")
+        axis %= len(source)
+        index = constants.get(node.inputs[1])
+        if index is None or index.shape != () or source[axis] != 1 or int(index) not in (0, -1):
+            raise _fail(
+                node, "only a constant scalar index into an axis of size 1 is supported (y[0] of one step)"
+            )
+        return tuple(d for i, d in enumerate(source) if i != axis)
 
 
 class Constant(Emitter):

@@ -20,6 +20,7 @@ from embedrl.export.onnx_import import to_ir
 from embedrl.export.ops import EMITTERS
 from embedrl.export.ops.elementwise import Relu
 from tests.export.helpers import compile_model, make_model
+from tests.export.test_recurrent import RECURRENT_OPS
 
 F = np.float32
 RNG = np.random.default_rng(0)
@@ -66,6 +67,29 @@ CASES: dict[str, tuple[list[onnx.NodeProto], dict[str, Any], int]] = {
     "Reshape": (
         [mk("Reshape", ["x", "shape"], ["r"]), mk("Tanh", ["r"], ["y"])],
         {"shape": np.array([1, -1], dtype=np.int64)},
+        N,
+    ),
+    "Unsqueeze then Squeeze": (
+        [mk("Unsqueeze", ["x", "a1"], ["u"]), mk("Squeeze", ["u", "a1"], ["s"]), mk("Tanh", ["s"], ["y"])],
+        {"a1": np.array([1], dtype=np.int64)},
+        N,
+    ),
+    "Squeeze without axes": (
+        [
+            mk("Unsqueeze", ["x", "a0"], ["u"]),
+            mk("Squeeze", ["u"], ["s"]),
+            mk("Reshape", ["s", "shape"], ["y"]),
+        ],
+        {"a0": np.array([0], dtype=np.int64), "shape": np.array([1, -1], dtype=np.int64)},
+        N,
+    ),
+    "Gather of a one-step sequence": (
+        [
+            mk("Unsqueeze", ["x", "a0"], ["u"]),
+            mk("Gather", ["u", "i0"], ["g"], axis=0),
+            mk("Relu", ["g"], ["y"]),
+        ],
+        {"a0": np.array([0], dtype=np.int64), "i0": np.array(0, dtype=np.int64)},
         N,
     ),
     "Constant operand": (
@@ -133,6 +157,7 @@ import sys
 from pathlib import Path
 import numpy as np
 from tests.export.helpers import compile_model, make_model
+from tests.export.test_recurrent import RECURRENT_OPS
 from tests.export.test_ops import CASES, FAST_MATH, N, V, F, mk
 tmp = Path(sys.argv[1])
 nodes, inits, out_dim = CASES["Gemm transB=1 with bias"]
@@ -162,7 +187,7 @@ def test_the_non_finite_guard_holds_under_fast_math(tmp_path: Path) -> None:
 
 
 def test_every_registered_op_has_a_test_case() -> None:
-    tested = {node.op_type for nodes, _, _ in CASES.values() for node in nodes}
+    tested = {node.op_type for nodes, _, _ in CASES.values() for node in nodes} | set(RECURRENT_OPS)
     assert tested == set(EMITTERS), f"ops without a case: {sorted(set(EMITTERS) - tested)}"
 
 

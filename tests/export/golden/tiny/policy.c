@@ -78,6 +78,11 @@ static int policy_safe(float act[POLICY_ACT_DIM], int code)
     return code;
 }
 
+void policy_reset(void)
+{
+    /* no recurrent state */
+}
+
 /* x86-64 glibc, gcc: compiled for each of default, avx2, the CPU's picked at load
  * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
  * order and all give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */

@@ -10,6 +10,7 @@
 
 #define POLICY_OBS_DIM 3
 #define POLICY_ACT_DIM 2
+#define POLICY_STATE_DIM 0 /* floats carried from one step to the next (0: no memory) */
 
 /* What policy_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
 #define POLICY_SAFE_ACTION {0.0f, 0.0f}
@@ -20,13 +21,20 @@
 #define POLICY_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
 
 /* Run the policy on one observation. Writes POLICY_ACT_DIM actions and returns POLICY_OK, or writes the
- * safe action (0.0f, 0.0f) and returns an error code: no NaN ever leaves it. */
+ * safe action (0.0f, 0.0f) and returns an error code: no NaN ever leaves it.
+ * A recurrent policy (POLICY_STATE_DIM > 0) reads its state and keeps the next one for the next call; a
+ * non-finite observation leaves the state as it was, a non-finite result resets it. */
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
+
+/* Start a new episode: the recurrent state back to zero (nothing to do for a policy without memory).
+ * Call it at start-up, at each episode start and whenever the safe state is entered. */
+void policy_reset(void);
 
 /* Run the policy on n observations (obs: n rows of POLICY_OBS_DIM, act: n rows of POLICY_ACT_DIM, row-major),
  * each row's actions bit for bit those of policy_step, which also gives each row's code in status[] (if
  * not NULL). Returns the number of rows answered with the safe action. For host-side evaluation: it
- * reads each weight once per block of 8 rows, from its own buffers (not reentrant either). */
+ * reads each weight once per block of 8 rows, from its own buffers (not reentrant either).
+ * With memory, the rows are one sequence: consecutive steps, the state carried from each to the next. */
 int policy_step_batch(int n, const float *obs, float *act, int *status);
 
 #endif /* POLICY_H */
