@@ -21,7 +21,6 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import onnx
-import onnxruntime as ort
 
 from embedrl import train
 from embedrl.common import provenance, sha256
@@ -32,9 +31,10 @@ from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedMod
 from embedrl.export.fixed_point import FixedSection
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import Limits, load_onnx, to_ir
-from embedrl.export.reference import OBSERVATIONS_FILE
+from embedrl.export.reference import OBSERVATIONS_FILE, OnnxPolicy
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
+from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface, InterfaceError, from_spaces, with_names
 from embedrl.train.models import LoadedPolicy, load_sb3
 from embedrl.train.scenarios import interface_of
@@ -91,25 +91,6 @@ def tool_version() -> str:
         return metadata.version("embedrl")
     except metadata.PackageNotFoundError:
         return "unknown"
-
-
-def _ort_policy(model: onnx.ModelProto) -> Callable[[np.ndarray], np.ndarray]:
-    session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
-    name = session.get_inputs()[0].name
-
-    fixed_batch = session.get_inputs()[0].shape[0] == 1  # common in files from elsewhere
-
-    def run(obs: np.ndarray) -> np.ndarray:
-        batch = np.asarray(obs, dtype=np.float32)
-        single = batch.ndim == 1
-        rows = batch.reshape(1, -1) if single else batch
-        if fixed_batch:
-            out = np.concatenate([np.asarray(session.run(None, {name: row[None]})[0]) for row in rows])
-        else:
-            out = np.asarray(session.run(None, {name: rows})[0])
-        return out.reshape(-1) if single else out
-
-    return run
 
 
 def _check_output_folder(out: Path, force: bool) -> None:
@@ -416,9 +397,9 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     loaded.onnx_path = staging / "policy.onnx"
     loaded.files["policy.onnx"] = loaded.onnx_path
     onnx.save(loaded.model, str(loaded.onnx_path))
-    reference = loaded.loaded.predict if loaded.loaded is not None else _ort_policy(loaded.model)
+    reference = loaded.loaded if loaded.loaded is not None else OnnxPolicy(loaded.model)
     return Lowered(
-        graph, obs_space, interface, interface_problem, action_clamp, reference, _ort_policy(loaded.model)
+        graph, obs_space, interface, interface_problem, action_clamp, reference, OnnxPolicy(loaded.model)
     )
 
 
@@ -528,6 +509,7 @@ def _verify(
     targets = {}
     for name in opts.targets:
         log(f"[4/5] {name}: building firmware, running it on QEMU")
+        start_episode(lowered.onnx_policy)  # the firmware runs the vectors as one sequence from reset
         expected = (
             quantize.evaluate(lowered.graph, vectors, generated.section)
             if opts.quantize
@@ -546,6 +528,9 @@ def _numerical_checks(
     loaded: Loaded, lowered: Lowered, generated: Generated, built: Built, opts: ExportOptions
 ) -> dict[str, Any]:
     graph, samples, section = lowered.graph, generated.samples, generated.section
+    # A recurrent policy takes the samples as one sequence from zero state, on every side.
+    for policy in (lowered.onnx_policy, loaded.loaded, built.compiled):
+        start_episode(policy)
     onnx_actions = lowered.onnx_policy(samples)
     checks: dict[str, Any] = {
         "samples": len(samples),
@@ -607,6 +592,7 @@ def _write_test_data(loaded: Loaded, generated: Generated, staging: Path) -> tup
 
 def _safe_on_nan(compiled: build.CPolicy, obs_dim: int) -> dict[str, Any]:
     nan_obs = np.full(obs_dim, np.nan, dtype=np.float32)
+    compiled.reset()
     safe = compiled(nan_obs)
     if compiled.status != 1 or not np.all(np.isfinite(safe)):
         raise VerificationError("the generated C did not reject a NaN observation with the safe action")

@@ -1,7 +1,9 @@
 """The policy an export's generated C reproduces, rebuilt from the export folder alone.
 
 float32: the export's ``policy.onnx`` under onnxruntime (the C agrees within the verification
-tolerance). int8 and q15: the Python model of the quantised arithmetic (:func:`export.quantize.evaluate`),
+tolerance), a recurrent policy's state carried from call to call as the C carries it
+(:class:`OnnxPolicy`). int8 and q15: the Python model of the quantised arithmetic
+(:func:`export.quantize.evaluate`),
 which the C equals bit for bit; q15's fixed-point section is planned again from the export's own
 calibration observations (``test/observations.npy``), exactly as the export planned it.
 """
@@ -13,6 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import onnx
 
 from embedrl.export import fixed_point, quantize
 from embedrl.export.errors import ExportError
@@ -41,20 +44,55 @@ def precision_of(export_dir: Path) -> str:
     return str(precision)
 
 
+class OnnxPolicy:
+    """An ONNX policy under onnxruntime, called with one observation [obs_dim] or a batch [B, obs_dim].
+
+    A policy without memory answers each row on its own (row by row when the file fixes its batch at 1). A
+    recurrent one (state inputs after the observation, paired in order with the outputs after the action)
+    carries its state from call to call as the generated C does: a batch is consecutive steps, and
+    :meth:`reset` starts a new episode from zero state.
+    """
+
+    def __init__(self, model: onnx.ModelProto | Path) -> None:
+        import onnxruntime as ort
+
+        source = str(model) if isinstance(model, Path) else model.SerializeToString()
+        self._session = ort.InferenceSession(source, providers=["CPUExecutionProvider"])
+        inputs = self._session.get_inputs()
+        self._name = inputs[0].name
+        self._fixed_batch = inputs[0].shape[0] == 1
+        self._state_inputs = [(i.name, [d if isinstance(d, int) else 1 for d in i.shape]) for i in inputs[1:]]
+        self.recurrent = bool(self._state_inputs)
+        self._state: dict[str, np.ndarray] = {}
+        self.reset()
+
+    def reset(self) -> None:
+        """A new episode: the recurrent state back to zero (nothing for a policy without memory)."""
+        self._state = {name: np.zeros(shape, np.float32) for name, shape in self._state_inputs}
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        batch = np.asarray(obs, dtype=np.float32)
+        single = batch.ndim == 1
+        rows = batch.reshape(1, -1) if single else batch
+        if self.recurrent or self._fixed_batch:
+            out = np.concatenate([self._step(row[None]) for row in rows]) if len(rows) else rows[:, :0]
+        else:
+            out = np.asarray(self._session.run(None, {self._name: rows})[0], np.float32)
+        return out.reshape(-1) if single else out
+
+    def _step(self, row: np.ndarray) -> np.ndarray:
+        outputs = self._session.run(None, {self._name: row, **self._state})
+        self._state = dict(zip(self._state, (np.asarray(o, np.float32) for o in outputs[1:]), strict=True))
+        return np.asarray(outputs[0], np.float32).reshape(1, -1)
+
+
 def reference_policy(export_dir: Path) -> Policy:
-    """A batch policy ``[B, obs_dim] -> [B, act_dim]`` (float32) that the export's C reproduces."""
+    """A batch policy ``[B, obs_dim] -> [B, act_dim]`` (float32) that the export's C reproduces (for a
+    recurrent policy an :class:`OnnxPolicy`, with its ``reset``)."""
     onnx_path = export_dir / "policy.onnx"
     precision = precision_of(export_dir)
     if precision == "float32":
-        import onnxruntime as ort
-
-        session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-        name = session.get_inputs()[0].name
-
-        def run_onnx(obs: np.ndarray) -> np.ndarray:
-            return np.asarray(session.run(None, {name: np.asarray(obs, np.float32)})[0], np.float32)
-
-        return run_onnx
+        return OnnxPolicy(onnx_path)
     graph = to_ir(load_onnx(onnx_path))
     section = None
     if precision == "q15":

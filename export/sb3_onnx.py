@@ -8,7 +8,10 @@ returns after the same normalisation.
 Supported: ``TD3Policy`` (TD3, DDPG), ``SACPolicy`` (SAC, without gSDE) and
 ``ActorCriticPolicy`` with a diagonal Gaussian (PPO, A2C, without gSDE), MLP layers
 (Linear, ReLU, Tanh, LeakyReLU, Sigmoid, Softplus, Identity) after a flatten extractor, on
-1-D Box observation and action spaces.
+1-D Box observation and action spaces; sb3-contrib's ``RecurrentActorCriticPolicy`` (RecurrentPPO) with
+its actor's LSTM layers as ONNX ``LSTM`` nodes whose hidden and cell states are explicit inputs
+(``lstm_h0``, ``lstm_c0``, ...) and outputs (``lstm_h0_next``, ...) after the observation and the action,
+batch 1: one control step per call.
 """
 
 from __future__ import annotations
@@ -46,6 +49,12 @@ class _GraphBuilder:
 
     def const(self, name: str, value: np.ndarray | float) -> str:
         self.initializers.append(numpy_helper.from_array(np.asarray(value, dtype=np.float32), name))
+        return name
+
+    def const_int(self, name: str, value: list[int]) -> str:
+        """An int64 operand (axes), declared once."""
+        if not any(t.name == name for t in self.initializers):
+            self.initializers.append(numpy_helper.from_array(np.asarray(value, dtype=np.int64), name))
         return name
 
     def add(self, op: str, name: str, *extra_inputs: str, **attrs: Any) -> None:
@@ -103,9 +112,52 @@ def _network(b: _GraphBuilder, policy: BasePolicy) -> str:
             f"{type(policy.action_dist).__name__} is not supported; need a diagonal Gaussian"
         )
     b.module(policy.pi_features_extractor, "pi_features_extractor")
+    lstm = getattr(policy, "lstm_actor", None)
+    if lstm is not None:
+        _lstm(b, lstm)
     b.module(policy.mlp_extractor.policy_net, "mlp_extractor.policy_net")
     b.module(policy.action_net, "action_net")
     return "clip"
+
+
+TORCH_TO_ONNX_GATES = (0, 3, 1, 2)
+"""torch's LSTM gate blocks are i, f, g, o; ONNX's are i, o, f, c (g): ONNX block k is torch block [k]."""
+
+
+def state_names(layers: int) -> list[str]:
+    """The state inputs of a recurrent export, in order (each output is the name with ``_next``)."""
+    return [f"lstm_{kind}{k}" for k in range(layers) for kind in ("h", "c")]
+
+
+def _lstm(b: _GraphBuilder, lstm: nn.LSTM) -> None:
+    """Append the actor's LSTM, one ONNX LSTM node per layer, over one time step of batch 1."""
+    if lstm.batch_first or lstm.bidirectional or not lstm.bias or lstm.proj_size:
+        raise UnsupportedModelError("only a unidirectional LSTM with biases and no projection is supported")
+    hidden = lstm.hidden_size
+
+    def gates(tensor: Any) -> np.ndarray:
+        blocks = np.split(tensor.detach().numpy().astype(np.float32), 4, axis=0)
+        return np.concatenate([blocks[k] for k in TORCH_TO_ONNX_GATES], axis=0)
+
+    b.add("Unsqueeze", "lstm.sequence", b.const_int("lstm.axis0", [0]))
+    for k in range(lstm.num_layers):
+        w = b.const(f"lstm.W{k}", gates(getattr(lstm, f"weight_ih_l{k}"))[None])
+        r = b.const(f"lstm.R{k}", gates(getattr(lstm, f"weight_hh_l{k}"))[None])
+        bias = np.concatenate([gates(getattr(lstm, f"bias_ih_l{k}")), gates(getattr(lstm, f"bias_hh_l{k}"))])
+        h, c = f"lstm_h{k}", f"lstm_c{k}"
+        y = f"lstm.layer{k}_y"
+        b.nodes.append(
+            helper.make_node(
+                "LSTM",
+                [b.last, w, r, b.const(f"lstm.B{k}", bias[None]), "", h, c],
+                [y, f"{h}_next", f"{c}_next"],
+                name=f"lstm.layer{k}",
+                hidden_size=hidden,
+            )
+        )
+        b.last = y
+        b.add("Squeeze", f"lstm.layer{k}_step", b.const_int("lstm.axis1", [1]))  # [1, 1, 1, H] -> [1, 1, H]
+    b.add("Squeeze", "lstm.output", b.const_int("lstm.axis0", [0]))  # -> [1, H]
 
 
 def build_onnx(loaded: LoadedPolicy, producer_version: str) -> onnx.ModelProto:
@@ -135,11 +187,17 @@ def build_onnx(loaded: LoadedPolicy, producer_version: str) -> onnx.ModelProto:
             b.add("Min", "clip.high", b.const("clip.high_value", high))
     b.nodes.append(helper.make_node("Identity", [b.last], [OUTPUT_NAME], name="output"))
     obs_dim, act_dim = loaded.observation_space.shape[0], loaded.action_space.shape[0]
+    lstm = getattr(loaded.policy, "lstm_actor", None)
+    states = state_names(lstm.num_layers) if lstm is not None else []
+    batch: int | str = 1 if states else "batch"  # a recurrent step is one observation of one episode
+    hidden = [1, 1, lstm.hidden_size] if lstm is not None else []
     graph = helper.make_graph(
         b.nodes,
         "embedrl_policy",
-        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, ["batch", obs_dim])],
-        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, ["batch", act_dim])],
+        [helper.make_tensor_value_info(INPUT_NAME, TensorProto.FLOAT, [batch, obs_dim])]
+        + [helper.make_tensor_value_info(s, TensorProto.FLOAT, hidden) for s in states],
+        [helper.make_tensor_value_info(OUTPUT_NAME, TensorProto.FLOAT, [batch, act_dim])]
+        + [helper.make_tensor_value_info(f"{s}_next", TensorProto.FLOAT, hidden) for s in states],
         b.initializers,
     )
     model = helper.make_model(

@@ -16,7 +16,7 @@ import numpy as np
 
 from embedrl import train
 from embedrl.common import ROLLOUT_SEED_OFFSET
-from embedrl.train.evaluate import REPORT_KEYS, EvalReport, evaluate
+from embedrl.train.evaluate import REPORT_KEYS, EvalReport, evaluate, start_episode
 from embedrl.train.interface import NO_ENV
 from embedrl.train.scenarios import BY_ENV_ID
 
@@ -55,6 +55,7 @@ def sample_observations(
     episode = 0
     while len(recorded) < ROLLOUT_SAMPLES and episode < MAX_ROLLOUT_EPISODES:
         obs, _ = env.reset(seed=seed + ROLLOUT_SEED_OFFSET + episode)
+        start_episode(policy)
         episode += 1
         done = False
         while not done:
@@ -124,13 +125,18 @@ def closed_loop(
     """
     shadow = [0.0]
 
-    def compiled_with_shadow(obs: np.ndarray) -> np.ndarray:
-        action = compiled(obs)
-        shadow[0] = max(shadow[0], max_abs_error(action, np.asarray(reference(obs), dtype=np.float32)))
-        return action
+    class CompiledWithShadow:
+        def __call__(self, obs: np.ndarray) -> np.ndarray:
+            action = compiled(obs)
+            shadow[0] = max(shadow[0], max_abs_error(action, np.asarray(reference(obs), dtype=np.float32)))
+            return action
+
+        def reset(self) -> None:  # a recurrent policy: both sides start each episode from zero state
+            start_episode(compiled)
+            start_episode(reference)
 
     ref = evaluate(reference, episodes, seed, "reference", progress=progress, env_id=env_id)
-    c = evaluate(compiled_with_shadow, episodes, seed, "generated C", progress=progress, env_id=env_id)
+    c = evaluate(CompiledWithShadow(), episodes, seed, "generated C", progress=progress, env_id=env_id)
     differing = [r.seed for r, q in zip(ref.results, c.results, strict=True) if r.outcome != q.outcome]
     return {
         "env_id": env_id,

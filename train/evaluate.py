@@ -142,6 +142,14 @@ class EvalReport:
         return table(rows)
 
 
+def start_episode(policy: object) -> None:
+    """Start a policy with memory (one with a ``reset()`` method: a recurrent export's C, its onnxruntime
+    or SB3 reference) from zero state; nothing for any other policy."""
+    reset = getattr(policy, "reset", None)
+    if callable(reset):
+        reset()
+
+
 def run_episode(
     env: gym.Env[np.ndarray, np.ndarray], policy: Policy, seed: int, sample_time: float = SAMPLE_TIME
 ) -> EpisodeResult:
@@ -152,6 +160,7 @@ def run_episode(
     term), else the sum of rewards; ``sample_time`` converts steps to simulated time.
     """
     obs, info = env.reset(seed=seed)
+    start_episode(policy)
     total, steps = 0.0, 0
     while True:
         obs, reward, terminated, truncated, info = env.step(policy(obs))

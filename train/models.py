@@ -16,7 +16,7 @@ import math
 import pickle
 import re
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from tokenize import TokenError
 from typing import Any
@@ -120,23 +120,51 @@ class ObsNormalization:
 
 @dataclass(frozen=True)
 class LoadedPolicy:
-    """An SB3 policy ready for export and for reference predictions."""
+    """An SB3 policy ready for export and for reference predictions.
+
+    A recurrent policy (RecurrentPPO's) carries its LSTM state from call to call: a batch is consecutive
+    steps of one episode, and :meth:`reset` starts the next episode from zero state, as SB3's ``predict``
+    does with ``episode_start``.
+    """
 
     policy: BasePolicy
     observation_space: spaces.Box
     action_space: spaces.Box
     normalization: ObsNormalization | None
     normalization_file: Path | None = None
+    _memory: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def kind(self) -> str:
         return type(self.policy).__name__
 
+    @property
+    def recurrent(self) -> bool:
+        return hasattr(self.policy, "lstm_actor")
+
+    def reset(self) -> None:
+        """A new episode: the LSTM state back to zero (nothing for a policy without memory)."""
+        self._memory.clear()
+
     def predict(self, obs: np.ndarray) -> np.ndarray:
-        """``predict(deterministic=True)`` on a batch of raw observations, normalised as in training."""
+        """``predict(deterministic=True)`` on a batch of raw observations, normalised as in training (a
+        recurrent policy: the rows in order, the state carried)."""
         x = obs if self.normalization is None else self.normalization.apply(obs)
-        actions, _ = self.policy.predict(x, deterministic=True)
-        return np.asarray(actions, dtype=np.float32)
+        if not self.recurrent:
+            actions, _ = self.policy.predict(x, deterministic=True)
+            return np.asarray(actions, dtype=np.float32)
+        rows = np.asarray(x, np.float32).reshape(-1, self.observation_space.shape[0])
+        out = []
+        for row in rows:
+            start = np.array(["state" not in self._memory])
+            action, self._memory["state"] = self.policy.predict(
+                row[None], self._memory.get("state"), start, deterministic=True
+            )
+            out.append(np.asarray(action, np.float32).reshape(-1))
+        return np.asarray(out, np.float32).reshape(*np.shape(obs)[:-1], -1)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return self.predict(obs)
 
 
 MAX_MODEL_BYTES = 64 * 2**20
@@ -191,7 +219,7 @@ def load_sb3(
         name = getattr(cls, "__name__", repr(cls))
         raise UnsupportedModelFileError(
             f"{path}: policy class {name} is not supported; supported: TD3Policy (TD3, DDPG), "
-            "SACPolicy (SAC), ActorCriticPolicy (PPO, A2C)"
+            "SACPolicy (SAC), ActorCriticPolicy (PPO, A2C), RecurrentActorCriticPolicy (RecurrentPPO)"
         )
     for role, space in (("observation", obs_space), ("action", act_space)):
         if not isinstance(space, spaces.Box) or len(space.shape) != 1:
@@ -199,7 +227,10 @@ def load_sb3(
     assert isinstance(obs_space, spaces.Box) and isinstance(act_space, spaces.Box)
     if data.get("use_sde") or kwargs.get("use_sde"):
         raise UnsupportedModelFileError(f"{path}: policies with gSDE (use_sde=True) are not supported")
-    _check_architecture(path, kwargs, obs_space.shape[0], act_space.shape[0], max_parameters)
+    from sb3_contrib.common.recurrent.policies import RecurrentActorCriticPolicy
+
+    recurrent = issubclass(cls, RecurrentActorCriticPolicy)
+    _check_architecture(path, kwargs, obs_space.shape[0], act_space.shape[0], max_parameters, recurrent)
     try:
         policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
     except TypeError as exc:
@@ -226,12 +257,20 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split())
 
 
+MAX_LSTM_LAYERS = 8
+
+
 def _check_architecture(
-    path: Path, kwargs: dict[str, Any], obs_dim: int, act_dim: int, max_parameters: int
+    path: Path,
+    kwargs: dict[str, Any],
+    obs_dim: int,
+    act_dim: int,
+    max_parameters: int,
+    recurrent: bool = False,
 ) -> None:
     """Refuse, before a single weight is allocated, layer widths that are not 1..MAX_WIDTH and networks
     whose weights would exceed ``max_parameters`` (the actor, every critic and the value net, counted
-    from ``net_arch`` and the spaces)."""
+    from ``net_arch`` and the spaces; a recurrent policy's LSTMs as well)."""
     for role, dim in (("observation", obs_dim), ("action", act_dim)):
         if not 1 <= dim <= MAX_WIDTH:
             raise InvalidModelFileError(f"{path}: an {role} space of {dim:,} values is not supported")
@@ -253,10 +292,30 @@ def _check_architecture(
     def chain(sizes: list[int]) -> int:
         return sum(a * b + b for a, b in itertools.pairwise(sizes))
 
+    lstm = 0
+    latent = obs_dim
+    if recurrent:
+        hidden, layers = kwargs.get("lstm_hidden_size", 256), kwargs.get("n_lstm_layers", 1)
+        for key, value, top in (
+            ("lstm_hidden_size", hidden, MAX_WIDTH),
+            ("n_lstm_layers", layers, MAX_LSTM_LAYERS),
+        ):
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= top:
+                raise InvalidModelFileError(f"{path}: {key} {value!r} is not within 1..{top:,}")
+        if kwargs.get("lstm_kwargs"):
+            raise UnsupportedModelFileError(
+                f"{path}: lstm_kwargs {kwargs['lstm_kwargs']!r} are not supported"
+            )
+        per_net = 4 * (hidden * (obs_dim + hidden) + 2 * hidden) + (layers - 1) * 4 * (
+            2 * hidden * hidden + 2 * hidden
+        )
+        lstm = per_net * (2 if kwargs.get("enable_critic_lstm", True) else 1)
+        latent = hidden
     parameters = (
-        chain([obs_dim, *nets.get("pi", []), 2 * act_dim])
+        lstm
+        + chain([latent, *nets.get("pi", []), 2 * act_dim])
         + n_critics * chain([obs_dim + act_dim, *nets.get("qf", []), 1])
-        + chain([obs_dim, *nets.get("vf", []), 1])
+        + chain([latent, *nets.get("vf", []), 1])
     )
     if parameters > max_parameters:
         raise InvalidModelFileError(

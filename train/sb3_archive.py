@@ -44,6 +44,8 @@ POLICY_CLASSES = {
     ("embedrl.train.study_agents", "StudyTD3Policy"),
     ("embedrl.train.study_agents", "StudySACPolicy"),
     ("embedrl.train.study_agents", "SoftplusActorCriticPolicy"),
+    ("sb3_contrib.common.recurrent.policies", "RecurrentActorCriticPolicy"),
+    ("sb3_contrib.ppo_recurrent.policies", "MlpLstmPolicy"),
 }
 """(module, name) of the policy classes an archive may name."""
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -111,7 +113,7 @@ def policy_class(path: Path, data: dict[str, Any]) -> type:
     if (module, name) not in POLICY_CLASSES:
         raise UnsupportedModelFileError(
             f"{path}: policy class {module}.{name} is not supported; supported: TD3Policy (TD3, DDPG), "
-            "SACPolicy (SAC), ActorCriticPolicy (PPO, A2C)"
+            "SACPolicy (SAC), ActorCriticPolicy (PPO, A2C), RecurrentActorCriticPolicy (RecurrentPPO)"
         )
     import importlib
 

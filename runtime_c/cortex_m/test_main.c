@@ -68,6 +68,7 @@ int main(void)
     }
     printf("STACK %lu\n", (unsigned long)(used * 4u));
 
+    policy_reset(); /* a recurrent policy answers the vectors as one sequence from zero state */
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
         int code = policy_step(embedrl_test_obs[i], act);
         printf("A %u %d", i, code);
