@@ -407,7 +407,7 @@ def test_ppo_warm_start_clones_the_baseline(tmp_path: Path) -> None:
     env = make_env(True, 0)
     model = build_model("ppo", cfg, env, 0, None)
     assert isinstance(model, PPO)
-    obs, labels = _demonstrations(20, 0.0, 7)  # held-out states of the baseline
+    obs, labels, _ = _demonstrations(20, 0.0, 7)  # held-out states of the baseline
 
     def error() -> float:
         x = env.normalize_obs(obs)  # type: ignore[attr-defined]

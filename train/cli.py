@@ -406,11 +406,11 @@ def _register_tune(sub: Any) -> None:
 
 def _register_sweeps(sub: Any) -> None:
     """``bench`` (the study's table) and ``shaping`` (from scratch, with and without shaping)."""
-    from embedrl.train.config import ALGOS, PRESETS
+    from embedrl.train.config import ALGOS, PRESETS, STUDY_ALGOS
 
     p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")
     add_scenario_argument(p)
-    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS))
     p.add_argument("--seeds", type=_positive, default=5)
     p.add_argument(
         "--seed-offset",
@@ -432,7 +432,7 @@ def _register_sweeps(sub: Any) -> None:
         "shaping",
         help="train from scratch with the study's reward and with potential-based shaping; table and curves",
     )
-    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS))
     p.add_argument("--seeds", type=_positive, default=5)
     p.add_argument("--seed-offset", type=int, default=300, help="train seeds OFFSET .. OFFSET + SEEDS - 1")
     p.add_argument(

@@ -19,7 +19,10 @@ from typing import Any
 
 from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, STATIC
 
-ALGOS = ("ddpg", "td3", "sac", "ppo")
+STUDY_ALGOS = ("ddpg", "td3", "sac", "ppo")
+"""The study's algorithms: what ``bench`` and ``shaping`` train unless told otherwise."""
+ALGOS = (*STUDY_ALGOS, "recurrent-ppo")
+"""Every algorithm ``train`` knows: the study's and sb3-contrib's RecurrentPPO (an LSTM policy)."""
 PRESETS = ("thesis", "tuned")
 NET_ARCH = (100, 100)
 
@@ -172,7 +175,21 @@ class PPOConfig:
     """``reward="shaped"``: potential per metre of way to the goal (:data:`train.rewards.SHAPING_GAIN`)."""
 
 
-AlgoConfig = DDPGConfig | TD3Config | SACConfig | PPOConfig
+@dataclass(frozen=True)
+class RecurrentPPOConfig(PPOConfig):
+    """sb3-contrib's RecurrentPPO: PPO whose actor and critic each read an LSTM's output (``net_arch`` is the
+    MLP after it). Its warm start clones the potential-field controller over whole demonstration episodes,
+    the LSTM state carried through each."""
+
+    softplus_std: bool = False
+    """SB3's state-independent log standard deviation (the study's softplus head has no recurrent form)."""
+    lstm_hidden_size: int = 64
+    """Units of each LSTM (its hidden and cell state: 2 x this many floats per layer on the controller)."""
+    n_lstm_layers: int = 1
+    """Stacked LSTM layers."""
+
+
+AlgoConfig = DDPGConfig | TD3Config | SACConfig | PPOConfig | RecurrentPPOConfig
 
 
 @dataclass(frozen=True)
@@ -217,6 +234,7 @@ def _preset(algo: str, name: str) -> AlgoConfig:
         "td3": TD3Config(),
         "sac": SACConfig(learning_rate=3e-4),
         "ppo": PPOConfig(),
+        "recurrent-ppo": RecurrentPPOConfig(),
     }
     if name == "thesis":
         return thesis[algo]
@@ -270,6 +288,10 @@ def _preset(algo: str, name: str) -> AlgoConfig:
             warm_start_demonstrations=100,
         ),
     }
+    # The same PPO with an LSTM in front of each network (its own sizes; the rest of PPO's tuning).
+    ppo = tuned["ppo"]
+    assert isinstance(ppo, PPOConfig)
+    tuned["recurrent-ppo"] = RecurrentPPOConfig(**{f.name: getattr(ppo, f.name) for f in fields(PPOConfig)})
     return tuned[algo]
 
 
@@ -293,6 +315,8 @@ AT_LEAST_ONE = (
     "train_freq",
     "policy_delay",
     "eval_episodes",
+    "lstm_hidden_size",
+    "n_lstm_layers",
 )
 """Counts that must be at least one."""
 

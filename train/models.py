@@ -536,18 +536,25 @@ if __name__ == "__main__":
     sys.exit(_convert(sys.argv[1:]))
 
 
-def load_model_policy(  # type: ignore[no-untyped-def]
+def load_model_policy(
     path: Path, trust_pickle: bool = False, vecnormalize: Path | None = None
-):
+) -> _OneObservation:
     """A trained SB3 model as a deterministic policy, with its normalisation statistics (``vecnormalize``,
     else found beside it; refused if they are missing or not the model's own).
 
     Nothing is unpickled unless ``trust_pickle`` (see :mod:`embedrl.train.sb3_archive`)."""
     if path.suffix != ".zip":
         raise UsageError(f"cannot evaluate {path}: give a Stable-Baselines3 model (.zip)")
-    loaded = load_sb3(path, vecnormalize, trust_pickle)
+    return _OneObservation(load_sb3(path, vecnormalize, trust_pickle))
 
-    def act(obs):  # type: ignore[no-untyped-def]
-        return loaded.predict(obs.reshape(1, -1))[0]
 
-    return act
+class _OneObservation:
+    """A loaded policy on one observation at a time; ``reset`` starts an episode (a recurrent policy's
+    zero state)."""
+
+    def __init__(self, loaded: LoadedPolicy) -> None:
+        self.loaded = loaded
+        self.reset = loaded.reset
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        return np.asarray(self.loaded.predict(obs.reshape(1, -1))[0], np.float32)

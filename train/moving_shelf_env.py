@@ -9,7 +9,7 @@ import numpy as np
 
 from embedrl.train import layout
 from embedrl.train.robot import ROBOT_LENGTH, ROBOT_WIDTH
-from embedrl.train.scenarios import MOVING_SHELF
+from embedrl.train.scenarios import MOVING_SHELF, MOVING_SHELF_PARTIAL
 from embedrl.train.warehouse_env import WarehouseRobotEnv
 from embedrl.train.world import Pose, ShelfMotion, World
 
@@ -115,12 +115,46 @@ class WarehouseMovingShelfEnv(WarehouseRobotEnv):
         shelf = self._world.shelf_rect()
         return () if shelf is None else (shelf,)
 
-    def _observe(self) -> np.ndarray:
+    def full_observation(self) -> np.ndarray:
+        """Everything the robot could observe: the observation of ``embedrl/WarehouseMovingShelf-v0``."""
         world = self._world
         assert world is not None and world.shelf is not None
         x, y, *rest = world.robot_state(0)
         shelf_x, shelf_vx = world.shelf_state()
-        return self._bounds.clip((x, y, *rest, shelf_x - x, world.shelf_y0 - y, shelf_vx))
+        return np.array((x, y, *rest, shelf_x - x, world.shelf_y0 - y, shelf_vx), dtype=np.float64)
+
+    def _observe(self) -> np.ndarray:
+        # The spec's fields, by name, from the full observation.
+        full = dict(zip((f.name for f in MOVING_SHELF.observation), self.full_observation(), strict=True))
+        return self._bounds.clip(tuple(full[f.name] for f in self.SPEC.observation))
+
+
+class WarehouseMovingShelfPartialEnv(WarehouseMovingShelfEnv):
+    """``embedrl/WarehouseMovingShelfPartial-v0``: the moving shelf, observed without its velocity.
+
+    Everything as ``embedrl/WarehouseMovingShelf-v0`` except the observation, which has the shelf's position
+    relative to the robot but not its velocity: from one observation a policy cannot tell which way the
+    shelf moves (a policy with memory can, from two).
+
+    ## Observation Space
+    ``Box(float32, (8,))``:
+
+    | Num | Observation                            | Min   | Max  | Unit  |
+    |-----|----------------------------------------|-------|------|-------|
+    | 0   | x, position along the shelves          | -1.8  | 1.8  | m     |
+    | 1   | y, position across the shelves         | -0.15 | 1.3  | m     |
+    | 2   | sin(theta), heading (0 = along +x)     | -1    | 1    |       |
+    | 3   | cos(theta)                             | -1    | 1    |       |
+    | 4   | v, forward speed                       | -0.7  | 0.7  | m/s   |
+    | 5   | w, turn rate (counter-clockwise)       | -2.0  | 2.0  | rad/s |
+    | 6   | moving shelf centre x minus robot x    | -4.7  | 4.7  | m     |
+    | 7   | moving shelf lower edge y minus robot y | -0.8  | 0.95 | m     |
+
+    ## Version History
+    - v0: initial version.
+    """
+
+    SPEC = MOVING_SHELF_PARTIAL
 
 
 def _fair_start(x: float, y0: float, vx: float, pose: Pose) -> bool:

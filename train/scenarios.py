@@ -71,6 +71,21 @@ MOVING_SHELF = Interface(
 """The study's changing environment: the upper shelf moves along the aisle
 (``embedrl/WarehouseMovingShelf-v0``); the robot also observes where the shelf is and how fast it moves."""
 
+MOVING_SHELF_PARTIAL_ENV_ID = "embedrl/WarehouseMovingShelfPartial-v0"
+
+MOVING_SHELF_PARTIAL = Interface(
+    name="moving-shelf-partial",
+    env_id=MOVING_SHELF_PARTIAL_ENV_ID,
+    observation=STATIC.observation + tuple(f for f in _SHELF_FIELDS if f.name != "shelf_vx"),
+    action=STATIC.action,
+    sample_time_s=SAMPLE_TIME,
+    safe_action=STATIC.safe_action,
+    max_steps=STATIC.max_steps,
+)
+"""The moving shelf, partially observed: where the shelf is, not how fast or which way it moves
+(``embedrl/WarehouseMovingShelfPartial-v0``). One observation cannot tell the shelf's direction; a policy
+with memory can, from two."""
+
 TWO_ROBOTS_ENV_ID = "embedrl/WarehouseTwoRobots-v0"
 _SPAN_X = 2 * layout.ARENA_HALF_WIDTH
 _SPAN_Y = layout.ARENA_TOP - layout.GOAL_Y
@@ -95,7 +110,7 @@ TWO_ROBOTS = Interface(
 """The study's two robots through one gap; this is one robot's interface (each robot runs its own copy of
 the policy, on its own node)."""
 
-SCENARIOS = {spec.name: spec for spec in (STATIC, MOVING_SHELF, TWO_ROBOTS)}
+SCENARIOS = {spec.name: spec for spec in (STATIC, MOVING_SHELF, TWO_ROBOTS, MOVING_SHELF_PARTIAL)}
 """Every scenario by name, the first the default; names, observation sizes and help come from here."""
 BY_ENV_ID = {spec.env_id: spec for spec in SCENARIOS.values()}
 DEFAULT_SCENARIO = STATIC.name
@@ -103,13 +118,19 @@ SUMMARIES = {
     STATIC.name: "one robot, three fixed shelves",
     MOVING_SHELF.name: "the upper shelf moves along the aisle",
     TWO_ROBOTS.name: "two robots through one gap, one policy drives both",
+    MOVING_SHELF_PARTIAL.name: "the moving shelf seen without its velocity (memory needed)",
 }
 """One line per scenario, for help texts and plot titles (a test ties the keys to :data:`SCENARIOS`)."""
 
 
 SHELF_FIELDS = tuple(f.name for f in _SHELF_FIELDS)
-"""A scenario whose observation has these fields has the moving shelf (the controller and the plots read
-them by name, in this order: dx, dy, vx)."""
+"""The moving shelf's fields (the controller reads them by name, in this order: dx, dy, vx)."""
+SHELF_POSITION_FIELDS = SHELF_FIELDS[:2]
+"""A scenario whose observation has these fields has the moving shelf (the plots draw it)."""
+TEACHERS = {MOVING_SHELF_PARTIAL.name: MOVING_SHELF.name}
+"""Scenarios whose potential-field demonstrations see more than the learner: the controller of the named
+scenario drives on the env's full observation (:meth:`~train.moving_shelf_env.WarehouseMovingShelfEnv.
+full_observation`), the learner records its own."""
 OTHER_ROBOT_FIELDS = ("other_dx", "other_dy", "other_present")
 """A scenario whose observation has these fields has a second robot, driven by its own copy of the policy."""
 
@@ -123,7 +144,7 @@ def field_indices(spec: Interface, names: tuple[str, ...]) -> tuple[int, ...] | 
 def has_moving_shelf(env_id: str) -> bool:
     """Whether the scenario of ``env_id`` has the moving shelf (False for an env without a spec)."""
     spec = BY_ENV_ID.get(env_id)
-    return spec is not None and field_indices(spec, SHELF_FIELDS) is not None
+    return spec is not None and field_indices(spec, SHELF_POSITION_FIELDS) is not None
 
 
 def scenario_help() -> str:

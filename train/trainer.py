@@ -24,6 +24,7 @@ updates. Killed and resumed, a run ends bit-identical to the same run uninterrup
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import os
 import pickle
@@ -37,6 +38,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 import torch
+from sb3_contrib import RecurrentPPO
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import BaseCallback
@@ -52,6 +54,7 @@ from embedrl.train.config import (
     Budget,
     DDPGConfig,
     PPOConfig,
+    RecurrentPPOConfig,
     RunConfig,
     SACConfig,
     TD3Config,
@@ -64,7 +67,7 @@ from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
 from embedrl.train.portable import machine
 from embedrl.train.rewards import SHAPING_GAIN, SUCCESS_BONUS, check_options
-from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TWO_ROBOTS
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TEACHERS, TWO_ROBOTS
 from embedrl.train.study_agents import (
     SeparateRatesDDPG,
     SoftplusActorCriticPolicy,
@@ -82,7 +85,13 @@ STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
 STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
-CLASSES: dict[str, type[BaseAlgorithm]] = {"ddpg": SeparateRatesDDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
+CLASSES: dict[str, type[BaseAlgorithm]] = {
+    "ddpg": SeparateRatesDDPG,
+    "td3": TD3,
+    "sac": SAC,
+    "ppo": PPO,
+    "recurrent-ppo": RecurrentPPO,
+}
 EVALUATIONS_FILE = "evaluations.csv"
 EVALUATION_FIELDS = ("steps", "success_rate", "mean_return")
 """evaluations.csv: one row per validation evaluation."""
@@ -141,8 +150,13 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
             "activation_fn": torch.nn.ReLU,
             "log_std_init": cfg.log_std_init,
         }
-        return PPO(
-            SoftplusActorCriticPolicy if cfg.softplus_std else "MlpPolicy",
+        algorithm: Any = PPO
+        policy: Any = SoftplusActorCriticPolicy if cfg.softplus_std else "MlpPolicy"
+        if isinstance(cfg, RecurrentPPOConfig):
+            kwargs.update(lstm_hidden_size=cfg.lstm_hidden_size, n_lstm_layers=cfg.n_lstm_layers)
+            algorithm, policy = RecurrentPPO, "MlpLstmPolicy"
+        return algorithm(  # type: ignore[no-any-return]
+            policy,
             env,
             n_steps=cfg.n_steps,
             batch_size=cfg.batch_size,
@@ -211,7 +225,8 @@ def _demonstration_steps(
     for two robots, the training vector env itself (absorbing rows included), seeded once."""
     from embedrl.train.potential_field import PotentialFieldController
 
-    controller = PotentialFieldController(scenario=scenario)
+    teacher = TEACHERS.get(scenario)  # the controller sees the full observation, the learner its own
+    controller = PotentialFieldController(scenario=teacher or scenario)
     rng = np.random.default_rng(seed)
     first = DEMONSTRATION_SEED + 1000 * seed
     if scenario == TWO_ROBOTS.name:
@@ -236,7 +251,7 @@ def _demonstration_steps(
         o, _ = env.reset(seed=first + episode)
         done = False
         while not done:
-            c = controller(o)
+            c = controller(env.unwrapped.full_observation() if teacher else o)  # type: ignore[attr-defined]
             action = np.clip(c + rng.normal(0.0, noise, 2), -1.0, 1.0).astype(np.float32)
             next_o, reward, terminated, truncated, _ = env.step(action)
             done = terminated or truncated
@@ -268,19 +283,28 @@ def seed_replay_buffer(
 
 def _demonstrations(
     episodes: int, noise: float, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: Any = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Observations visited with noisy potential-field actions, labelled with its clean actions."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations visited with noisy potential-field actions, labelled with its clean actions, and
+    whether each starts an episode."""
     observations: list[np.ndarray] = []
     labels: list[np.ndarray] = []
-    for obs, clean, *_ in _demonstration_steps(episodes, noise, seed, scenario, cfg):
+    starts: list[bool] = []
+    start = True
+    for obs, clean, _, _, _, dones, _ in _demonstration_steps(episodes, noise, seed, scenario, cfg):
         live = np.any(obs != 0.0, axis=1)  # not the absorbing rows of robots already through
         observations.extend(obs[live])
         labels.extend(clean[live])
-    return np.array(observations, dtype=np.float32), np.array(labels, dtype=np.float32)
+        starts.extend([start] * int(live.sum()))
+        start = bool(np.all(dones))
+    return (
+        np.array(observations, dtype=np.float32),
+        np.array(labels, dtype=np.float32),
+        np.array(starts, dtype=bool),
+    )
 
 
 def warm_start(
-    model: PPO,
+    model: PPO | RecurrentPPO,
     env: VecEnv,
     episodes: int,
     epochs: int,
@@ -289,7 +313,7 @@ def warm_start(
     cfg: Any = None,
 ) -> float:
     """Behaviour-clone the potential-field controller into PPO's policy mean; return the final loss."""
-    obs, labels = _demonstrations(episodes, 0.2, seed, scenario, cfg)
+    obs, labels, starts = _demonstrations(episodes, 0.2, seed, scenario, cfg)
     if isinstance(env, VecNormalize):
         rms: Any = env.obs_rms
         rms.mean, rms.var, rms.count = (
@@ -303,6 +327,8 @@ def warm_start(
     optimizer = torch.optim.Adam(policy.parameters(), lr=1e-3)
     generator = torch.Generator().manual_seed(seed)
     loss = torch.zeros(())
+    if isinstance(model, RecurrentPPO):
+        return _clone_sequences(policy, optimizer, x, y, starts, epochs, generator)
     for _ in range(epochs):
         order = torch.randperm(len(x), generator=generator)
         for start in range(0, len(x), 256):
@@ -315,11 +341,54 @@ def warm_start(
     return float(loss.detach())
 
 
+SEQUENCES_PER_BATCH = 16
+"""Demonstration episodes per gradient step when cloning into an LSTM policy."""
+
+
+def _clone_sequences(
+    policy: Any,
+    optimizer: torch.optim.Optimizer,
+    x: torch.Tensor,
+    y: torch.Tensor,
+    starts: np.ndarray,
+    epochs: int,
+    generator: torch.Generator,
+) -> float:
+    """Behaviour cloning into a recurrent policy: each demonstration episode a sequence from zero state,
+    padded to the longest, the loss over real steps only; return the final loss."""
+    bounds = [*np.flatnonzero(starts), len(starts)]
+    episodes = [(a, b) for a, b in itertools.pairwise(bounds)]
+    length = max(b - a for a, b in episodes)
+    lstm = policy.lstm_actor
+    loss = torch.zeros(())
+    for _ in range(epochs):
+        order = torch.randperm(len(episodes), generator=generator).tolist()
+        for first in range(0, len(order), SEQUENCES_PER_BATCH):
+            chosen = [episodes[i] for i in order[first : first + SEQUENCES_PER_BATCH]]
+            seq = torch.zeros(length, len(chosen), x.shape[1])
+            target = torch.zeros(length, len(chosen), y.shape[1])
+            mask = torch.zeros(length, len(chosen), 1)
+            for k, (a, b) in enumerate(chosen):
+                seq[: b - a, k], target[: b - a, k], mask[: b - a, k] = x[a:b], y[a:b], 1.0
+            features = policy.extract_features(seq.reshape(-1, x.shape[1]), policy.pi_features_extractor)
+            out, _ = lstm(features.reshape(length, len(chosen), -1))  # zero state: each an episode start
+            latent = policy.mlp_extractor.forward_actor(out.reshape(length * len(chosen), -1))
+            mean = policy.action_net(latent).reshape(length, len(chosen), -1)
+            loss = ((mean - target) ** 2 * mask).sum() / (mask.sum() * y.shape[1])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+    return float(loss.detach())
+
+
 def q0(model: BaseAlgorithm, obs: np.ndarray) -> float:
     """The critic's estimate of a state's value (MATLAB's Episode Q0)."""
     with torch.no_grad():
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32).reshape(1, -1))
         policy: Any = model.policy
+        if isinstance(model, RecurrentPPO):  # an episode's first state: zero LSTM state
+            zero = torch.zeros(policy.lstm_hidden_state_shape[0], 1, policy.lstm_hidden_state_shape[2])
+            return float(policy.predict_values(x, (zero, zero), torch.ones(1))[0, 0])
         if isinstance(model, PPO):
             return float(policy.predict_values(x)[0, 0])
         action = policy.actor(x, deterministic=True) if isinstance(model, SAC) else policy.actor(x)
@@ -543,7 +612,11 @@ class _Run:
         model = self.model
         if isinstance(model, OffPolicyAlgorithm) and not isinstance(cfg, PPOConfig) and cfg.demonstrations:
             seed_replay_buffer(model, cfg.demonstrations, cfg.demonstration_noise, seed, scenario, cfg)
-        if isinstance(model, PPO) and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
+        if (
+            isinstance(model, PPO | RecurrentPPO)
+            and isinstance(cfg, PPOConfig)
+            and cfg.warm_start_demonstrations
+        ):
             warm_start(
                 model, self.env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed, scenario, cfg
             )
@@ -748,12 +821,31 @@ def _restore_random(saved: dict[str, Any], model: BaseAlgorithm) -> None:
     model.action_space.np_random.bit_generator.state = saved["action_space"]
 
 
-def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.ndarray]:
-    def act(obs: np.ndarray) -> np.ndarray:
-        x = env.normalize_obs(obs) if isinstance(env, VecNormalize) else obs
-        return np.asarray(model.predict(x, deterministic=True)[0], dtype=np.float32)
+class _ModelPolicy:
+    """A model's deterministic action on raw observations, normalised as in training; a recurrent model
+    carries its LSTM state through an episode (``reset`` at each start: :func:`evaluate.start_episode`)."""
 
-    return act
+    def __init__(self, model: BaseAlgorithm, env: VecEnv) -> None:
+        self.model, self.env = model, env
+        self.state: Any = None
+        self.start = True
+
+    def reset(self) -> None:
+        self.state, self.start = None, True
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        x = self.env.normalize_obs(obs) if isinstance(self.env, VecNormalize) else obs
+        if not isinstance(self.model, RecurrentPPO):
+            return np.asarray(self.model.predict(x, deterministic=True)[0], dtype=np.float32)
+        action, self.state = self.model.predict(
+            x, self.state, episode_start=np.array([self.start]), deterministic=True
+        )
+        self.start = False
+        return np.asarray(action, dtype=np.float32)
+
+
+def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.ndarray]:
+    return _ModelPolicy(model, env)
 
 
 def _warmup_steps(cfg: Any) -> int:
