@@ -388,7 +388,7 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
         loaded.model = append_clamp(loaded.model, act_space.low, act_space.high)
         graph = to_ir(loaded.model)
     if interface is not None:
-        interface = interface.with_safe_action(opts.safe_action)
+        interface = interface.with_safe_action(opts.safe_action).with_state_size(graph.state_size)
         (staging / INTERFACE_FILE).write_text(interface.dumps())
         loaded.files[INTERFACE_FILE] = staging / INTERFACE_FILE
         _set_metadata(loaded.model, INTERFACE_METADATA_KEY, interface.dumps())

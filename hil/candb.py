@@ -7,6 +7,9 @@ Layout (classic CAN, 8-byte frames, every frame E2E protected, see :mod:`hil.e2e
   the interface's order;
 - ``Action`` (0x200; ``ActionA, B, ...`` from 0x200 if there are more than two actions, node ->
   simulator): the same header, ``Step`` echoing the observation it answers, two action fields per frame;
+- ``EpisodeStart`` (observation ID + 0x1F, simulator -> node; only for a policy with memory, whose interface
+  has a ``state_size``): ``Crc``, ``Counter`` and the ``Step`` the new episode starts at; the node resets
+  the policy's state to zero (as it does at start-up and whenever it enters SAFE);
 - ``NodeStatus`` (0x300, node -> simulator, every :data:`STATUS_PERIOD_MS`, the DBC's cycle time): RUN or
   SAFE and the node's error counters;
 - ``NodeDiag`` (0x301, node -> simulator, same cycle): the CAN controller's bus state and the counters of
@@ -53,6 +56,8 @@ ACTION_FIRST_ID = 0x200
 STATUS_ID = 0x300
 DIAG_ID = 0x301
 MAX_NODES = 8
+EPISODE_START_OFFSET = 0x1F
+"""EpisodeStart's ID after the node's first observation ID (beyond the most observation frames)."""
 """Nodes on one bus: node ``k``'s observation and action IDs are node 0's plus ``k`` * :data:`NODE_STRIDE`,
 its NodeStatus and NodeDiag ``0x300 + 2k`` and ``0x301 + 2k``. Node 0's are the IDs above."""
 NODE_STRIDE = 0x20
@@ -185,6 +190,12 @@ def layout(interface: Interface, node_id: int = 0, fd: bool = False) -> Layout:
     )
 
 
+def episode_start_id(node_id: int = 0) -> int:
+    """The CAN ID of node ``node_id``'s EpisodeStart (a policy with memory only)."""
+    _check_node_id(node_id)
+    return OBSERVATION_FIRST_ID + node_id * NODE_STRIDE + EPISODE_START_OFFSET
+
+
 def status_id(node_id: int = 0) -> int:
     """NodeStatus of node ``node_id`` (its NodeDiag is the next ID)."""
     _check_node_id(node_id)
@@ -273,6 +284,17 @@ def node_messages(
                     is_fd=fd,
                 )
             )
+    if interface.state_size:
+        messages.append(
+            Message(
+                episode_start_id(node_id),
+                "EpisodeStart" + suffix,
+                FRAME_BYTES,
+                _header(ecu, "Step of the episode's first observation"),
+                senders=[SIMULATOR],
+                comment=f"A new episode: the policy's {interface.state_size} floats of recurrent state to zero",
+            )
+        )
     status = [
         Signal("Crc", 0, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
         Signal("Counter", 8, 4, receivers=[SIMULATOR], minimum=0, maximum=15),
@@ -397,6 +419,8 @@ def _glue_header(banner: str, interface: Interface, plan: Layout) -> str:
 #define POLICY_IO_MAX_NODES {MAX_NODES}u
 #define POLICY_IO_NODE_STRIDE 0x{NODE_STRIDE:X}u /* node k: observation and action IDs + k * stride */
 #define POLICY_IO_STATUS_STRIDE 2u /* node k: NodeStatus and NodeDiag IDs + 2k */
+#define POLICY_IO_EPISODE_START {int(bool(interface.state_size))} /* 1: the policy has memory; EpisodeStart resets it */
+#define POLICY_IO_EPISODE_START_OFFSET 0x{EPISODE_START_OFFSET:X}u /* its ID: the first observation ID + this */
 #define POLICY_IO_FRAME_BYTES {plan.frame_bytes}u
 #define POLICY_IO_FD {int(plan.fd)} /* 1: observation and action frames are CAN FD */
 #define POLICY_IO_STEP_MODULO {STEP_MODULO}u

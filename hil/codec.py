@@ -117,6 +117,16 @@ class Codec:
                 decoded[s.index] = back[s.signal]
         return frames, decoded
 
+    def encode_episode_start(self, step: int) -> list[can.Message]:
+        """The EpisodeStart frame for an episode whose first observation has ``step`` (none for a policy
+        without memory: its database has no such message)."""
+        if not self.interface.state_size:
+            return []
+        message = self.db.get_message_by_name("EpisodeStart")
+        payload = {"Crc": 0, "Counter": self.next_counter(message.name), "Step": step % STEP_MODULO}
+        data = e2e.protect(message.frame_id, message.encode(payload, scaling=True, strict=False))
+        return [can.Message(arbitration_id=message.frame_id, data=data, is_extended_id=False)]
+
     def _checked(self, msg: can.Message) -> dict[str, Any] | None:
         data = bytes(msg.data)
         if not e2e.crc_ok(msg.arbitration_id, data):

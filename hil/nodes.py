@@ -25,6 +25,7 @@ from cantools.database.can.c_source import camel_to_snake_case
 
 from embedrl.hil import candb, e2e
 from embedrl.hil.codec import decode_fields
+from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import Interface
 
 STOP_TIMEOUT_S = 5.0
@@ -121,6 +122,7 @@ class PythonNode(Node):
         self.recover = recover
         self.safe = np.asarray(interface.safe_action, dtype=np.float32)
         self.obs_ids = [frame_id for _, frame_id, _ in self.plan.observation]
+        self.episode_start_id = candb.episode_start_id(node_id) if interface.state_size else None
         self._start()
 
     def _start(self) -> None:
@@ -133,8 +135,10 @@ class PythonNode(Node):
             raise
 
     def _prepare(self) -> None:
-        self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in self.obs_ids])
-        self.rx = {frame_id: e2e.Receiver() for frame_id in self.obs_ids}
+        listen = [*self.obs_ids, *([self.episode_start_id] if self.episode_start_id is not None else [])]
+        self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in listen])
+        self.rx = {frame_id: e2e.Receiver() for frame_id in listen}
+        start_episode(self.policy)  # a started node's policy has zero state
         self.tx_counters: dict[int, int] = {}
         self.state = "RUN"
         self.counts = dict.fromkeys(
@@ -234,6 +238,7 @@ class PythonNode(Node):
         if self.armed and self.state == "RUN" and now - self.last_valid >= self.timeout_s:
             self.counts["timeouts"] += 1
             self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
+            start_episode(self.policy)  # the safe state forgets the policy's memory
             self.step_reference = False  # a sender that comes back may have restarted its steps
             self._send_action(self.safe, self.last_step)
             self._send_status()
@@ -251,6 +256,9 @@ class PythonNode(Node):
 
     def _on_frame(self, msg: can.Message, now: float) -> None:
         self._check_watchdog(now)  # a frame handled after the deadline is late, polled or not
+        if msg.arbitration_id == self.episode_start_id and not msg.is_extended_id:
+            self._on_episode_start(msg)
+            return
         if msg.is_extended_id or msg.arbitration_id not in self.rx or msg.dlc != self.plan.frame_bytes:
             return  # not an observation frame: the C node counts it as rejected
         data = bytes(msg.data)
@@ -287,6 +295,19 @@ class PythonNode(Node):
         if len(self.pending_parts) == len(self.obs_ids):
             self._complete(step, now)
 
+    def _on_episode_start(self, msg: can.Message) -> None:
+        """An E2E-valid EpisodeStart resets the policy's state (as ``node_on_frame``)."""
+        data = bytes(msg.data)
+        if msg.dlc != candb.FRAME_BYTES or not e2e.crc_ok(msg.arbitration_id, data):
+            self.counts["crc_errors"] += 1
+            return
+        fields = decode_fields(self.db.get_message_by_frame_id(msg.arbitration_id), data)
+        verdict = self.rx[msg.arbitration_id].check(int(fields["Counter"]))
+        if verdict in ("repeated", "wrong_sequence"):
+            self.counts["sequence_errors"] += 1
+            return
+        start_episode(self.policy)
+
     def _complete(self, step: int, now: float) -> None:
         self.pending_step, self.pending_parts = None, set()
         ahead = (step - self.last_step) % candb.STEP_MODULO
@@ -310,6 +331,7 @@ class PythonNode(Node):
                 # the node never acts on numbers it did not check: the safe action, SAFE, counted
                 self.counts["action_faults"] += 1
                 self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
+                start_episode(self.policy)
                 self._send_action(self.safe, step)
                 self._send_status()
                 self.last_step = step

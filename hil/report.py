@@ -94,14 +94,20 @@ def _simulated_policy(options: RunOptions, interface: Interface) -> Callable[[np
     from embedrl.export.reference import reference_policy
     from embedrl.hil.nodes import action_ok
 
+    from embedrl.train.evaluate import start_episode
+
     reference = reference_policy(options.export_dir)  # the export's precision: float, int8, q15
     safe = np.asarray(interface.safe_action, dtype=np.float32)
 
-    def simulated(obs: np.ndarray) -> np.ndarray:
-        out = reference(obs.reshape(1, -1)).reshape(-1)
-        return out if action_ok(out, interface) else safe
+    class Simulated:
+        def __call__(self, obs: np.ndarray) -> np.ndarray:
+            out = reference(obs.reshape(1, -1)).reshape(-1)
+            return out if action_ok(out, interface) else safe
 
-    return simulated
+        def reset(self) -> None:  # a policy with memory: each episode from zero state, as on the node
+            start_episode(reference)
+
+    return Simulated()
 
 
 def _simulation(

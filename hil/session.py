@@ -30,16 +30,15 @@ from typing import Any
 import can
 import gymnasium as gym
 import numpy as np
-import onnxruntime as ort
 
-from embedrl.export.reference import reference_policy
+from embedrl.export.reference import OnnxPolicy, reference_policy
 from embedrl.hil import candb
 from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.firmware import FirmwareNode, instruction_summary
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
-from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode
+from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
 from embedrl.train.interface import NO_ENV, Interface
 from embedrl.train.scenarios import TWO_ROBOTS
 
@@ -103,9 +102,7 @@ def _session_policy(cfg: SessionConfig) -> Callable[[np.ndarray], np.ndarray]:
     """The batch policy the node must reproduce: the export's reference for its precision, or the ONNX."""
     if cfg.export_dir is not None:
         return reference_policy(Path(cfg.export_dir))
-    session = ort.InferenceSession(cfg.onnx, providers=["CPUExecutionProvider"])
-    name = session.get_inputs()[0].name
-    return lambda obs: np.asarray(session.run(None, {name: np.asarray(obs, np.float32)})[0])
+    return OnnxPolicy(Path(cfg.onnx))
 
 
 class NodeFault(Exception):
@@ -153,8 +150,12 @@ class BusPolicy:
         self.pending = []
 
     def begin_episode(self) -> None:
+        """A new episode: a policy with memory starts from zero state on both sides of the bus (the node on
+        its EpisodeStart frame)."""
         self.episode += 1
         self.in_episode = 0
+        start_episode(self.reference)
+        self.link.send(self.link.codec.encode_episode_start(self.step))
         if self.cfg.realtime:
             self.link.stats.step_starts.append([])
 
@@ -449,7 +450,8 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
             cfg.node_binary, cfg.qemu_machine,
             lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
             Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
-            [frame_id for _, frame_id, _ in plan.observation],
+            [frame_id for _, frame_id, _ in plan.observation]
+            + ([candb.episode_start_id(node_id)] if interface.state_size else []),
         )  # fmt: skip
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
 

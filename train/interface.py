@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -19,6 +19,8 @@ import numpy as np
 NAME = re.compile(r"[a-z][a-z0-9_]*")
 """Field names are lower-case identifiers: they become C macros and CAN signal names."""
 FORMAT_VERSION = 1
+MAX_STATE_SIZE = 65_536
+"""The most floats of recurrent state an interface may declare."""
 INTERFACE_FILE = "interface.json"
 """An export's interface, beside its ``policy.onnx`` and ``c/``."""
 NO_ENV = ""
@@ -62,6 +64,9 @@ class Interface:
     """What the deployed node applies when it cannot trust its input (watchdog, bad values)."""
     max_steps: int
     """Episodes end (truncated) after this many steps."""
+    state_size: int = 0
+    """Floats of recurrent state the policy carries between steps (0: none). A policy with memory gets an
+    episode-start message on the bus, which resets its state."""
 
     def __post_init__(self) -> None:
         for kind, fields in (("observation", self.observation), ("action", self.action)):
@@ -89,6 +94,8 @@ class Interface:
                 raise InterfaceError(f"{self.name}: safe action {f.name}={v} is outside [{f.low}, {f.high}]")
         if not (self.sample_time_s > 0 and self.max_steps > 0):
             raise InterfaceError(f"{self.name}: sample time and step limit must be positive")
+        if not 0 <= self.state_size <= MAX_STATE_SIZE:
+            raise InterfaceError(f"{self.name}: state size {self.state_size} is outside 0..{MAX_STATE_SIZE}")
 
     @property
     def obs_low(self) -> np.ndarray:
@@ -118,10 +125,18 @@ class Interface:
             self.sample_time_s,
             tuple(safe),
             self.max_steps,
+            self.state_size,
         )
 
+    def with_state_size(self, state_size: int) -> Interface:
+        """This interface for a policy that carries ``state_size`` floats between steps."""
+        return replace(self, state_size=state_size)
+
     def to_json(self) -> dict[str, Any]:
-        return {"format": FORMAT_VERSION, **asdict(self)}
+        data = asdict(self)
+        if not self.state_size:  # a policy without memory: the same file as before memory existed
+            del data["state_size"]
+        return {"format": FORMAT_VERSION, **data}
 
     def dumps(self) -> str:
         """Canonical JSON text (sorted keys): the same interface always gives the same bytes."""
@@ -141,6 +156,7 @@ class Interface:
                 float(data["sample_time_s"]),
                 tuple(float(v) for v in data["safe_action"]),
                 int(data["max_steps"]),
+                int(data.get("state_size", 0)),
             )
         except (AttributeError, KeyError, TypeError, ValueError) as exc:
             if isinstance(exc, InterfaceError):

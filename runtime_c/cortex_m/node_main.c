@@ -79,11 +79,9 @@ int main(void)
     paint_stack();
     clock_init();
     const node_config config = {NODE_TIMEOUT_MS, NODE_RECOVER, POLICY_IO_STATUS_PERIOD_MS, NODE_ID};
-    uint32_t ids[POLICY_IO_OBS_FRAMES];
-    for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
-        ids[k] = POLICY_IO_OBS_FIRST_ID + config.node_id * POLICY_IO_NODE_STRIDE + k;
-    }
-    if (transport_open("uart0", ids, POLICY_IO_OBS_FRAMES, POLICY_IO_FD) != 0) {
+    uint32_t ids[NODE_RX_IDS];
+    node_receive_ids(config.node_id, ids);
+    if (transport_open("uart0", ids, NODE_RX_IDS, POLICY_IO_FD) != 0) {
         diag_write("E ");
         diag_write(transport_error());
         diag_write("\n");

@@ -41,7 +41,7 @@ static void reopen(node_t *node, const char *iface, const uint32_t *ids)
     fprintf(stderr, "policy_node: CAN interface %s failed; SAFE until it is back\n", iface);
     transport_close();
     node_link_lost(node, clock_ms());
-    while (!stop && transport_open(iface, ids, POLICY_IO_OBS_FRAMES, POLICY_IO_FD) != 0) {
+    while (!stop && transport_open(iface, ids, NODE_RX_IDS, POLICY_IO_FD) != 0) {
         (void)node_poll(node, clock_ms()); /* status and safe action go nowhere: counted as send failures */
         sleep_ms(REOPEN_MS);
     }
@@ -107,11 +107,9 @@ int main(int argc, char **argv)
     sa.sa_handler = on_signal;
     sigaction(SIGTERM, &sa, NULL);
     sigaction(SIGINT, &sa, NULL);
-    uint32_t ids[POLICY_IO_OBS_FRAMES];
-    for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
-        ids[k] = POLICY_IO_OBS_FIRST_ID + config.node_id * POLICY_IO_NODE_STRIDE + k;
-    }
-    if (transport_open(iface, ids, POLICY_IO_OBS_FRAMES, POLICY_IO_FD) != 0) {
+    uint32_t ids[NODE_RX_IDS];
+    node_receive_ids(config.node_id, ids);
+    if (transport_open(iface, ids, NODE_RX_IDS, POLICY_IO_FD) != 0) {
         fprintf(stderr, "policy_node: %s\n", transport_error());
         return 1;
     }

@@ -22,6 +22,24 @@ static uint32_t saturate(uint32_t value, uint32_t max)
     return value > max ? max : value;
 }
 
+/* The policy's recurrent state back to zero (nothing to do for a policy without memory). */
+static void reset_policy(node_t *node)
+{
+    policy_reset();
+    node->policy_resets++;
+}
+
+void node_receive_ids(uint32_t node_id, uint32_t ids[NODE_RX_IDS])
+{
+    const uint32_t first = POLICY_IO_OBS_FIRST_ID + node_id * POLICY_IO_NODE_STRIDE;
+    for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
+        ids[k] = first + k;
+    }
+#if POLICY_IO_EPISODE_START
+    ids[POLICY_IO_OBS_FRAMES] = first + POLICY_IO_EPISODE_START_OFFSET;
+#endif
+}
+
 void node_init(node_t *node, const node_config *config, uint32_t now_ms)
 {
     (void)memset(node, 0, sizeof *node);
@@ -33,6 +51,7 @@ void node_init(node_t *node, const node_config *config, uint32_t now_ms)
     node->last_valid_ms = now_ms;
     node->last_safe_ms = now_ms;
     node->next_status_ms = now_ms;
+    reset_policy(node); /* a started (or restarted) node's policy has zero state */
 }
 
 static void send_frame(node_t *node, const can_frame_t *frame)
@@ -92,6 +111,7 @@ static void send_status(node_t *node)
 
 static void enter_safe(node_t *node, uint32_t now_ms)
 {
+    reset_policy(node); /* the safe state forgets the policy's memory: it restarts from zero */
     node->state = NODE_SAFE;
     node->consecutive_valid = 0;
     node->last_safe_ms = now_ms;
@@ -135,6 +155,7 @@ static void complete_observation(node_t *node, uint32_t now_ms)
         } else {
             /* the status code alone is not trusted: the numbers themselves are checked */
             node->action_faults++;
+            reset_policy(node);
             node->state = NODE_SAFE;
             node->consecutive_valid = 0;
             node->last_safe_ms = now_ms;
@@ -154,10 +175,35 @@ static void check_watchdog(node_t *node, uint32_t now_ms)
     }
 }
 
+#if POLICY_IO_EPISODE_START
+/* EpisodeStart: E2E-checked, then the policy's state to zero for the episode's first observation. */
+static void on_episode_start(node_t *node, const can_frame_t *frame)
+{
+    if (frame->len != POLICY_DBC_EPISODE_START_LENGTH || !e2e_crc_ok(frame->id, frame->data, frame->len)) {
+        node->crc_errors++;
+        return;
+    }
+    struct policy_dbc_episode_start_t msg;
+    (void)policy_dbc_episode_start_unpack(&msg, frame->data, frame->len);
+    e2e_status status = e2e_check_counter(&node->episode_rx, msg.counter);
+    if (status != E2E_OK && status != E2E_OK_SOME_LOST && status != E2E_OK_RESYNC) {
+        node->sequence_errors++; /* a replayed EpisodeStart resets nothing */
+        return;
+    }
+    reset_policy(node);
+}
+#endif
+
 void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
 {
     /* A frame handled after the deadline is late whether or not the poll saw the deadline pass first. */
     check_watchdog(node, now_ms);
+#if POLICY_IO_EPISODE_START
+    if (frame->id == node->obs_first_id + POLICY_IO_EPISODE_START_OFFSET) {
+        on_episode_start(node, frame);
+        return;
+    }
+#endif
     if (frame->id < node->obs_first_id || frame->id >= node->obs_first_id + POLICY_IO_OBS_FRAMES ||
         frame->len != POLICY_IO_FRAME_BYTES) {
         node->rejected++; /* not ours: another node's frame is never applied */
@@ -232,6 +278,7 @@ uint32_t node_poll(node_t *node, uint32_t now_ms)
 
 void node_link_lost(node_t *node, uint32_t now_ms)
 {
+    reset_policy(node);
     node->link_resets++;
     node->state = NODE_SAFE;
     node->consecutive_valid = 0;

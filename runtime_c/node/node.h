@@ -64,9 +64,11 @@ typedef struct {
     uint32_t resyncs;       /* alive-counter re-synchronisations */
     uint32_t send_failures; /* frames the transport refused */
     uint32_t link_resets;   /* times the interface failed and was re-opened */
+    uint32_t policy_resets; /* policy_reset calls: start-up, SAFE, EpisodeStart (a policy with memory) */
     node_bus_state bus_state;
     uint32_t actions_sent;
     e2e_receiver rx[POLICY_IO_OBS_FRAMES];
+    e2e_receiver episode_rx; /* EpisodeStart's alive counter (a policy with memory) */
     /* observation being assembled */
     bool pending_valid;
     uint16_t pending_step;
@@ -83,6 +85,11 @@ typedef struct {
     uint8_t status_counter;
     uint8_t diag_counter;
 } node_t;
+
+/* The CAN IDs node `node_id` receives: its observation frames and, for a policy with memory, its
+ * EpisodeStart. */
+#define NODE_RX_IDS (POLICY_IO_OBS_FRAMES + POLICY_IO_EPISODE_START)
+void node_receive_ids(uint32_t node_id, uint32_t ids[NODE_RX_IDS]);
 
 void node_init(node_t *node, const node_config *config, uint32_t now_ms);
 

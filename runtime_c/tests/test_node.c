@@ -303,6 +303,27 @@ static void test_watchdog_safe_and_recovery(void)
     CHECK(node.state == NODE_RUN && last_action(act, &step) && step == 20 && fabsf(act[0] - 0.5f) < 4e-6f);
 }
 
+static void test_the_policy_memory_is_reset_at_start_up_and_in_the_safe_state(void)
+{
+    node_t node;
+    const unsigned before = fake_policy_resets;
+    fresh(&node);
+    CHECK(fake_policy_resets == before + 1u && node.policy_resets == 1u); /* start-up: zero state */
+    const float obs[6] = {1.0f, 1.0f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 1, obs, 2000);
+    send_observation(&node, 2, obs, 2010);
+    CHECK(node.policy_resets == 1u); /* running steps carry the state */
+    node_poll(&node, 2010 + TIMEOUT_MS);
+    CHECK(node.state == NODE_SAFE && node.policy_resets == 2u); /* the watchdog: the state is forgotten */
+    const float overflow[6] = {1.7f, 0.3f, 0.0f, 1.0f, 0.0f, 0.0f};
+    node_t faulty;
+    fresh(&faulty);
+    send_observation(&faulty, 3, overflow, 1000);
+    CHECK(faulty.state == NODE_SAFE && faulty.policy_resets == 2u); /* a policy fault too */
+    node_link_lost(&faulty, 1100);
+    CHECK(faulty.policy_resets == 3u);
+}
+
 static void test_a_late_frame_counts_the_timeout_without_a_poll(void)
 {
     node_t node;
@@ -547,6 +568,7 @@ int main(void)
     test_never_assembles_two_steps();
     test_watchdog_safe_and_recovery();
     test_a_late_frame_counts_the_timeout_without_a_poll();
+    test_the_policy_memory_is_reset_at_start_up_and_in_the_safe_state();
     test_non_finite_output_gives_the_safe_action();
     test_a_value_outside_its_range_is_never_given_to_the_policy();
     test_actions_outside_their_range_are_saturated_not_wrapped();

@@ -4,6 +4,13 @@
 
 static const float safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;
 
+unsigned fake_policy_resets = 0;
+
+void policy_reset(void)
+{
+    fake_policy_resets++;
+}
+
 static int safe(float act[POLICY_ACT_DIM], int code)
 {
     act[0] = safe_action[0];

@@ -17,4 +17,8 @@
 #define FAKE_POLICY_OUT_OF_RANGE_SIN (-0.5f)
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
 
+/* Counts its calls in fake_policy_resets (the node resets a policy's memory at start-up and in SAFE). */
+void policy_reset(void);
+extern unsigned fake_policy_resets;
+
 #endif
