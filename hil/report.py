@@ -93,7 +93,6 @@ def _simulated_policy(options: RunOptions, interface: Interface) -> Callable[[np
     action."""
     from embedrl.export.reference import reference_policy
     from embedrl.hil.nodes import action_ok
-
     from embedrl.train.evaluate import start_episode
 
     reference = reference_policy(options.export_dir)  # the export's precision: float, int8, q15
