@@ -285,16 +285,7 @@ def node_messages(
                 )
             )
     if interface.state_size:
-        messages.append(
-            Message(
-                episode_start_id(node_id),
-                "EpisodeStart" + suffix,
-                FRAME_BYTES,
-                _header(ecu, "Step of the episode's first observation"),
-                senders=[SIMULATOR],
-                comment=f"A new episode: the policy's {interface.state_size} floats of memory to zero",
-            )
-        )
+        messages.append(_episode_start(interface, node_id, ecu, suffix))
     status = [
         Signal("Crc", 0, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
         Signal("Counter", 8, 4, receivers=[SIMULATOR], minimum=0, maximum=15),
@@ -343,6 +334,18 @@ def node_messages(
         )
     )
     return messages
+
+
+def _episode_start(interface: Interface, node_id: int, ecu: str, suffix: str) -> Message:
+    """EpisodeStart, for a policy with memory: its state to zero before the episode's first step."""
+    return Message(
+        episode_start_id(node_id),
+        "EpisodeStart" + suffix,
+        FRAME_BYTES,
+        _header(ecu, "Step of the episode's first observation"),
+        senders=[SIMULATOR],
+        comment=f"A new episode: the policy's {interface.state_size} floats of memory to zero",
+    )
 
 
 def bus_database(interface: Interface, nodes: int, fd: bool = False) -> Database:

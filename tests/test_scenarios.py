@@ -373,3 +373,23 @@ def test_bench_in_the_two_robot_scenario_writes_all_rows(tmp_path: Path) -> None
     assert config["hyperparameters"]["success_bonus"] == 20.0
     assert config["hyperparameters"]["reward"] == "potential-field"  # the study's two-robot reward
     assert data["potential_field"]["success_rate"] == 1.0  # the baseline on the same 3 episodes
+
+
+def test_the_partially_observed_moving_shelf_is_the_moving_shelf_without_its_velocity() -> None:
+    from embedrl.train.scenarios import MOVING_SHELF, MOVING_SHELF_PARTIAL
+
+    full, partial = gym.make(MOVING_SHELF.env_id), gym.make(MOVING_SHELF_PARTIAL.env_id)
+    kept = [i for i, f in enumerate(MOVING_SHELF.observation) if f.name != "shelf_vx"]
+    assert [f.name for f in MOVING_SHELF_PARTIAL.observation] == [
+        MOVING_SHELF.observation[i].name for i in kept
+    ]
+    for seed in range(3):
+        a, _ = full.reset(seed=seed)
+        b, _ = partial.reset(seed=seed)
+        assert partial.observation_space.contains(b) and np.array_equal(a[kept], b)
+        for _ in range(5):
+            action = np.array([0.4, 0.3], np.float32)
+            a, ra, *_ = full.step(action)
+            b, rb, *_ = partial.step(action)
+            assert np.array_equal(a[kept], b) and ra == rb
+        assert np.array_equal(partial.unwrapped.full_observation().astype(np.float32), a)
