@@ -53,7 +53,9 @@ def test_the_export_of_a_recurrent_policy_records_its_state_and_the_bus_gets_an_
     # the frame the simulator sends decodes with the DBC the node is built from
     frame = Codec(interface).encode_episode_start(4100)[0]
     dbc = cantools.database.load_string(candb.dbc_text(interface), database_format="dbc")
-    assert dbc.decode_message(frame.arbitration_id, bytes(frame.data))["Step"] == 4100 % candb.STEP_MODULO
+    assert isinstance(dbc, cantools.database.can.Database)
+    decoded = dbc.decode_message(frame.arbitration_id, bytes(frame.data))
+    assert isinstance(decoded, dict) and decoded["Step"] == 4100 % candb.STEP_MODULO
 
 
 def test_a_policy_without_memory_has_no_episode_start() -> None:
