@@ -37,7 +37,7 @@ from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileErro
 from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface, InterfaceError, from_spaces, with_names
 from embedrl.train.models import LoadedPolicy, load_sb3
-from embedrl.train.scenarios import interface_of
+from embedrl.train.scenarios import TWO_ROBOTS, interface_of
 
 INTERFACE_METADATA_KEY = "embedrl.interface"
 """The same JSON in the ONNX model's ``metadata_props``."""
@@ -380,6 +380,11 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
                 f"--safe-action {list(opts.safe_action)} must be {act_dim} values within the action space "
                 f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
             )
+    if graph.states and opts.env_id == TWO_ROBOTS.env_id:
+        raise ExportError(
+            "a policy with memory holds one robot's state; the two-robot scenario runs one policy for both "
+            "robots: export it for one robot's scenario"
+        )
     bounds = action_bounds(graph, obs_space.low, obs_space.high)
     finite_space = bool(np.all(np.isfinite(act_space.low)) and np.all(np.isfinite(act_space.high)))
     clamp = finite_space and not within(bounds, act_space.low, act_space.high)

@@ -554,6 +554,11 @@ def train(
         scenario = saved.get("scenario", DEFAULT_SCENARIO)
     elif out.exists() and any(out.iterdir()):
         raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
+    if algo == "recurrent-ppo" and scenario == TWO_ROBOTS.name:
+        raise UsageError(
+            "recurrent-ppo cannot train the two-robot scenario: its one policy drives both robots, and a "
+            "policy with memory holds one robot's state"
+        )
     try:
         cfg = with_overrides(preset(algo, preset_name, scenario), overrides)
         check_options(cfg.reward, cfg.success_bonus, cfg.shaping_gain)
