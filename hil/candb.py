@@ -10,8 +10,8 @@ Layout (classic CAN, 8-byte frames, every frame E2E protected, see :mod:`hil.e2e
 - ``EpisodeStart`` (observation ID + 0x1F, simulator -> node; only for a policy with memory, whose interface
   has a ``state_size``): ``Crc``, ``Counter`` and the ``Step`` the new episode starts at; the node resets
   the policy's state to zero (as it does at start-up and whenever it enters SAFE);
-- ``NodeStatus`` (0x300, node -> simulator, every :data:`STATUS_PERIOD_MS`, the DBC's cycle time): RUN or
-  SAFE and the node's error counters;
+- ``NodeStatus`` (0x300, node -> simulator, every :data:`STATUS_PERIOD_MS`, the DBC's cycle time): RUN,
+  SAFE or START (running, the policy at zero state before its first step) and the node's error counters;
 - ``NodeDiag`` (0x301, node -> simulator, same cycle): the CAN controller's bus state and the counters of
   the node's recovery rules (range errors, stale steps, counter resynchronisations, incomplete steps,
   saturated actions, failed sends, link re-opens).
@@ -81,7 +81,9 @@ period of every scenario, so a real-time loop never trips it."""
 DATABASE_NAME = "policy_dbc"
 SIMULATOR, NODE = "SIM", "NODE"
 MAX_FRAMES = len(string.ascii_uppercase)
-STATUS_STATES = {0: "RUN", 1: "SAFE"}
+STATUS_STATES = {0: "RUN", 1: "SAFE", 2: "START"}
+"""NodeStatus's State: START is RUN with the policy at zero state, no observation answered since start-up or
+a reset (a restarted node says so until its first step)."""
 BUS_STATES = {0: "ACTIVE", 1: "PASSIVE", 2: "BUS_OFF"}
 DIAG_COUNTERS = (
     ("Resyncs", 6, "Alive-counter re-synchronisations (a loss burst or a sender restart)"),
@@ -290,7 +292,8 @@ def node_messages(
         Signal("Crc", 0, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
         Signal("Counter", 8, 4, receivers=[SIMULATOR], minimum=0, maximum=15),
         Signal("State", 12, 2, receivers=[SIMULATOR], minimum=0, maximum=3,
-               conversion=BaseConversion.factory(choices=STATUS_STATES)),  # type: ignore[arg-type]
+               conversion=BaseConversion.factory(choices=STATUS_STATES),  # type: ignore[arg-type]
+               comment="RUN; SAFE; START: running from zero policy state, no step answered since a reset"),
         Signal("FramesOk", 14, 16, receivers=[SIMULATOR], minimum=0, maximum=65535),
         Signal("CrcErrors", 30, 8, receivers=[SIMULATOR], minimum=0, maximum=255),
         Signal("SequenceErrors", 38, 8, receivers=[SIMULATOR], minimum=0, maximum=255),

@@ -138,7 +138,7 @@ class PythonNode(Node):
         listen = [*self.obs_ids, *([self.episode_start_id] if self.episode_start_id is not None else [])]
         self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in listen])
         self.rx = {frame_id: e2e.Receiver() for frame_id in listen}
-        start_episode(self.policy)  # a started node's policy has zero state
+        self._reset_policy()  # a started node's policy has zero state
         self.tx_counters: dict[int, int] = {}
         self.state = "RUN"
         self.counts = dict.fromkeys(
@@ -220,7 +220,7 @@ class PythonNode(Node):
         self._send(
             "NodeStatus",
             {
-                "State": 1 if self.state == "SAFE" else 0,
+                "State": 1 if self.state == "SAFE" else 2 if self.fresh else 0,
                 "FramesOk": min(self.counts["frames_ok"], U16_MAX),
                 "CrcErrors": min(self.counts["crc_errors"], U8_MAX),
                 "SequenceErrors": min(self.counts["sequence_errors"], U8_MAX),
@@ -238,7 +238,7 @@ class PythonNode(Node):
         if self.armed and self.state == "RUN" and now - self.last_valid >= self.timeout_s:
             self.counts["timeouts"] += 1
             self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
-            start_episode(self.policy)  # the safe state forgets the policy's memory
+            self._reset_policy()  # the safe state forgets the policy's memory
             self.step_reference = False  # a sender that comes back may have restarted its steps
             self._send_action(self.safe, self.last_step)
             self._send_status()
@@ -306,7 +306,12 @@ class PythonNode(Node):
         if verdict in ("repeated", "wrong_sequence"):
             self.counts["sequence_errors"] += 1
             return
+        self._reset_policy()
+
+    def _reset_policy(self) -> None:
+        """The policy's recurrent state to zero; the status says START until the next step (as the C)."""
         start_episode(self.policy)
+        self.fresh = True
 
     def _complete(self, step: int, now: float) -> None:
         self.pending_step, self.pending_parts = None, set()
@@ -325,13 +330,14 @@ class PythonNode(Node):
         else:
             start = time.perf_counter_ns()
             out = np.asarray(self.policy(self.pending_obs.reshape(1, -1))).reshape(-1)
+            self.fresh = False
             self.inference_us = (time.perf_counter_ns() - start) // 1000
             action = out.astype(np.float32)
             if not self._action_ok(action):
                 # the node never acts on numbers it did not check: the safe action, SAFE, counted
                 self.counts["action_faults"] += 1
                 self.state, self.consecutive_valid, self.last_safe = "SAFE", 0, now
-                start_episode(self.policy)
+                self._reset_policy()
                 self._send_action(self.safe, step)
                 self._send_status()
                 self.last_step = step

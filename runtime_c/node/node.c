@@ -27,6 +27,7 @@ static void reset_policy(node_t *node)
 {
     policy_reset();
     node->policy_resets++;
+    node->fresh = true;
 }
 
 void node_receive_ids(uint32_t node_id, uint32_t ids[NODE_RX_IDS])
@@ -80,7 +81,7 @@ static void send_status(node_t *node)
     can_frame_t frame = {node->status_id, POLICY_DBC_NODE_STATUS_LENGTH, {0}};
     (void)memset(&msg, 0, sizeof msg);
     msg.counter = node->status_counter;
-    msg.state = (uint8_t)node->state;
+    msg.state = (uint8_t)(node->state == NODE_RUN && node->fresh ? NODE_STATUS_START : (uint32_t)node->state);
     msg.frames_ok = (uint16_t)saturate(node->frames_ok, U16_MAX);
     msg.crc_errors = (uint8_t)saturate(node->crc_errors, U8_MAX);
     msg.sequence_errors = (uint8_t)saturate(node->sequence_errors, U8_MAX);
@@ -149,6 +150,7 @@ static void complete_observation(node_t *node, uint32_t now_ms)
     } else {
         uint32_t start = clock_us();
         int status = policy_step(node->pending_obs, act);
+        node->fresh = false;
         node->inference_us = clock_us() - start;
         if (status == POLICY_OK && policy_io_action_ok(act)) {
             send_action(node, act, node->pending_step);

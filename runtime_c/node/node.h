@@ -35,6 +35,7 @@
 #include "policy_io.h"
 
 typedef enum { NODE_RUN = 0, NODE_SAFE = 1 } node_state;
+#define NODE_STATUS_START 2u /* NodeStatus's State while RUN with the policy at zero state (see node_t.fresh) */
 typedef enum { NODE_BUS_ACTIVE = 0, NODE_BUS_PASSIVE = 1, NODE_BUS_OFF = 2 } node_bus_state;
 
 typedef struct {
@@ -65,6 +66,7 @@ typedef struct {
     uint32_t send_failures; /* frames the transport refused */
     uint32_t link_resets;   /* times the interface failed and was re-opened */
     uint32_t policy_resets; /* policy_reset calls: start-up, SAFE, EpisodeStart (a policy with memory) */
+    bool fresh;             /* the policy is at zero state: no policy_step since the last reset */
     node_bus_state bus_state;
     uint32_t actions_sent;
     e2e_receiver rx[POLICY_IO_OBS_FRAMES];

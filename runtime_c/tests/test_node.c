@@ -427,6 +427,28 @@ static void test_a_value_outside_its_range_is_never_given_to_the_policy(void)
     CHECK(node.range_errors == 1 && node.incomplete == 1);
 }
 
+static unsigned status_state(node_t *node, uint32_t now_ms)
+{
+    fake_reset();
+    node->next_status_ms = now_ms;
+    node_poll(node, now_ms);
+    struct policy_dbc_node_status_t s;
+    policy_dbc_node_status_unpack(&s, fake_sent(0)->data, 8);
+    return s.state;
+}
+
+static void test_a_started_node_says_its_policy_is_at_zero_state_until_its_first_step(void)
+{
+    node_t node;
+    fresh(&node);
+    CHECK(status_state(&node, 1000) == NODE_STATUS_START);
+    const float obs[6] = {0.1f, 0.1f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 1, obs, 1000);
+    CHECK(status_state(&node, 1010) == 0u); /* RUN */
+    node_poll(&node, 1000 + TIMEOUT_MS);
+    CHECK(status_state(&node, 1000 + TIMEOUT_MS) == 1u); /* SAFE outranks the reset it made */
+}
+
 static void test_status_frame_reports_counters(void)
 {
     node_t node;
@@ -574,6 +596,7 @@ int main(void)
     test_actions_outside_their_range_are_saturated_not_wrapped();
     test_a_policy_that_lies_about_its_status_gets_the_safe_action();
     test_status_frame_reports_counters();
+    test_a_started_node_says_its_policy_is_at_zero_state_until_its_first_step();
     test_counters_resynchronise_after_a_loss_burst_or_a_sender_restart();
     test_a_step_that_goes_backwards_is_never_answered();
     test_link_loss_send_failures_and_bus_state_are_reported();

@@ -23,7 +23,7 @@ from onnx import helper, numpy_helper
 from embedrl.cli import main
 from embedrl.export.reference import reference_policy
 from embedrl.hil.candb import load_interface
-from embedrl.hil.codec import Action, Codec
+from embedrl.hil.codec import Action, Codec, Status
 from embedrl.hil.nodes import PythonNode
 from tests.hil.contract import HilContract
 from tests.test_user_errors import run_and_interrupt
@@ -230,3 +230,36 @@ def test_a_session_reports_its_episodes_and_the_host_draws_them(
     assert main(["hil", "run", "--export-dir", str(export_dir), "--node", "python", "--episodes", "2",
                  "--json", str(tmp_path / "h.json")]) == 0  # fmt: skip
     assert "HIL episodes" not in capsys.readouterr().err
+
+
+def test_the_python_node_says_start_until_its_first_step_and_resets_on_safe_as_the_c_node_does(
+    export_dir: Path,
+) -> None:
+    """NodeStatus's START: the policy at zero state (start-up or a reset), no step answered since
+    (``runtime_c/tests/test_node.c`` checks the C)."""
+    interface = load_interface(export_dir / "interface.json")
+    node = PythonNode(
+        lambda: can.Bus(interface="virtual", channel="start-state"), interface, reference_policy(export_dir),
+        timeout_ms=500, recover=3,
+    )  # fmt: skip
+    node.stop()
+    node.bus = can.Bus(interface="virtual", channel="start-state")
+    listener = can.Bus(interface="virtual", channel="start-state")
+    codec = Codec(interface)
+
+    def state_now() -> str:
+        node._send_status()
+        statuses = [
+            s for s in map(codec.decode, iter(lambda: listener.recv(0.2), None)) if isinstance(s, Status)
+        ]
+        return statuses[-1].state
+
+    assert state_now() == "START"
+    obs = np.array([(f.low + f.high) / 2 for f in interface.observation], np.float32)
+    for frame in codec.encode_observation(obs, 1)[0]:
+        node._on_frame(frame, 100.0)
+    assert state_now() == "RUN"
+    node._check_watchdog(100.0 + 0.5)
+    assert node.state == "SAFE" and node.fresh and state_now() == "SAFE"
+    node.bus.shutdown()
+    listener.shutdown()
