@@ -46,6 +46,9 @@ def check_supported(graph: Graph) -> None:
 def evaluate(graph: Graph, obs: np.ndarray, section: FixedSection | None = None) -> np.ndarray:
     """The quantised policy's actions for a batch of observations [B, obs_dim], bit-exact with the C.
 
-    Without ``section`` the int8 scheme; with it, the q15 section replaces its nodes.
+    Without ``section`` the int8 scheme; with it, the q15 section replaces its nodes. A recurrent graph takes
+    the rows as one sequence from zero state.
     """
+    if graph.states:
+        return interpret.run_sequence(graph, obs, "int8")
     return interpret.run(graph, obs, "int8", section)[graph.output]

@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from embedrl.export import fixed_point, quantize
+from embedrl.export import fixed_point, interpret, quantize
 from embedrl.export.errors import ExportError
+from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import load_onnx, to_ir
 
 REPORT_FILE = "export_report.json"
@@ -101,8 +102,27 @@ def reference_policy(export_dir: Path) -> Policy:
             raise ExportError(f"{export_dir}: no test/{OBSERVATIONS_FILE} to plan the q15 section from")
         section = fixed_point.plan(graph, np.load(observations, allow_pickle=False))
 
-    def run_quantized(obs: np.ndarray) -> np.ndarray:
-        batch = np.asarray(obs, np.float32).reshape(-1, graph.size(graph.input))
-        return np.asarray(quantize.evaluate(graph, batch, section), np.float32)
+    return QuantizedPolicy(graph, section)
 
-    return run_quantized
+
+class QuantizedPolicy:
+    """The Python model of a quantised export's arithmetic as a policy: a batch [B, obs_dim] of independent
+    rows, or for a recurrent graph consecutive steps with the state carried (``reset``: zero state)."""
+
+    def __init__(self, graph: Graph, section: fixed_point.FixedSection | None) -> None:
+        self.graph, self.section = graph, section
+        self._state: dict[str, np.ndarray] = {}
+
+    def reset(self) -> None:
+        self._state = {}
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        batch = np.asarray(obs, np.float32).reshape(-1, self.graph.size(self.graph.input))
+        if not self.graph.states:
+            return np.asarray(quantize.evaluate(self.graph, batch, self.section), np.float32)
+        rows = []
+        for row in batch:
+            values = interpret.run(self.graph, row[None], "int8", state=self._state)
+            self._state = {read: values[write] for read, write in self.graph.states}
+            rows.append(values[self.graph.output].reshape(-1))
+        return np.asarray(rows, np.float32)

@@ -6,12 +6,15 @@ the generated module keeps in static storage between steps (see :attr:`embedrl.e
 
 Gate pre-activations sum in a fixed order, bias first, then the input's terms, then the hidden state's;
 sigmoid and tanh are the deterministic helpers, so the C gives the same bits at every optimisation level and
-on every C library, and the ``float32`` model here (:meth:`Recurrent.exact32`) is bit for bit that C.
+on every C library, and the models here (``float32_model``, and ``reference`` in ``int8``) are bit for bit
+that C. With ``--quantize int8`` the input and recurrent matrices are int8 with a scale per row (the scheme of
+:mod:`embedrl.export.quantize`): each term sums its products, then adds ``scale * sum`` to the bias.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -19,6 +22,7 @@ import numpy as np
 from embedrl.export.ir import AttrValue, Node
 from embedrl.export.ops.base import EmitContext, Emitter, F, Interval, Shape, _fail
 from embedrl.export.ops.deterministic import sigmoid_det, tanh_det
+from embedrl.export.ops.linear import quantize_columns
 
 X, W, R, B, SEQUENCE_LENS, INITIAL_H, INITIAL_C, PEEPHOLES = range(8)
 """Input positions of ONNX's LSTM (GRU has the first six)."""
@@ -27,6 +31,21 @@ X, W, R, B, SEQUENCE_LENS, INITIAL_H, INITIAL_C, PEEPHOLES = range(8)
 def _strings(value: AttrValue) -> tuple[str, ...]:
     items = value if isinstance(value, tuple) else (value,)
     return tuple(str(v) for v in items)
+
+
+@dataclass(frozen=True)
+class Matrices:
+    """A cell's weights as its C holds them: float32, or int8 values (here as float32) with a float32 scale
+    per row (``--quantize int8``); the biases stay float32."""
+
+    w: np.ndarray
+    """[G*H, I]"""
+    r: np.ndarray
+    """[G*H, H]"""
+    w_scale: np.ndarray | None
+    r_scale: np.ndarray | None
+    b: np.ndarray
+    """[2, G*H]: the input and the recurrent bias."""
 
 
 class Recurrent(Emitter):
@@ -42,7 +61,6 @@ class Recurrent(Emitter):
     }
     min_inputs = 3
     bounded_by_itself = True  # h = o * tanh(c), or a mix of tanh and the previous h: see bounds()
-    quantizable = False  # float32 recurrent matrices only: --quantize refuses the graph in one line
 
     def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
         hidden = int(node.attr("hidden_size", 0))
@@ -111,39 +129,94 @@ class Recurrent(Emitter):
         b = np.asarray(constants[name], F).reshape(2, rows) if name else np.zeros((2, rows), F)
         return w, r, b
 
-    def _sums_c(
-        self,
-        ctx: EmitContext,
-        node: Node,
-        terms: Sequence[tuple[str, str, int]],
-        bias: str,
-        unit: str,
-        gates: int | None = None,
-    ) -> list[str]:
-        """C lines setting ``acc[g]`` for the first ``gates`` gates (all by default): ``bias`` then each
-        (matrix, vector, length) term, in that order."""
-        hidden = int(node.attr("hidden_size", 0))
-        lines = [
-            f"for (int g = 0; g < {gates or self.gates}; ++g) {{",
-            f"    acc[g] = {bias}[g * {hidden} + {unit}];",
-        ]
-        for matrix, vector, length in terms:
-            lines += [
-                f"    for (int k = 0; k < {length}; ++k) {{",
-                f"        acc[g] += {matrix}[g * {hidden} + {unit}][k] * {vector}[k];",
-                "    }",
-            ]
-        return [*lines, "}"]
+    def matrices(self, node: Node, constants: Mapping[str, np.ndarray], precision: str) -> Matrices:
+        """The cell's matrices as the C of ``precision`` holds them (``int8``: quantised per row)."""
+        w, r, b = self.weights(node, constants)
+        if precision != "int8":
+            return Matrices(w, r, None, None, b)
+        (qw, sw), (qr, sr) = (quantize_columns(m.T) for m in (w, r))
+        return Matrices(qw.T.astype(F), qr.T.astype(F), sw, sr, b)
+
+    def _declare(self, node: Node, ctx: EmitContext, m: Matrices, names: str) -> tuple[str, str, str, str]:
+        """The C symbols of W, R and (int8) their per-row scales."""
+        kind = "int8, " if m.w_scale is not None else ""
+        symbols = []
+        for key, matrix, what in (("W", m.w, "input"), ("R", m.r, "recurrent")):
+            stored = matrix.astype(np.int8) if m.w_scale is not None else matrix
+            symbols.append(
+                ctx.const(
+                    f"{node.name}#{key}",
+                    stored,
+                    f"{node.op} '{node.name}' {what} weights, {kind}gates {names}",
+                )
+            )
+        if m.w_scale is None or m.r_scale is None:
+            return symbols[0], symbols[1], "", ""
+        sw = ctx.const(
+            f"{node.name}#Wscale", m.w_scale, f"{node.op} '{node.name}' input weights' scale per row"
+        )
+        sr = ctx.const(
+            f"{node.name}#Rscale", m.r_scale, f"{node.op} '{node.name}' recurrent weights' scale per row"
+        )
+        return symbols[0], symbols[1], sw, sr
+
+    def float32_model(
+        self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray]
+    ) -> np.ndarray:
+        """Bit for bit what the float32 C computes (outputs stacked as ``reference`` stacks them)."""
+        raise NotImplementedError
 
     @staticmethod
-    def sums32(bias: np.ndarray, terms: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-        """float32 model of :meth:`_sums_c` for a batch: ``bias`` [N], terms of (matrix [N, K], vector
-        [B, K])."""
-        acc = np.broadcast_to(bias, (len(terms[0][1]), len(bias))).astype(F)
-        for matrix, vector in terms:
+    def sum_c(
+        out: str, bias: str, terms: Sequence[tuple[str, str, str, int]], row: str, tag: str
+    ) -> list[str]:
+        """C setting ``out`` to ``bias`` plus each (matrix, its per-row scale or "", vector, length) term:
+        float weights add every product to one sum in order; int8 weights sum each term's products (in
+        ``{tag}_sum0``, ...), then add ``scale * sum`` (the scheme of :mod:`embedrl.export.quantize`)."""
+        if not any(scale for _, scale, _, _ in terms):
+            lines = [f"{out} = {bias};"]
+            for matrix, _, vector, length in terms:
+                lines += [
+                    f"for (int k = 0; k < {length}; ++k) {{",
+                    f"    {out} += {matrix}[{row}][k] * {vector};",
+                    "}",
+                ]
+            return lines
+        lines, parts = [], []
+        for t, (matrix, scale, vector, length) in enumerate(terms):
+            lines += [
+                f"float {tag}_sum{t} = 0.0f;",
+                f"for (int k = 0; k < {length}; ++k) {{",
+                f"    {tag}_sum{t} += (float){matrix}[{row}][k] * {vector};",
+                "}",
+            ]
+            parts.append(f"{scale}[{row}] * {tag}_sum{t}")
+        return [*lines, f"{out} = {bias} + {' + '.join(parts)};"]
+
+    @staticmethod
+    def sums32(
+        bias: np.ndarray, terms: Sequence[tuple[np.ndarray, np.ndarray | None, np.ndarray]]
+    ) -> np.ndarray:
+        """float32 model of :meth:`sum_c` for a batch: ``bias`` [N], terms of (matrix [N, K], its scale [N] or
+        None, vector [B, K])."""
+        rows = len(bias)
+
+        def chain(start: np.ndarray, matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
+            acc = start
             for k in range(matrix.shape[1]):
                 acc = (acc + (matrix[:, k][None, :] * vector[:, k : k + 1]).astype(F)).astype(F)
-        return acc
+            return acc
+
+        start = np.broadcast_to(np.asarray(bias, F), (len(terms[0][2]), rows)).astype(F)
+        if all(scale is None for _, scale, _ in terms):
+            for matrix, _, vector in terms:
+                start = chain(start, matrix, vector)
+            return start
+        out = start
+        for matrix, scale, vector in terms:
+            assert scale is not None
+            out = (out + (scale * chain(np.zeros_like(start), matrix, vector)).astype(F)).astype(F)
+        return out
 
     def _outputs_c(self, node: Node, ctx: EmitContext, values: Sequence[str]) -> list[str]:
         """Copy the next state into the outputs: ``Y`` and ``Y_h`` get h, ``Y_c`` gets c."""
@@ -175,13 +248,25 @@ class LSTM(Recurrent):
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
     ) -> np.ndarray:
         x, h, c = inputs[0], inputs[-2], inputs[-1]
-        w, r, b = self.weights(node, constants)
         if precision == "float64":
+            w, r, b = self.weights(node, constants)
             h_next, c_next = self.exact(
                 x.astype(np.float64), h.astype(np.float64), c.astype(np.float64), w, r, b
             )
         else:
-            h_next, c_next = self.exact32(x.astype(F), h.astype(F), c.astype(F), w, r, b)
+            h_next, c_next = self.step32(
+                self.matrices(node, constants, precision), x.astype(F), h.astype(F), c.astype(F)
+            )
+        return np.stack([h_next, h_next, c_next][: len(node.outputs)])
+
+    def float32_model(
+        self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray]
+    ) -> np.ndarray:
+        """Bit for bit what the float32 C computes (outputs stacked as :meth:`reference` stacks them)."""
+        x, h, c = inputs[0], inputs[-2], inputs[-1]
+        h_next, c_next = self.step32(
+            self.matrices(node, constants, "float32"), x.astype(F), h.astype(F), c.astype(F)
+        )
         return np.stack([h_next, h_next, c_next][: len(node.outputs)])
 
     @staticmethod
@@ -198,29 +283,36 @@ class LSTM(Recurrent):
         c_next = sigmoid(f) * c + sigmoid(i) * np.tanh(g)
         return sigmoid(o) * np.tanh(c_next), c_next
 
-    def exact32(
-        self, x: np.ndarray, h: np.ndarray, c: np.ndarray, w: np.ndarray, r: np.ndarray, b: np.ndarray
+    def step32(
+        self, m: Matrices, x: np.ndarray, h: np.ndarray, c: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Bit for bit what the generated C computes: the next (h, c)."""
-        hidden = r.shape[1]
-        acc = self.sums32((b[0] + b[1]).astype(F), [(w, x), (r, h)])
+        """Bit for bit what the generated C (float32 or int8 weights) computes: the next (h, c)."""
+        hidden = m.r.shape[1]
+        acc = self.sums32((m.b[0] + m.b[1]).astype(F), [(m.w, m.w_scale, x), (m.r, m.r_scale, h)])
         i, o, f, g = (acc[:, k * hidden : (k + 1) * hidden] for k in range(4))
         c_next = ((sigmoid_det(f) * c).astype(F) + (sigmoid_det(i) * tanh_det(g)).astype(F)).astype(F)
         return (sigmoid_det(o) * tanh_det(c_next)).astype(F), c_next
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
-        w, r, b = self.weights(node, {k: ctx.constant(k) for k in node.inputs[W : B + 1] if k})  # type: ignore[misc]
-        key = node.name
-        wc = ctx.const(f"{key}#W", w, f"LSTM '{node.name}' input weights, gates i, o, f, c")
-        rc = ctx.const(f"{key}#R", r, f"LSTM '{node.name}' recurrent weights, gates i, o, f, c")
-        bc = ctx.const(f"{key}#B", (b[0] + b[1]).astype(F), f"LSTM '{node.name}' bias (input + recurrent)")
+        constants = {k: ctx.constant(k) for k in node.inputs[W : B + 1] if k}
+        m = self.matrices(node, constants, ctx.quantize or "float32")  # type: ignore[arg-type]
+        wc, rc, sw, sr = self._declare(node, ctx, m, "i, o, f, c")
+        bc = ctx.const(
+            f"{node.name}#B", (m.b[0] + m.b[1]).astype(F), f"LSTM '{node.name}' bias (input + recurrent)"
+        )
         x, h, c = (ctx.ref(node.inputs[p]) for p in (X, INITIAL_H, INITIAL_C))
         sig, tanh = ctx.helper("sigmoid_det"), ctx.helper("tanh_det")
         features = ctx.size(node.inputs[X])
+        row = f"g * {n} + j"
+        sums = self.sum_c(
+            "acc[g]", f"{bc}[{row}]", [(wc, sw, f"{x}[k]", features), (rc, sr, f"{h}[k]", n)], row, "gate"
+        )
         return [
             f"for (int j = 0; j < {n}; ++j) {{",
             f"    float acc[{self.gates}];",
-            *("    " + line for line in self._sums_c(ctx, node, [(wc, x, features), (rc, h, n)], bc, "j")),
+            f"    for (int g = 0; g < {self.gates}; ++g) {{",
+            *("        " + line for line in sums),
+            "    }",
             f"    const float c_next = {sig}(acc[2]) * {c}[j] + {sig}(acc[0]) * {tanh}(acc[3]);",
             f"    const float h_next = {sig}(acc[1]) * {tanh}(c_next);",
             *self._outputs_c(node, ctx, ("h_next", "h_next", "c_next")),
@@ -243,11 +335,22 @@ class GRU(Recurrent):
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
     ) -> np.ndarray:
         x, h = inputs[0], inputs[-1]
-        w, r, b = self.weights(node, constants)
         before = int(node.attr("linear_before_reset", 0)) != 0
-        step = self._exact if precision == "float64" else self._exact32
-        dtype = np.float64 if precision == "float64" else F
-        h_next = step(x.astype(dtype), h.astype(dtype), w, r, b, before)
+        if precision == "float64":
+            h_next = self._exact(
+                x.astype(np.float64), h.astype(np.float64), *self.weights(node, constants), before
+            )
+        else:
+            h_next = self.step32(self.matrices(node, constants, precision), x.astype(F), h.astype(F), before)
+        return np.stack([h_next, h_next][: len(node.outputs)])
+
+    def float32_model(
+        self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray]
+    ) -> np.ndarray:
+        """Bit for bit what the float32 C computes (outputs stacked as :meth:`reference` stacks them)."""
+        before = int(node.attr("linear_before_reset", 0)) != 0
+        m = self.matrices(node, constants, "float32")
+        h_next = self.step32(m, inputs[0].astype(F), inputs[-1].astype(F), before)
         return np.stack([h_next, h_next][: len(node.outputs)])
 
     @staticmethod
@@ -265,69 +368,75 @@ class GRU(Recurrent):
         n = np.tanh(wn + inner)
         return np.asarray((1.0 - z) * n + z * h)
 
-    def _exact32(
-        self, x: np.ndarray, h: np.ndarray, w: np.ndarray, r: np.ndarray, b: np.ndarray, before: bool
-    ) -> np.ndarray:
-        hidden = r.shape[1]
-        zr = self.sums32((b[0] + b[1])[: 2 * hidden].astype(F), [(w[: 2 * hidden], x), (r[: 2 * hidden], h)])
+    def step32(self, m: Matrices, x: np.ndarray, h: np.ndarray, before: bool) -> np.ndarray:
+        """Bit for bit what the generated C (float32 or int8 weights) computes: the next h."""
+        hidden = m.r.shape[1]
+        zr_rows, n_rows = slice(0, 2 * hidden), slice(2 * hidden, 3 * hidden)
+
+        def scale(v: np.ndarray | None, rows: slice) -> np.ndarray | None:
+            return None if v is None else v[rows]
+
+        zr = self.sums32(
+            (m.b[0] + m.b[1])[zr_rows].astype(F),
+            [(m.w[zr_rows], scale(m.w_scale, zr_rows), x), (m.r[zr_rows], scale(m.r_scale, zr_rows), h)],
+        )
         z, reset = sigmoid_det(zr[:, :hidden]), sigmoid_det(zr[:, hidden:])
-        wn = self.sums32(b[0, 2 * hidden :], [(w[2 * hidden :], x)])
+        wn = self.sums32(m.b[0, n_rows], [(m.w[n_rows], scale(m.w_scale, n_rows), x)])
         if before:
-            rn = self.sums32(b[1, 2 * hidden :], [(r[2 * hidden :], h)])
+            rn = self.sums32(m.b[1, n_rows], [(m.r[n_rows], scale(m.r_scale, n_rows), h)])
             n = tanh_det((wn + (reset * rn).astype(F)).astype(F))
         else:
-            rn = self.sums32(b[1, 2 * hidden :], [(r[2 * hidden :], (reset * h).astype(F))])
+            rn = self.sums32(m.b[1, n_rows], [(m.r[n_rows], scale(m.r_scale, n_rows), (reset * h).astype(F))])
             n = tanh_det((wn + rn).astype(F))
         return np.asarray((((F(1.0) - z) * n).astype(F) + (z * h).astype(F)), F)
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
-        w, r, b = self.weights(node, {k: ctx.constant(k) for k in node.inputs[W : B + 1] if k})  # type: ignore[misc]
-        key, hidden = node.name, n
-        wc = ctx.const(f"{key}#W", w, f"GRU '{node.name}' input weights, gates z, r, h")
-        rc = ctx.const(f"{key}#R", r, f"GRU '{node.name}' recurrent weights, gates z, r, h")
-        bzr = (b[0] + b[1])[: 2 * hidden].astype(F)
+        constants = {k: ctx.constant(k) for k in node.inputs[W : B + 1] if k}
+        m = self.matrices(node, constants, ctx.quantize or "float32")  # type: ignore[arg-type]
+        wc, rc, sw, sr = self._declare(node, ctx, m, "z, r, h")
+        hidden = n
+        bzr = (m.b[0] + m.b[1])[: 2 * hidden].astype(F)
         bc = ctx.const(
-            f"{key}#B",
-            np.concatenate([bzr, b[0, 2 * hidden :], b[1, 2 * hidden :]]),
+            f"{node.name}#B",
+            np.concatenate([bzr, m.b[0, 2 * hidden :], m.b[1, 2 * hidden :]]),
             f"GRU '{node.name}' bias: z and r (input + recurrent), h input, h recurrent",
         )
         x, h = ctx.ref(node.inputs[X]), ctx.ref(node.inputs[INITIAL_H])
         sig, tanh = ctx.helper("sigmoid_det"), ctx.helper("tanh_det")
         features = ctx.size(node.inputs[X])
         before = int(node.attr("linear_before_reset", 0)) != 0
+        gate_row, n_row = f"g * {n} + j", f"{2 * hidden} + j"
+        gates = self.sum_c(
+            "acc[g]",
+            f"{bc}[{gate_row}]",
+            [(wc, sw, f"{x}[k]", features), (rc, sr, f"{h}[k]", n)],
+            gate_row,
+            "gate",
+        )
+        wn = self.sum_c("wn", f"{bc}[{2 * hidden} + j]", [(wc, sw, f"{x}[k]", features)], n_row, "wn")
         # The candidate's recurrent term sums over every unit's reset gate (linear_before_reset=0), so the
         # gates of all units come first.
-        candidate_sum = (
-            [
-                f"        rn += {rc}[{2 * hidden} + j][k] * {h}[k];",
-                f"    const float cand = {tanh}(wn + rg[j] * rn);",
-            ]
-            if before
-            else [
-                f"        rn += {rc}[{2 * hidden} + j][k] * (rg[k] * {h}[k]);",
-                f"    const float cand = {tanh}(wn + rn);",
-            ]
-        )
+        recurrent = f"{h}[k]" if before else f"(rg[k] * {h}[k])"
+        rn = self.sum_c("rn", f"{bc}[{3 * hidden} + j]", [(rc, sr, recurrent, n)], n_row, "rn")
+        cand = f"{tanh}(wn + rg[j] * rn)" if before else f"{tanh}(wn + rn)"
         return [
             "{",
             f"float zg[{n}];",
             f"float rg[{n}];",
             f"for (int j = 0; j < {n}; ++j) {{",
             "    float acc[2];",
-            *("    " + line for line in self._sums_c(ctx, node, [(wc, x, features), (rc, h, n)], bc, "j", 2)),
+            "    for (int g = 0; g < 2; ++g) {",
+            *("        " + line for line in gates),
+            "    }",
             f"    zg[j] = {sig}(acc[0]);",
             f"    rg[j] = {sig}(acc[1]);",
             "}",
             f"for (int j = 0; j < {n}; ++j) {{",
-            f"    float wn = {bc}[{2 * hidden} + j];",
-            f"    for (int k = 0; k < {features}; ++k) {{",
-            f"        wn += {wc}[{2 * hidden} + j][k] * {x}[k];",
-            "    }",
-            f"    float rn = {bc}[{3 * hidden} + j];",
-            f"    for (int k = 0; k < {n}; ++k) {{",
-            candidate_sum[0],
-            "    }",
-            candidate_sum[1],
+            "    float wn;",
+            "    float rn;",
+            *("    " + line for line in wn),
+            *("    " + line for line in rn),
+            f"    const float cand = {cand};",
             f"    const float h_next = (1.0f - zg[j]) * cand + zg[j] * {h}[j];",
             *self._outputs_c(node, ctx, ("h_next", "h_next")),
             "}",

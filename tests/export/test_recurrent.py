@@ -18,11 +18,13 @@ import pytest
 import torch
 from onnx import TensorProto, helper, numpy_helper
 
-from embedrl.export import interpret
+from embedrl.export import build, interpret, quantize
 from embedrl.export.bounds import action_bounds
+from embedrl.export.codegen import generate
 from embedrl.export.errors import ExportError, UnsupportedOpError
 from embedrl.export.onnx_import import to_ir
 from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.recurrent import Recurrent
 from embedrl.export.quantize import check_supported
 from tests.export.helpers import compile_model
 
@@ -160,7 +162,9 @@ def _float32_model(model: onnx.ModelProto, obs: np.ndarray) -> np.ndarray:
     weights = [graph.constants[i].reshape(-1) for i in node.inputs[1:4]]
     hs = []
     for row in obs:
-        out = EMITTERS[node.op].reference(node, [row[None], *weights, *state], graph.constants, "int8")
+        cell = EMITTERS[node.op]
+        assert isinstance(cell, Recurrent)
+        out = cell.float32_model(node, [row[None], *weights, *state], graph.constants)
         state = [out[1], out[2]] if node.op == "LSTM" else [out[1]]
         hs.append(out[0][0])
     return np.asarray(hs)
@@ -226,6 +230,34 @@ def test_a_state_input_without_its_next_value_is_refused() -> None:
     assert to_ir(swapped).states == (("h", "act"),)  # pairs by position: the output order is the contract
 
 
-def test_recurrent_weights_are_not_quantised_silently() -> None:
-    with pytest.raises(ExportError, match="LSTM"):
-        check_supported(to_ir(_cell_model("LSTM")))
+@pytest.mark.parametrize(("kind", "linear_before_reset"), [("LSTM", 0), ("GRU", 0), ("GRU", 1)])
+def test_int8_recurrent_weights_are_bit_for_bit_their_model_over_a_sequence(
+    kind: str, linear_before_reset: int, tmp_path: Path
+) -> None:
+    model = _cell_model(kind, linear_before_reset)
+    graph = to_ir(model)
+    check_supported(graph)
+    obs = _observations(seed=5)
+    c_dir = tmp_path / "c"
+    c_dir.mkdir()
+    for filename, text in generate(graph, "policy", quantize="int8").items():
+        (c_dir / filename).write_text(text)
+    runs = {}
+    for opt in ("-O0", "-O3"):
+        build.make("lib", c_dir, tmp_path / opt, opt)
+        policy = build.CPolicy(tmp_path / opt / "libpolicy.so", "policy", OBS, HIDDEN)
+        runs[opt] = np.asarray([policy(row) for row in obs])
+    assert np.array_equal(runs["-O0"], runs["-O3"])
+    assert np.array_equal(runs["-O0"], quantize.evaluate(graph, obs))
+    assert "static const int8_t policy_w" in (c_dir / "policy.c").read_text()
+    # int8 weights move the hidden state by a little, not by a lot
+    assert 0 < np.max(np.abs(runs["-O0"] - _ort_sequence(model, obs))) < 0.1
+
+
+def test_q15_refuses_a_recurrent_cell_in_one_line(tmp_path: Path) -> None:
+    from embedrl.export import fixed_point
+
+    graph = to_ir(onnx.load(str(torch_recurrent_onnx("LSTM", tmp_path / "lstm.onnx"))))
+    with pytest.raises(ExportError, match=r"LSTM node .* not supported with q15") as info:
+        fixed_point.plan(graph, _observations())
+    assert "\n" not in str(info.value)
