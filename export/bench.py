@@ -94,6 +94,11 @@ def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict
         report = json.loads(report_path.read_text())
         if report["name"] != "policy":
             raise ExportError("the benchmark harness needs an export with the default --name policy")
+        if (report.get("interface") or {}).get("state_size"):
+            raise ExportError(
+                "bench-export times policies without memory against batched peers; a recurrent policy's step "
+                "depends on its state: export it with --target cortex-m4 for its instructions per step"
+            )
         rng = np.random.default_rng(seed)
         space = gym.make(report["env_id"]).observation_space
         assert isinstance(space, gym.spaces.Box)

@@ -425,7 +425,7 @@ def _glue_header(banner: str, interface: Interface, plan: Layout) -> str:
 #define POLICY_IO_MAX_NODES {MAX_NODES}u
 #define POLICY_IO_NODE_STRIDE 0x{NODE_STRIDE:X}u /* node k: observation and action IDs + k * stride */
 #define POLICY_IO_STATUS_STRIDE 2u /* node k: NodeStatus and NodeDiag IDs + 2k */
-#define POLICY_IO_EPISODE_START {int(bool(interface.state_size))} /* 1: memory, reset by EpisodeStart */
+#define POLICY_IO_EPISODE_START {int(bool(interface.state_size))}u /* 1: memory, reset by EpisodeStart */
 #define POLICY_IO_EPISODE_START_OFFSET 0x{EPISODE_START_OFFSET:X}u /* its ID: first observation ID + this */
 #define POLICY_IO_FRAME_BYTES {plan.frame_bytes}u
 #define POLICY_IO_FD {int(plan.fd)} /* 1: observation and action frames are CAN FD */

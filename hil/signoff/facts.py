@@ -75,17 +75,16 @@ def interface_facts(export: dict[str, Any], export_dir: Path) -> dict[str, Any]:
 def errors_per_sample(export_dir: Path, export: dict[str, Any]) -> np.ndarray:
     """max |C - ONNX| per sample over the export's verification observations, the C rebuilt from ``c/``
     (a quantised policy: its distance to the float ONNX, the quantisation error)."""
-    import onnxruntime as ort
-
     from embedrl.export import build
+    from embedrl.export.reference import OnnxPolicy
 
     observations = np.load(export_dir / "test" / "observations.npy", allow_pickle=False).astype(np.float32)
-    session = ort.InferenceSession(str(export_dir / "policy.onnx"), providers=["CPUExecutionProvider"])
-    expected = session.run(None, {session.get_inputs()[0].name: observations})[0]
+    expected = OnnxPolicy(export_dir / "policy.onnx")(observations)  # a recurrent policy: one sequence
     with tempfile.TemporaryDirectory(prefix="embedrl-report-") as tmp:
         build.make("lib", export_dir / "c", Path(tmp))
         policy = build.CPolicy(Path(tmp) / "libpolicy.so", export["name"], export["observation_dim"],
                                export["action_dim"])  # fmt: skip
+        policy.reset()
         actions, _ = policy.batch(observations)
     return np.asarray(np.max(np.abs(actions.astype(np.float64) - expected), axis=1))
 

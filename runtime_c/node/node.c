@@ -81,7 +81,10 @@ static void send_status(node_t *node)
     can_frame_t frame = {node->status_id, POLICY_DBC_NODE_STATUS_LENGTH, {0}};
     (void)memset(&msg, 0, sizeof msg);
     msg.counter = node->status_counter;
-    msg.state = (uint8_t)(node->state == NODE_RUN && node->fresh ? NODE_STATUS_START : (uint32_t)node->state);
+    msg.state = (uint8_t)node->state;
+    if ((node->state == NODE_RUN) && node->fresh) {
+        msg.state = (uint8_t)NODE_STATUS_START;
+    }
     msg.frames_ok = (uint16_t)saturate(node->frames_ok, U16_MAX);
     msg.crc_errors = (uint8_t)saturate(node->crc_errors, U8_MAX);
     msg.sequence_errors = (uint8_t)saturate(node->sequence_errors, U8_MAX);
@@ -177,38 +180,40 @@ static void check_watchdog(node_t *node, uint32_t now_ms)
     }
 }
 
-#if POLICY_IO_EPISODE_START
-/* EpisodeStart: E2E-checked, then the policy's state to zero for the episode's first observation. */
-static void on_episode_start(node_t *node, const can_frame_t *frame)
+/* A frame that is not one of this node's observation frames: a policy with memory's EpisodeStart
+ * (E2E-checked, then the policy's state to zero for the episode's first observation), else rejected. */
+static void not_an_observation(node_t *node, const can_frame_t *frame)
 {
-    if (frame->len != POLICY_DBC_EPISODE_START_LENGTH || !e2e_crc_ok(frame->id, frame->data, frame->len)) {
-        node->crc_errors++;
-        return;
+#if POLICY_IO_EPISODE_START
+    if (frame->id == (node->obs_first_id + POLICY_IO_EPISODE_START_OFFSET)) {
+        if ((frame->len != POLICY_DBC_EPISODE_START_LENGTH) || !e2e_crc_ok(frame->id, frame->data, frame->len)) {
+            node->crc_errors++;
+        } else {
+            struct policy_dbc_episode_start_t msg;
+            (void)policy_dbc_episode_start_unpack(&msg, frame->data, frame->len);
+            e2e_status status = e2e_check_counter(&node->episode_rx, msg.counter);
+            if ((status == E2E_OK) || (status == E2E_OK_SOME_LOST) || (status == E2E_OK_RESYNC)) {
+                reset_policy(node);
+            } else {
+                node->sequence_errors++; /* a replayed EpisodeStart resets nothing */
+            }
+        }
+    } else {
+        node->rejected++;
     }
-    struct policy_dbc_episode_start_t msg;
-    (void)policy_dbc_episode_start_unpack(&msg, frame->data, frame->len);
-    e2e_status status = e2e_check_counter(&node->episode_rx, msg.counter);
-    if (status != E2E_OK && status != E2E_OK_SOME_LOST && status != E2E_OK_RESYNC) {
-        node->sequence_errors++; /* a replayed EpisodeStart resets nothing */
-        return;
-    }
-    reset_policy(node);
-}
+#else
+    (void)frame;
+    node->rejected++; /* not ours: another node's frame is never applied */
 #endif
+}
 
 void node_on_frame(node_t *node, const can_frame_t *frame, uint32_t now_ms)
 {
     /* A frame handled after the deadline is late whether or not the poll saw the deadline pass first. */
     check_watchdog(node, now_ms);
-#if POLICY_IO_EPISODE_START
-    if (frame->id == node->obs_first_id + POLICY_IO_EPISODE_START_OFFSET) {
-        on_episode_start(node, frame);
-        return;
-    }
-#endif
     if (frame->id < node->obs_first_id || frame->id >= node->obs_first_id + POLICY_IO_OBS_FRAMES ||
         frame->len != POLICY_IO_FRAME_BYTES) {
-        node->rejected++; /* not ours: another node's frame is never applied */
+        not_an_observation(node, frame);
         return;
     }
     unsigned part = (unsigned)(frame->id - node->obs_first_id);
