@@ -98,3 +98,20 @@ def test_a_lost_episode_start_is_caught_by_the_lock_step(
     report = hil_report(guest, recurrent_export, "--node", "python", "--episodes", "3")
     assert not report["verdict"]["passed"]
     assert report["first_divergent_step"] is not None and np.isfinite(report["max_action_abs_diff"])
+
+
+@pytest.mark.slow
+def test_the_deployment_report_of_a_recurrent_export_explains_every_misra_finding(
+    recurrent_export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "report.html"
+    assert main(["report", str(recurrent_export), "--out", str(out)]) == 0
+    assert "(0 unexplained)" in capsys.readouterr().out and out.is_file()
+
+
+def test_bench_export_refuses_a_recurrent_export_in_one_line(
+    recurrent_export: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["bench-export", "--export-dir", str(recurrent_export)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "recurrent policy" in err and "\n" not in err
