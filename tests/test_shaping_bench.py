@@ -59,3 +59,10 @@ def test_bad_shaping_arguments_are_one_line_errors(
     assert main(["shaping", "--out", str(tmp_path / "s"), *argv]) == 2
     assert said in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
+
+
+def test_every_algorithm_can_learn_from_scratch() -> None:
+    from embedrl.train.config import ALGOS
+    from embedrl.train.shaping_bench import FROM_SCRATCH
+
+    assert set(FROM_SCRATCH) == set(ALGOS)

@@ -33,6 +33,7 @@ FROM_SCRATCH = {
     "td3": ("demonstrations=0",),
     "sac": ("demonstrations=0",),
     "ppo": ("warm_start_demonstrations=0",),
+    "recurrent-ppo": ("warm_start_demonstrations=0",),
 }
 """What turns a preset into learning from scratch: no controller demonstrations, no cloned start."""
 
