@@ -512,3 +512,17 @@ def test_portable_training_repeats_whatever_instructions_the_cpu_offers(tmp_path
 
     np.testing.assert_array_equal(run("any", None), run("sse42", "SSE4_2"))
     assert (tmp_path / "any" / "curve.csv").read_text() == (tmp_path / "sse42" / "curve.csv").read_text()
+
+
+@pytest.mark.slow
+def test_a_resume_with_nothing_left_to_train_keeps_the_step_count(tmp_path: Path) -> None:
+    """Resuming at a budget the run already met trains nothing and leaves its checkpoint as it was: a later
+    resume to a larger budget trains only the difference."""
+    run = tmp_path / "run"
+    first = ["--max-steps", "1100", "--checkpoint-every", "500", "--eval-every", "100000", "--stop", "budget"]
+    assert main(["train", "--algo", "ppo", "--seed", "2", *first, "--out", str(run)]) == 0
+    assert json.loads((run / "summary.json").read_text())["total_steps"] == 2048  # two rollouts of 1024
+    assert main(["train", "--resume", str(run), "--max-steps", "1700"]) == 0
+    assert json.loads((run / "checkpoint" / "state.json").read_text())["steps"] == 2048
+    assert main(["train", "--resume", str(run), "--max-steps", "4000"]) == 0
+    assert json.loads((run / "summary.json").read_text())["total_steps"] == 4096

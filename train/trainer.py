@@ -577,9 +577,9 @@ def train(
     remaining = budget.max_steps - int(run.state.get("steps", 0))
     if resume:
         _restore_random(run.generators, run.model)  # last: loading the model drew from them
-    if remaining > 0:
+    if remaining > 0:  # a resume with nothing left to train keeps its checkpoint as it is
         run.model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
-    monitor.checkpoint()
+        monitor.checkpoint()
     return run.finish(monitor.returns)
 
 
