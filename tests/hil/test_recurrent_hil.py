@@ -115,3 +115,17 @@ def test_bench_export_refuses_a_recurrent_export_in_one_line(
     assert main(["bench-export", "--export-dir", str(recurrent_export)]) == 2
     err = capsys.readouterr().err.strip()
     assert "recurrent policy" in err and "\n" not in err
+
+
+@pytest.mark.slow
+def test_the_node_side_faults_are_detected_with_a_recurrent_policy_as_with_a_feed_forward_one(
+    guest: Guest, recurrent_export: Path, tmp_path: Path
+) -> None:
+    from tests.hil.test_firmware import NODE_FAULTS
+
+    inject = [a for i, kind in enumerate(NODE_FAULTS) for a in ("--inject", f"{kind}@{i}:3")]
+    report = hil(
+        guest, recurrent_export, tmp_path, "--episodes", str(len(NODE_FAULTS)), "--allow-faults", *inject
+    )
+    assert len(report["injections"]) == len(NODE_FAULTS)
+    assert all(i["detected"] in (True, None) for i in report["injections"])  # None: tolerated (a flood)
