@@ -118,14 +118,16 @@ def test_bench_export_refuses_a_recurrent_export_in_one_line(
 
 
 @pytest.mark.slow
-def test_the_node_side_faults_are_detected_with_a_recurrent_policy_as_with_a_feed_forward_one(
+def test_the_faults_that_reset_the_state_are_detected_with_a_recurrent_policy(
     guest: Guest, recurrent_export: Path, tmp_path: Path
 ) -> None:
-    from tests.hil.test_firmware import NODE_FAULTS
-
-    inject = [a for i, kind in enumerate(NODE_FAULTS) for a in ("--inject", f"{kind}@{i}:3")]
-    report = hil(
-        guest, recurrent_export, tmp_path, "--episodes", str(len(NODE_FAULTS)), "--allow-faults", *inject
-    )
-    assert len(report["injections"]) == len(NODE_FAULTS)
-    assert all(i["detected"] in (True, None) for i in report["injections"])  # None: tolerated (a flood)
+    """The faults that take the node to SAFE or restart it (and so reset its policy's state): detected, and
+    the next episode starts clean (EpisodeStart), its outcome the simulation's."""
+    faults = ("delay", "kill-restart", "silent", "corrupt")
+    inject = [a for i, kind in enumerate(faults) for a in ("--inject", f"{kind}@{i}:3")]
+    argv = ["--episodes", str(len(faults) + 1), "--allow-faults", *inject]
+    report = hil(guest, recurrent_export, tmp_path, *argv)
+    assert [i["detected"] for i in report["injections"]] == [True] * len(faults)
+    last = report["per_episode"][-1]  # after the faults: the node's state reset, the episode the simulation's
+    assert last["fault"] is None and last["max_action_abs_diff"] < 1e-5
+    assert abs(last["episode_return"] - last["simulation_return"]) < 1e-4
