@@ -445,7 +445,8 @@ class RunMonitor(BaseCallback):
 
     def checkpoint(self) -> None:
         self.state.update(
-            steps=self.num_timesteps,
+            # a resume with nothing left to train never stepped: its steps are the checkpoint's own
+            steps=self.num_timesteps or int(self.state.get("steps", 0)),
             returns=self.returns,
             next_checkpoint=self.next_checkpoint,
             next_eval=self.next_eval,
@@ -577,9 +578,9 @@ def train(
     remaining = budget.max_steps - int(run.state.get("steps", 0))
     if resume:
         _restore_random(run.generators, run.model)  # last: loading the model drew from them
-    if remaining > 0:  # a resume with nothing left to train keeps its checkpoint as it is
+    if remaining > 0:
         run.model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
-        monitor.checkpoint()
+    monitor.checkpoint()
     return run.finish(monitor.returns)
 
 
