@@ -137,18 +137,8 @@ class WarehouseMovingShelfPartialEnv(WarehouseMovingShelfEnv):
     shelf moves (a policy with memory can, from two).
 
     ## Observation Space
-    ``Box(float32, (8,))``:
-
-    | Num | Observation                            | Min   | Max  | Unit  |
-    |-----|----------------------------------------|-------|------|-------|
-    | 0   | x, position along the shelves          | -1.8  | 1.8  | m     |
-    | 1   | y, position across the shelves         | -0.15 | 1.3  | m     |
-    | 2   | sin(theta), heading (0 = along +x)     | -1    | 1    |       |
-    | 3   | cos(theta)                             | -1    | 1    |       |
-    | 4   | v, forward speed                       | -0.7  | 0.7  | m/s   |
-    | 5   | w, turn rate (counter-clockwise)       | -2.0  | 2.0  | rad/s |
-    | 6   | moving shelf centre x minus robot x    | -4.7  | 4.7  | m     |
-    | 7   | moving shelf lower edge y minus robot y | -0.8  | 0.95 | m     |
+    ``Box(float32, (8,))``: observations 0-7 of ``embedrl/WarehouseMovingShelf-v0`` (its table), the shelf's
+    position relative to the robot included; its observation 8, the shelf's velocity, left out.
 
     ## Version History
     - v0: initial version.
