@@ -229,6 +229,18 @@ ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         lambda tmp: ["export", str(TD3), "--out", str(tmp / "out"), "--max-params", "-1"],
         "--max-params",
     ),
+    "tune --ray at a closed port": (
+        lambda tmp: ["tune", "--algo", "td3", "--ray", "127.0.0.1:1", "--out", str(tmp / "out")],
+        "--ray 127.0.0.1:1: cannot connect",
+    ),
+    "bench --ray at an unknown host": (
+        lambda tmp: ["bench", "--ray", "not-a-host.invalid:6379", "--out", str(tmp / "out")],
+        "--ray not-a-host.invalid:6379: cannot connect",
+    ),
+    "shaping --ray without a port": (
+        lambda tmp: ["shaping", "--ray", "somehost", "--out", str(tmp / "out")],
+        "give local, auto, HOST:PORT",
+    ),
 }
 
 

@@ -136,8 +136,10 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
     optimize = None
     if args.ray is not None:
+        from embedrl.train.sweep import check_ray_address
         from embedrl.train.tune_ray import optimize_on_ray
 
+        check_ray_address(args.ray)
         optimize = functools.partial(optimize_on_ray, address=args.ray, workers=args.workers)
     search = Search(args.algo, args.scenario, args.max_steps, args.out, args.seed, args.preset)
     fresh = not args.out.exists()
@@ -244,6 +246,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
         except ValueError as exc:
             raise UsageError(str(exc)) from None
 
+    if args.ray is not None:
+        from embedrl.train.sweep import check_ray_address
+
+        check_ray_address(args.ray)
     if args.from_runs:
         from embedrl.train.bench import table_from
 
@@ -277,6 +283,10 @@ def cmd_shaping(args: argparse.Namespace) -> int:
             with_overrides(preset(algo, args.preset), [*FROM_SCRATCH[algo], *args.set])
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+    if args.ray is not None:
+        from embedrl.train.sweep import check_ray_address
+
+        check_ray_address(args.ray)
     table = run_shaping(
         args.algos, args.seeds, args.seed_offset, args.preset, args.out, args.max_steps, args.eval_episodes,
         args.workers, args.gain, tuple(args.set), args.ray,

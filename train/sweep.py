@@ -10,17 +10,22 @@ installation and the sweep's output folder on a shared file system: each run wri
 from __future__ import annotations
 
 import multiprocessing
+import socket
+import threading
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 from embedrl.common import on_terminal
-from embedrl.train.errors import TrainError
+from embedrl.train.errors import TrainError, UsageError
 
 Job = TypeVar("Job")
 CPUS_PER_RUN = 1
 """The resources a run declares to Ray: one core (torch is limited to one thread per run)."""
+RAY_CONNECT_TIMEOUT_S = 3.0
+"""How long ``--ray HOST:PORT`` may take to resolve and accept a TCP connection before it is refused (Ray
+itself retries an unreachable head for minutes)."""
 
 
 @dataclass(frozen=True)
@@ -96,6 +101,35 @@ def _on_ray(
     finally:
         if local:
             ray.shutdown()
+
+
+def check_ray_address(address: str, timeout_s: float = RAY_CONNECT_TIMEOUT_S) -> None:
+    """Refuse a ``--ray`` address that is not ``local``, ``auto``, ``HOST:PORT`` or ``ray://HOST:PORT``, or
+    whose head does not accept a TCP connection within ``timeout_s`` (name lookup included): UsageError."""
+    if address in ("local", "auto"):
+        return
+    host, _, port_text = address.removeprefix("ray://").rpartition(":")
+    host = host.strip("[]")  # an IPv6 address in brackets
+    if not host or not port_text.isdigit() or not 0 < int(port_text) < 65536:
+        raise UsageError(f"--ray {address}: give local, auto, HOST:PORT or ray://HOST:PORT")
+    outcome: list[OSError | None] = []
+
+    def connect() -> None:
+        try:
+            socket.create_connection((host, int(port_text)), timeout=timeout_s).close()
+            outcome.append(None)
+        except OSError as exc:
+            outcome.append(exc)
+
+    # in a thread: the name lookup has no timeout of its own
+    worker = threading.Thread(target=connect, daemon=True)
+    worker.start()
+    worker.join(timeout_s + 0.5)
+    if not outcome:
+        raise UsageError(f"--ray {address}: no answer in {timeout_s:.0f} s (is a Ray head running there?)")
+    if outcome[0] is not None:
+        reason = outcome[0].strerror or str(outcome[0])
+        raise UsageError(f"--ray {address}: cannot connect ({reason}; is a Ray head running there?)")
 
 
 def _last_line(exc: BaseException) -> str:

@@ -22,8 +22,14 @@ EXP2_POLY = tuple(
 
 
 def exp_det(x: np.ndarray) -> np.ndarray:
-    """exp in float32 IEEE operations only (mirrors the generated C's ``exp_det``)."""
-    x = np.clip(np.asarray(x, F), F(EXP_CLAMP[0]), F(EXP_CLAMP[1]))
+    """exp in float32 IEEE operations only (mirrors the generated C's ``exp_det``); NaN gives NaN."""
+    x = np.asarray(x, F)
+    nan = np.isnan(x)
+    return np.where(nan, x, _exp_finite(np.where(nan, F(0.0), x))).astype(F)
+
+
+def _exp_finite(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, F(EXP_CLAMP[0]), F(EXP_CLAMP[1]))
     t = (x * LOG2E).astype(F)
     n = np.floor((t + F(0.5)).astype(F)).astype(F)  # nearest integer: f stays within [-1/2, 1/2]
     f = (t - n).astype(F)
@@ -55,6 +61,14 @@ def helper_source(prefix: str, name: str) -> str:
         return f"""/* exp(x) from IEEE float operations only: the same bits anywhere. */
 static float {prefix}_exp_det(float x)
 {{
+    union {{
+        float f;
+        uint32_t u;
+    }} in;
+    in.f = x;
+    if ((in.u & 0x7fffffffu) > 0x7f800000u) {{
+        return x; /* NaN stays NaN (and is never converted to an integer) */
+    }}
     x = x < {lo} ? {lo} : (x > {hi} ? {hi} : x);
     const float t = x * {c_float(float(LOG2E))};
     const float t_half = t + 0.5f;

@@ -1,5 +1,9 @@
 """Element-wise ops: one value in, one out (Relu, LeakyRelu, Tanh, Sigmoid, Softplus, Clip), and two
 values in (Add, Sub, Mul, Div, Max, Min; the second operand has the output's size or one element).
+
+Every op keeps ONNX's NaN semantics: a NaN operand gives a NaN result (Relu, Clip, Max and Min included), so a
+NaN anywhere in the network reaches the step's final finite check and becomes the safe action. A comparison
+with NaN is false, so each C expression is written with the NaN case on the branch a false comparison takes.
 """
 
 from __future__ import annotations
@@ -51,13 +55,13 @@ class Unary(Emitter):
 
 class Relu(Unary):
     q15_float = frozenset({"after"})  # action post-processing after a q15 section
-    expression = "{x} > 0.0f ? {x} : 0.0f"
+    expression = "{x} < 0.0f ? 0.0f : {x}"  # NaN < 0 is false: NaN stays NaN
 
     def exact(self, node: Node, x: np.ndarray) -> np.ndarray:
         return np.asarray(np.maximum(x, 0))
 
     def float32(self, node: Node, x: np.ndarray) -> np.ndarray:
-        return np.where(x > 0, x, F(0.0))
+        return np.where(x < 0, F(0.0), x)
 
 
 class LeakyRelu(Unary):
@@ -158,8 +162,8 @@ class Binary(Emitter):
     min_inputs = max_inputs = 2
     in_place = True
     operator = "+"
-    function = ""
-    """If set, a C function of two floats (e.g. ``fmaxf``) instead of an infix operator."""
+    select = ""
+    """If set, a C expression of ``{a}`` and ``{b}`` instead of ``a operator b`` (Max, Min)."""
 
     def shape(self, node: Node, shapes: Mapping[str, Shape], constants: Mapping[str, np.ndarray]) -> Shape:
         a, b = (shapes[i] for i in node.inputs)
@@ -184,51 +188,72 @@ class Binary(Emitter):
         else:
             ref = ctx.ref(node.inputs[1])
             b = f"{ref}[0]" if ctx.size(node.inputs[1]) == 1 else f"{ref}[i]"
-        expr = f"{self.function}({a}, {b})" if self.function else f"{a} {self.operator} {b}"
+        expr = self.select.format(a=a, b=b) if self.select else f"{a} {self.operator} {b}"
         return [f"for (int i = 0; i < {n}; ++i) {{", f"    {y}[i] = {expr};", "}"]
 
-    numpy: ClassVar[np.ufunc]
-    """The NumPy function with the C operator's meaning (fmax/fmin: NaN loses, as in C)."""
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The C expression's meaning, element by element (NumPy broadcasting)."""
+        raise NotImplementedError
 
     def reference(
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
     ) -> np.ndarray:
         x, b = inputs[0], inputs[1]
         if precision == "float64":
-            return np.asarray(type(self).numpy(x, b), np.float64)
+            return np.asarray(self.numpy(x, b), np.float64)
         operand = b[0] if b.size == 1 else b.reshape(1, -1) if b.ndim == 1 else b
-        return np.asarray(type(self).numpy(x, operand)).astype(F)
+        return np.asarray(self.numpy(x, operand)).astype(F)
 
 
 class Add(Binary):
     commutative = True
     operator = "+"
-    numpy = np.add
+
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.asarray(np.add(a, b))
 
 
 class Sub(Binary):
     operator = "-"
-    numpy = np.subtract
+
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.asarray(np.subtract(a, b))
 
 
 class Mul(Binary):
     commutative = True
     operator = "*"
-    numpy = np.multiply
+
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.asarray(np.multiply(a, b))
 
 
 class Div(Binary):
     operator = "/"
-    numpy = np.divide
+
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.asarray(np.divide(a, b))
 
 
 class Max(Binary):
     commutative = True
-    function = "fmaxf"
-    numpy = np.fmax
+    # Both comparisons are false only when an operand is NaN; then a + b is NaN (fmaxf would drop it).
+    select = "{a} < {b} ? {b} : ({a} >= {b} ? {a} : {a} + {b})"
+
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.where(a < b, b, np.where(a >= b, a, a + b))
 
 
 class Min(Binary):
     commutative = True
-    function = "fminf"
-    numpy = np.fmin
+    select = "{a} > {b} ? {b} : ({a} <= {b} ? {a} : {a} + {b})"
+
+    @staticmethod
+    def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.where(a > b, b, np.where(a <= b, a, a + b))

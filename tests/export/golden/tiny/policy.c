@@ -123,7 +123,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     /* Relu 'relu1' [1x4] -> [1x4] */
     for (int i = 0; i < 4; ++i) {
-        policy_buf1[i] = policy_buf1[i] > 0.0f ? policy_buf1[i] : 0.0f;
+        policy_buf1[i] = policy_buf1[i] < 0.0f ? 0.0f : policy_buf1[i];
     }
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
     for (int n = 0; n < 2; ++n) {
@@ -206,7 +206,7 @@ static void policy_block(int rows)
     /* Relu 'relu1' [1x4] -> [1x4] */
     for (int r = 0; r < rows; ++r) {
         for (int i = 0; i < 4; ++i) {
-            policy_b1[r][i] = policy_b1[r][i] > 0.0f ? policy_b1[r][i] : 0.0f;
+            policy_b1[r][i] = policy_b1[r][i] < 0.0f ? 0.0f : policy_b1[r][i];
         }
     }
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
