@@ -114,6 +114,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         act_range=args.act_range,
         sample_time=args.sample_time,
         names=_names(args.names),
+        names_file=args.names,
         tolerance=args.tolerance,
     )
     report = run_export(opts)
@@ -159,6 +160,10 @@ def _print_summary(report: dict[str, Any]) -> None:
         rows.append((f"worst |{report['quantize']} - float|", f"{q['worst_action_error_vs_float']:.3g}"))
     else:
         rows.append(("max |C - onnxruntime|", f"{v['c_vs_onnxruntime_max_abs_error']:.3g}"))
+    nan = v.get("nan_propagation")
+    if nan is not None:
+        integer = f", {nan['integer_ops']} in integers" if nan.get("integer_ops") else ""
+        rows.append(("NaN propagation", f"{nan['ops']} ops, {nan['positions']} positions as ONNX{integer}"))
     loop = report["closed_loop"]
     if "skipped" in loop:
         rows.append(("closed loop", f"skipped: {loop['skipped']}"))

@@ -36,7 +36,7 @@ from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
 from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface, InterfaceError, from_spaces, with_names
-from embedrl.train.models import LoadedPolicy, load_sb3
+from embedrl.train.models import LoadedPolicy, load_sb3, normalization_candidates
 from embedrl.train.scenarios import TWO_ROBOTS, interface_of
 
 INTERFACE_METADATA_KEY = "embedrl.interface"
@@ -73,6 +73,8 @@ class ExportOptions:
     """Without an env: the control period in seconds (the node's timing)."""
     names: dict[str, Any] | None = None
     """``{"observation": [...], "action": [...]}``: names for the interface's fields."""
+    names_file: Path | None = None
+    """The file ``names`` came from (an input: ``--force`` must not replace a folder that holds it)."""
     tolerance: float = verify.TOLERANCE
     """Allowed error between two export steps, x max(1, |output|) (:data:`export.verify.TOLERANCE`)."""
 
@@ -100,6 +102,28 @@ def _check_output_folder(out: Path, force: bool) -> None:
         raise ExportError(f"output folder {out} is not empty; use --force to replace it")
 
 
+def _inputs(opts: ExportOptions) -> list[Path]:
+    """Every file the export may read: the source, its statistics (given or found beside it), its run
+    config and the names file."""
+    sb3 = opts.source.suffix.lower() == ".zip"
+    found = [*normalization_candidates(opts.source), chain.run_config_of(opts.source)] if sb3 else []
+    given = [opts.source, opts.vecnormalize, opts.names_file]
+    return [p for p in [*given, *found] if p is not None and p.exists()]
+
+
+def _check_inputs_outside(out: Path, inputs: list[Path]) -> None:
+    """Refuse an output folder that is or holds one of the inputs (replacing it would delete them)."""
+    if not out.is_dir():
+        return
+    folder = out.resolve()
+    for path in inputs:
+        if path.resolve().is_relative_to(folder):
+            raise ExportError(
+                f"output folder {out} holds the input {path}: replacing it would delete the input; "
+                "give another --out"
+            )
+
+
 def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run every step; return the export report. Raises :class:`ExportError` on any failure."""
     check_name(opts.name)
@@ -117,6 +141,7 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
     if opts.out.is_symlink():  # written through: the link stays, its target folder is replaced
         opts = replace(opts, out=opts.out.resolve())
     _check_output_folder(opts.out, opts.force)
+    _check_inputs_outside(opts.out, _inputs(opts))
     try:
         opts.out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

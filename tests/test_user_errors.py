@@ -167,6 +167,33 @@ def test_a_user_error_is_one_line_exit_2_and_writes_nothing(row: str, tmp_path: 
     assert_refused(make_argv(tmp_path), said, tmp_path)
 
 
+def _export_over_an_input(tmp: Path, where: str) -> tuple[list[str], list[Path]]:
+    """``export --force`` into a folder that holds one of its inputs: the argv and the inputs."""
+    run = tmp / "run"
+    run.mkdir()
+    model = run / "model.zip"
+    model.write_bytes(TD3.read_bytes())
+    if where == "the model's folder":
+        return ["export", str(model), "--out", str(run), "--force"], [model]
+    if where == "a folder above the model":
+        return ["export", str(model), "--out", str(tmp), "--force"], [model]
+    stats = tmp / "given" / ("stats.npz" if where == "--vecnormalize" else "names.json")
+    stats.parent.mkdir()
+    stats.write_text("{}")
+    option = "--vecnormalize" if where == "--vecnormalize" else "--names"
+    return ["export", str(model), option, str(stats), "--out", str(stats.parent), "--force"], [model, stats]
+
+
+@pytest.mark.parametrize(
+    "where", ["the model's folder", "a folder above the model", "--vecnormalize", "--names"]
+)
+def test_export_force_refuses_a_folder_that_holds_an_input(where: str, tmp_path: Path) -> None:
+    argv, inputs = _export_over_an_input(tmp_path, where)
+    before = {path: path.read_bytes() for path in inputs}
+    assert_refused(argv, "holds the input", tmp_path)
+    assert {path: path.read_bytes() for path in inputs} == before  # nothing deleted
+
+
 def run_and_interrupt(
     argv: list[str],
     tmp: Path,
