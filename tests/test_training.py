@@ -16,7 +16,7 @@ import pytest
 from stable_baselines3 import PPO, TD3
 
 from embedrl.cli import main
-from embedrl.train.config import ALGOS, Budget
+from embedrl.train.config import ALGOS, Budget, preset, untrained_budget
 from embedrl.train.models import load_model_policy
 from embedrl.train.trainer import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor, train
 
@@ -36,13 +36,16 @@ class _FakeMonitor(RunMonitor):
         run: Path,
         budget: Budget | None = None,
         validations: list[tuple[float, float]] | None = None,
+        trained: list[bool] | None = None,
     ) -> None:
         (run / "curve.csv").write_text(",".join(CURVE_FIELDS) + "\n")
         scripted = iter(validations or [])
+        learnt = iter(trained) if trained is not None else None
         self.saved_best: list[int] = []
         super().__init__(
             run, budget or Budget(), {}, lambda: None, lambda: next(scripted), progress=False,
             save_best=lambda: self.saved_best.append(self.state["best"]["step"]),
+            trained=lambda: True if learnt is None else next(learnt),
         )  # fmt: skip
         self.pending_q0 = 0.0
 
@@ -153,6 +156,53 @@ def test_a_run_killed_and_resumed_ends_bit_identical_to_the_same_run_uninterrupt
         whole.predict(obs, deterministic=True)[0], resumed.predict(obs, deterministic=True)[0]
     )
     assert (run / "curve.csv").read_text() == (tmp_path / "whole" / "curve.csv").read_text()
+
+
+def test_an_untrained_policy_is_the_best_only_until_a_trained_one_is_evaluated(tmp_path: Path) -> None:
+    """Within the random warm-up the actor is the fresh one: it crashes at once (-2), which scores better
+    than the wandering of the first trained actors (-25); it must not be shipped as the best."""
+    script = [(0.0, -2.0), (0.0, -25.0), (0.0, -20.0), (0.0, -22.0)]
+    monitor = _FakeMonitor(tmp_path, Budget(), script, trained=[False, True, True, True])
+    monitor.evaluation(1000)
+    assert monitor.state["best"] == {"step": 1000, "success": 0.0, "mean_return": -2.0, "trained": False}
+    for k in (2, 3, 4):
+        monitor.evaluation(1000 * k)
+    assert monitor.state["best"]["step"] == 3000 and monitor.state["best"]["trained"] is True
+    assert monitor.saved_best == [1000, 2000, 3000]
+
+
+def test_only_an_off_policy_budget_within_its_warm_up_trains_nothing() -> None:
+    assert untrained_budget(preset("td3", "tuned"), 10_000) is not None  # SB3 trains once steps > 10,000
+    assert untrained_budget(preset("td3", "tuned"), 10_001) is None
+    assert untrained_budget(preset("td3", "thesis"), 1) is None  # the study's agents learn from step one
+    assert untrained_budget(preset("ppo", "tuned"), 1) is None  # PPO updates after its first rollout
+
+
+@pytest.mark.parametrize("learning_starts", [10_000, 100])
+def test_a_budget_within_the_warm_up_warns_and_the_run_says_it_is_untrained(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], learning_starts: int
+) -> None:
+    """SB3 updates an off-policy agent only after ``learning_starts`` steps: a smaller budget trains nothing.
+    It is allowed (tiny test runs), but said in one line before training, in summary.json and at the end."""
+    run = tmp_path / "run"
+    argv = ["train", "--algo", "td3", "--max-steps", "300", "--eval-every", "300", "--out", str(run),
+            "--set", "demonstrations=2", "--set", f"learning_starts={learning_starts}"]  # fmt: skip
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    summary = json.loads((run / "summary.json").read_text())
+    warnings = [line for line in err.splitlines() if line.startswith("warning:")]
+    if learning_starts < 300:
+        assert summary["untrained"] is False and summary["updates"] > 0 and not warnings
+        assert summary["best_validation"]["trained"] is True
+        return
+    assert summary["untrained"] is True and summary["updates"] == 0
+    assert summary["selected"] == "best validation" and summary["best_validation"]["trained"] is False
+    assert warnings == [
+        "warning: a budget of 300 steps ends within the random warm-up (10,000 steps, learning_starts): no "
+        "training update, the policy stays untrained; give a larger --max-steps or --set learning_starts=N",
+        f"warning: {run / 'model.zip'} is an untrained policy: it never had a training update",
+    ]
+    assert f"{'untrained':<36}  True" in out.splitlines()
 
 
 def _short_run(run: Path) -> None:
@@ -473,7 +523,8 @@ def test_a_run_ships_its_best_validated_checkpoint(tmp_path: Path) -> None:
     with (run / "evaluations.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["steps"]) for r in rows] == [300, 600, 900, 1200]
-    best = max(rows, key=lambda r: (float(r["success_rate"]), float(r["mean_return"])))
+    trained = [r for r in rows if int(r["steps"]) > 300]  # at step 300 the warm-up has just ended
+    best = max(trained, key=lambda r: (float(r["success_rate"]), float(r["mean_return"])))
     assert int(best["steps"]) == summary["best_validation"]["step"]
 
 

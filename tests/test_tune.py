@@ -19,6 +19,12 @@ def test_a_tiny_search_resumes_and_its_best_preset_trains(
     assert main(argv) == 0
     best = json.loads((out / "best_preset.json").read_text())
     assert best["base_preset"] == "tuned" and 0.0 <= best["validation_success"] <= 1.0
+    # 300 steps end within the tuned preset's random warm-up: said before the search, on the best's line
+    # and in the preset file
+    printed = capsys.readouterr()
+    assert best["untrained"] is True and "% (UNTRAINED: no trial had a training update), " in printed.out
+    warnings = [line for line in printed.err.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1 and "ends within the random warm-up (10,000 steps" in warnings[0]
     assert {o.split("=")[0] for o in best["overrides"]} == set(SPACE)  # TD3 has every searched field
     assert len((out / "trials.md").read_text().splitlines()) == 2 + 2
     assert sorted(p.name for p in (out / "trials").iterdir()) == ["trial-0", "trial-1"]

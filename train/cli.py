@@ -132,6 +132,7 @@ def _read_preset(args: argparse.Namespace) -> None:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
+    from embedrl.train.config import preset, untrained_budget
     from embedrl.train.tune import Search, run_tune
 
     optimize = None
@@ -142,6 +143,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
         check_ray_address(args.ray)
         optimize = functools.partial(optimize_on_ray, address=args.ray, workers=args.workers)
     search = Search(args.algo, args.scenario, args.max_steps, args.out, args.seed, args.preset)
+    idle = untrained_budget(preset(args.algo, args.preset, args.scenario), args.max_steps)
+    if idle is not None:
+        _warn(f"{idle} (in every trial); give a larger --max-steps")
     fresh = not args.out.exists()
     try:
         best = run_tune(search, args.trials, optimize)
@@ -151,8 +155,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
         if isinstance(exc, RuntimeError):  # no trial finished its budget
             raise UsageError(str(exc)) from None
         raise
-    print(f"best: trial {best['trial']}, validation success {100 * best['validation_success']:.0f}%, "
-          f"{' '.join(best['overrides'])}")  # fmt: skip
+    untrained = " (UNTRAINED: no trial had a training update)" if best["untrained"] else ""
+    print(f"best: trial {best['trial']}, validation success {100 * best['validation_success']:.0f}%"
+          f"{untrained}, {' '.join(best['overrides'])}")  # fmt: skip
     preset_file = args.out / "best_preset.json"
     print(f"wrote {preset_file} (embedrl train --preset {preset_file}), trials.md, study.db, trials/")
     return 0
@@ -224,12 +229,20 @@ def cmd_train(args: argparse.Namespace) -> int:
         progress=on_terminal(),
         overrides=args.set,
         scenario=values["scenario"],
+        warn=lambda why: _warn(f"{why}; give a larger --max-steps or --set learning_starts=N"),
     )
     for key, value in summary.items():
         print(f"{key:<36}  {value}")
     written = sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir())
     print(f"wrote {out}/ ({', '.join(written)})")
+    if summary["untrained"]:
+        _warn(f"{out / 'model.zip'} is an untrained policy: it never had a training update")
     return 0
+
+
+def _warn(message: str) -> None:
+    """One line on stderr that the command goes on although its result may not be what was wanted."""
+    print(f"warning: {message}", file=sys.stderr)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

@@ -381,3 +381,21 @@ def _parse(key: str, raw: str, current: Any) -> Any:
 
 def to_dict(config: AlgoConfig) -> dict[str, Any]:
     return asdict(config)
+
+
+def warmup_steps(config: AlgoConfig) -> int:
+    """Env steps of random actions before the first training update (off-policy agents'
+    ``learning_starts``; PPO has none: it updates after every rollout, the first one included)."""
+    return 0 if isinstance(config, PPOConfig) else int(config.learning_starts)
+
+
+def untrained_budget(config: AlgoConfig, max_steps: int) -> str | None:
+    """Why a run of ``max_steps`` env steps would end without a single training update (SB3 updates an
+    off-policy agent only once more than ``learning_starts`` steps were taken), or None when it trains."""
+    warmup = warmup_steps(config)
+    if max_steps > warmup:
+        return None
+    return (
+        f"a budget of {max_steps:,} steps ends within the random warm-up ({warmup:,} steps, "
+        "learning_starts): no training update, the policy stays untrained"
+    )

@@ -60,6 +60,8 @@ from embedrl.train.config import (
     TD3Config,
     preset,
     to_dict,
+    untrained_budget,
+    warmup_steps,
     with_overrides,
 )
 from embedrl.train.errors import UsageError
@@ -413,10 +415,12 @@ class RunMonitor(BaseCallback):
         validate: Callable[[], tuple[float, float]],
         progress: bool,
         save_best: Callable[[], None] = lambda: None,
+        trained: Callable[[], bool] = lambda: True,
     ) -> None:
         super().__init__()
         self.run, self.budget, self.state = run, budget, state
         self.save, self.validate, self.save_best = save, validate, save_best
+        self.trained = trained
         self.returns: list[float] = list(state.get("returns", []))
         self.pending_q0: float | None = None
         self.bar = tqdm(
@@ -480,7 +484,9 @@ class RunMonitor(BaseCallback):
         return stop_rule_fired(self.budget.stop, self.state) is not None
 
     def evaluation(self, steps: int) -> None:
-        """A validation evaluation: logged, the best one kept, the deployable criterion recorded."""
+        """A validation evaluation: logged, the best one kept, the deployable criterion recorded. An
+        untrained policy (evaluated within the random warm-up) is kept as the best only until a trained
+        one is evaluated: crashing at once scores better than wandering, and a fresh actor often does."""
         success, mean_return = self.validate()
         self.state["evaluations"] = self.state.get("evaluations", 0) + 1
         new_file = not (self.run / EVALUATIONS_FILE).exists()
@@ -492,8 +498,18 @@ class RunMonitor(BaseCallback):
         if self.state.get("first_deterministic_criterion_step") is None and mean_return >= STOP_THRESHOLD:
             self.state["first_deterministic_criterion_step"] = steps
         best = self.state.get("best")
-        if best is None or (success, mean_return) > (best["success"], best["mean_return"]):
-            self.state["best"] = {"step": steps, "success": success, "mean_return": mean_return}
+        trained = self.trained()
+        if best is None or (trained, success, mean_return) > (
+            best.get("trained", True),
+            best["success"],
+            best["mean_return"],
+        ):
+            self.state["best"] = {
+                "step": steps,
+                "success": success,
+                "mean_return": mean_return,
+                "trained": trained,
+            }
             self.save_best()
         if success >= self.budget.target_success and self.state.get("target_step") is None:
             self.state["target_step"] = steps
@@ -537,11 +553,13 @@ def train(
     progress: bool = False,
     overrides: Sequence[str] = (),
     scenario: str = DEFAULT_SCENARIO,
+    warn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Train one agent into ``out`` (or continue the run there) on a scenario; return its summary.
 
     ``overrides``: ``NAME=VALUE`` changes to the preset's hyperparameters (recorded in config.json and
-    applied again on resume)."""
+    applied again on resume). ``warn`` is told, before any training, when the budget ends within the
+    random warm-up (the run then trains nothing; its summary says ``untrained``)."""
     budget = budget or Budget()
     if algo not in ALGOS:
         raise UsageError(f"unknown algorithm {algo!r}; choose from {', '.join(ALGOS)}")
@@ -565,6 +583,9 @@ def train(
         check_options(cfg.reward, cfg.success_bonus, cfg.shaping_gain)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
+    idle = untrained_budget(cfg, budget.max_steps)
+    if idle is not None and warn is not None:
+        warn(idle)
     out.mkdir(parents=True, exist_ok=True)
     run = _Run(out, RunConfig(
         algo, preset_name, seed, scenario=scenario, hyperparameters=to_dict(cfg), budget=vars(budget),
@@ -573,7 +594,14 @@ def train(
     if not resume and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
         run.save_model(WARM_START_MODEL)  # behaviour cloning alone, before any PPO update
     monitor = RunMonitor(
-        out, budget, run.state, run.save, run.validate, progress, lambda: run.save_model(BEST_MODEL)
+        out,
+        budget,
+        run.state,
+        run.save,
+        run.validate,
+        progress,
+        lambda: run.save_model(BEST_MODEL),
+        run.trained,
     )
     remaining = budget.max_steps - int(run.state.get("steps", 0))
     if resume:
@@ -627,6 +655,11 @@ class _Run:
                 model, self.env, cfg.warm_start_demonstrations, cfg.warm_start_epochs, seed, scenario, cfg
             )
 
+    def trained(self) -> bool:
+        """Whether the model has learnt anything: a training update, or PPO's behaviour-cloned start."""
+        cloned = isinstance(self.cfg, PPOConfig) and self.cfg.warm_start_demonstrations > 0
+        return cloned or int(getattr(self.model, "_n_updates", 0)) > 0
+
     def wall_clock_s(self) -> float:
         return float(self.state["wall_clock_s"]) + time.monotonic() - self.started
 
@@ -665,6 +698,7 @@ class _Run:
         self.save_model(LAST_MODEL)
         best = state.get("best")
         selected = BEST_MODEL if self.budget.select_best and best is not None else LAST_MODEL
+        trained = best.get("trained", True) if selected == BEST_MODEL and best is not None else self.trained()
         shutil.copyfile(out / f"{selected}.zip", out / "model.zip")
         for suffix in (".npz", ".pkl"):
             if self.normalize:
@@ -682,10 +716,11 @@ class _Run:
             "validation_target_step": state.get("target_step"),
             "selected": "best validation" if selected == BEST_MODEL else "last",
             "best_validation": best,
+            "untrained": not trained,
             "total_steps": int(self.model.num_timesteps),
             "total_episodes": len(returns),
             "average50_at_stop": float(np.mean(returns[-STOP_WINDOW:])) if returns else None,
-            "warmup_episodes": _episodes_within(out / "curve.csv", _warmup_steps(self.cfg)),
+            "warmup_episodes": _episodes_within(out / "curve.csv", warmup_steps(self.cfg)),
             "demonstration_episodes": _demonstration_episodes(self.cfg),
             "updates": int(getattr(self.model, "_n_updates", 0)),
             "wall_clock_s": self.wall_clock_s(),
@@ -694,7 +729,7 @@ class _Run:
         from embedrl.train.plots import plot_progress, plot_successes
 
         title = f"{config.algo.upper()} ({self.scenario}, {config.preset}, seed {config.seed})"
-        plot_progress(out / "curve.csv", out / "progress.png", title, _warmup_steps(self.cfg))
+        plot_progress(out / "curve.csv", out / "progress.png", title, warmup_steps(self.cfg))
         plot_successes(out / "curve.csv", out / EVALUATIONS_FILE, out / "successes.png", title)
         self.env.close()
         return summary
@@ -852,11 +887,6 @@ class _ModelPolicy:
 
 def _policy_of(model: BaseAlgorithm, env: VecEnv) -> Callable[[np.ndarray], np.ndarray]:
     return _ModelPolicy(model, env)
-
-
-def _warmup_steps(cfg: Any) -> int:
-    """Env steps of random actions before learning (off-policy agents' ``learning_starts``)."""
-    return 0 if isinstance(cfg, PPOConfig) else int(cfg.learning_starts)
 
 
 def _demonstration_episodes(cfg: Any) -> int:

@@ -5,7 +5,8 @@ budget, in :data:`RUNGS` steps; after each, its selected model is evaluated on t
 the test seeds) and the success rate is reported, so Optuna's median pruner can stop a trial that is behind
 the others at the same step. The study lives in ``DIR/study.db`` (SQLite): an interrupted search goes on
 where it stopped. The best trial is written as a preset file (``DIR/best_preset.json``) that ``embedrl
-train --preset FILE`` reads, with the trials' table (``DIR/trials.md``).
+train --preset FILE`` reads, with the trials' table (``DIR/trials.md``); ``"untrained": true`` in it says
+that the trials' budget ended within the random warm-up, so that no trial trained at all.
 """
 
 from __future__ import annotations
@@ -76,7 +77,7 @@ def run_tune(search: Search, trials: int, optimize: Optimize | None = None) -> d
     ``optimize``; the best trial as a preset file's content."""
     import optuna
 
-    from embedrl.train.config import preset, to_dict
+    from embedrl.train.config import preset, to_dict, untrained_budget, with_overrides
 
     search.out.mkdir(parents=True, exist_ok=True)
     fields = set(to_dict(preset(search.algo, search.base, search.scenario)))
@@ -94,10 +95,13 @@ def run_tune(search: Search, trials: int, optimize: Optimize | None = None) -> d
         study.optimize(lambda trial: _objective(trial, search, fields), n_trials=left,
                        show_progress_bar=on_terminal())  # fmt: skip
     best = _best(study)
+    overrides = overrides_of(best.params)
+    idle = untrained_budget(with_overrides(preset(search.algo, search.base, search.scenario), overrides),
+                            search.max_steps)  # fmt: skip
     result = {
         "algo": search.algo, "scenario": search.scenario, "base_preset": search.base,
-        "overrides": overrides_of(best.params), "validation_success": best.value, "trial": best.number,
-        "max_steps": search.max_steps, "seed": search.seed,
+        "overrides": overrides, "validation_success": best.value, "trial": best.number,
+        "max_steps": search.max_steps, "seed": search.seed, "untrained": idle is not None,
     }  # fmt: skip
     write_json(result, search.out / "best_preset.json")
     (search.out / "trials.md").write_text(_table(study))
