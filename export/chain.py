@@ -96,9 +96,31 @@ def read(export_dir: Path) -> list[Link]:
         data = parse_json(manifest.read_text())
         if data.get("format") != FORMAT:
             raise ValueError(f"format {data.get('format')!r}, expected {FORMAT}")
-        return [Link(**entry) for entry in data["links"]]
+        links = [_link_of(entry) for entry in data["links"]]
+        if not links:
+            raise ValueError("no links")
+        return links
     except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ChainError(f"{manifest}: not a chain manifest ({exc})") from None
+
+
+_DIGEST = re.compile(r"[0-9a-f]{64}")
+
+
+def _link_of(entry: Any) -> Link:
+    """One entry of the manifest, each field of its type (the manifest is a file anyone can edit)."""
+    k = Link(**entry)  # a field missing or unknown: TypeError
+    if not isinstance(k.name, str) or not k.name:
+        raise ValueError(f"a link's name is {k.name!r}, not a text")
+    if not isinstance(k.path, str) or not k.path:
+        raise ValueError(f"link {k.name!r}: path {k.path!r} is not a file's path")
+    if not isinstance(k.sha256, str) or not _DIGEST.fullmatch(k.sha256):
+        raise ValueError(f"link {k.name!r}: sha256 {k.sha256!r} is not a SHA-256 digest (64 hex digits)")
+    if not isinstance(k.made_from, list) or not all(isinstance(m, str) for m in k.made_from):
+        raise ValueError(f"link {k.name!r}: made_from {k.made_from!r} is not a list of link names")
+    if not isinstance(k.facts, dict):
+        raise ValueError(f"link {k.name!r}: facts {k.facts!r} is not an object")
+    return k
 
 
 def append(export_dir: Path, new: Link) -> None:
@@ -121,7 +143,11 @@ def _check(export_dir: Path, k: Link, by_name: dict[str, Link]) -> Check:
     now = sha256(path)
     if now != k.sha256:
         return Check(k, False, f"{k.path} changed: sha256 {now[:12]}..., the chain says {k.sha256[:12]}...")
-    for parent, recorded in _recorded_parents(path, k).items():
+    try:
+        parents = _recorded_parents(path, k)
+    except ValueError as exc:
+        return Check(k, False, f"{k.path}: cannot read the hashes it records of its parents ({exc})")
+    for parent, recorded in parents.items():
         if parent in by_name and by_name[parent].sha256 != recorded:
             return Check(k, False, f"{k.path} was made from another {parent} (sha256 {recorded[:12]}...)")
     return Check(k, True, f"{k.path} sha256 {now[:12]}...")
@@ -136,10 +162,14 @@ def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
         found = dict(_C_HEADER.findall(path.read_text(errors="replace")[:2000]))
         return {name: found[key] for key, name in (("onnx", "ONNX"), ("source", "model")) if key in found}
     if k.name == "run config" and path.suffix == ".json":
-        recorded = parse_json(path.read_text()).get("sha256")
+        data = parse_json(path.read_text())
+        recorded = data.get("sha256") if isinstance(data, dict) else None
         return {"model": recorded} if isinstance(recorded, str) else {}
     if k.name.startswith("HIL report") and path.suffix == ".json":
-        files = parse_json(path.read_text()).get("export_files") or {}
+        data = parse_json(path.read_text())
+        files = (data.get("export_files") or {}) if isinstance(data, dict) else None
+        if not isinstance(files, dict):
+            raise ValueError("its export_files is not an object of file names and hashes")
         names = {"policy.onnx": "ONNX", "c/policy.c": "C source policy.c", "interface.json": "interface"}
         return {names[f]: h for f, h in files.items() if f in names}
     return {}

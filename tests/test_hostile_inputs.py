@@ -11,15 +11,18 @@ from __future__ import annotations
 import io
 import json
 import os
+import shutil
 import zipfile
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from embedrl.cli import main
 from tests.test_user_errors import TD3, _external, _gemm_model, assert_refused, run_measured
 
 TIME_BUDGET_S = 10.0
@@ -271,3 +274,69 @@ def test_an_onnx_at_the_installed_onnx_default_ir_version_exports(tmp_path: Path
     argv = ["export", str(path), "--out", str(tmp_path / "out"), "--episodes", "0"]
     result, _, _ = run_measured(argv, {**os.environ})
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+@pytest.fixture(scope="module")
+def export(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped TD3 exported for the M4 (a firmware node image in bin/), with a HIL report of the Python
+    node on it (``hil.json`` beside the export) in its chain."""
+    root = tmp_path_factory.mktemp("hostile")
+    argv = ["export", str(TD3), "--out", str(root / "export"), "--episodes", "0", "--target", "cortex-m4"]
+    assert main(argv) == 0
+    argv = ["hil", "run", "--export-dir", str(root / "export"), "--node", "python", "--episodes", "1",
+            "--json", str(root / "hil.json")]  # fmt: skip
+    assert main(argv) == 0
+    return root / "export"
+
+
+def _edit_json(path: Path, edit: Callable[[Any], object]) -> None:
+    data = json.loads(path.read_text())
+    edit(data)
+    path.write_text(json.dumps(data))
+
+
+def _damaged_export(tmp: Path, export: Path, name: str, edit: Callable[[Any], object]) -> Path:
+    """A copy of ``export`` in ``tmp`` with its JSON file ``name`` edited."""
+    copy = tmp / "export"
+    shutil.copytree(export, copy)
+    _edit_json(copy / name, edit)
+    return copy
+
+
+def _damaged_hil(tmp: Path, export: Path, edit: Callable[[dict[str, Any]], object]) -> Path:
+    """A copy of the HIL report made on ``export``, edited."""
+    path = tmp / "hil.json"
+    shutil.copy(export.parent / "hil.json", path)
+    _edit_json(path, edit)
+    return path
+
+
+def _link(field: str, value: object) -> Callable[[Any], object]:
+    return lambda data: data["links"][2].update({field: value})
+
+
+def _chain_row(edit: Callable[[Any], object]) -> Callable[[Path, Path], list[str]]:
+    return lambda tmp, export: ["verify-chain", str(_damaged_export(tmp, export, "chain.json", edit))]
+
+
+def _report_row(edit: Callable[[dict[str, Any]], object]) -> Callable[[Path, Path], list[str]]:
+    def argv(tmp: Path, export: Path) -> list[str]:
+        return ["report", str(export), "--hil", str(_damaged_hil(tmp, export, edit)), "--out",
+                str(tmp / "out" / "r.html")]  # fmt: skip
+
+    return argv
+
+
+EXPORT_ROWS: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
+    "verify-chain of a chain without links": (_chain_row(lambda d: d.update(links=[])), "(no links)"),
+    "verify-chain of a number for a digest": (_chain_row(_link("sha256", 5)), "sha256 5 is not a SHA-256"),
+    "verify-chain of a number for a path": (_chain_row(_link("path", 5)), "path 5 is not a file's path"),
+}
+
+
+@pytest.mark.parametrize("row", list(EXPORT_ROWS))
+def test_a_damaged_export_or_report_is_refused_in_one_line(row: str, tmp_path: Path, export: Path) -> None:
+    make_argv, said = EXPORT_ROWS[row]
+    elapsed, peak_mb = assert_refused(make_argv(tmp_path, export), said, tmp_path)
+    assert elapsed < TIME_BUDGET_S, f"{elapsed:.1f} s"
+    assert peak_mb < MEMORY_BUDGET_MB, f"{peak_mb:.0f} MB"
