@@ -14,8 +14,13 @@ reads that too.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import re
+import secrets
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -80,9 +85,17 @@ def link(export_dir: Path, name: str, path: Path, made_from: list[str], **facts:
 
 
 def write(export_dir: Path, links: list[Link]) -> Path:
+    """Write the manifest atomically: a reader sees the old one or the new one, never a part of either."""
     manifest = export_dir / MANIFEST
     data = {"format": FORMAT, "links": [asdict(k) for k in links]}
-    manifest.write_text(json.dumps(data, indent=2) + "\n")
+    partial = export_dir / f".{MANIFEST}.{secrets.token_hex(6)}.partial"  # one per writer
+    try:
+        fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the user's umask applies
+        with os.fdopen(fd, "w") as f:
+            f.write(json.dumps(data, indent=2) + "\n")
+        os.replace(partial, manifest)
+    finally:
+        partial.unlink(missing_ok=True)
     return manifest
 
 
@@ -124,9 +137,42 @@ def _link_of(entry: Any) -> Link:
 
 
 def append(export_dir: Path, new: Link) -> None:
-    """Add (or replace, by name) a link made on the export later, such as a HIL report."""
-    links = [k for k in read(export_dir) if k.name != new.name]
-    write(export_dir, [*links, new])
+    """Add (or replace, by name) a link made on the export later, such as a HIL report. Appends from
+    several processes at once each keep their link: each reads, changes and replaces the manifest while
+    it holds the manifest's lock."""
+    with _locked(export_dir):
+        links = [k for k in read(export_dir) if k.name != new.name]
+        write(export_dir, [*links, new])
+
+
+def check_appendable(export_dir: Path) -> None:
+    """Refuse, before any work, an export whose manifest could not take a link at the end: ChainError."""
+    if not os.access(export_dir, os.W_OK | os.X_OK):
+        raise ChainError(f"{export_dir}: the folder is not writable (its {MANIFEST} takes the report's link)")
+
+
+@contextlib.contextmanager
+def _locked(export_dir: Path) -> Iterator[None]:
+    """Hold an exclusive lock on the manifest. A writer replaces the file, so a waiter that locked the
+    file it opened checks that it still is the one on disk, and otherwise locks the new one."""
+    manifest = export_dir / MANIFEST
+    while True:
+        try:
+            fd = os.open(manifest, os.O_RDONLY)
+        except FileNotFoundError:
+            raise ChainError(f"{export_dir}: no {MANIFEST} (export it again with `embedrl export`)") from None
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        try:
+            current = os.stat(manifest).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            current = False
+        if current:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def verify(export_dir: Path) -> list[Check]:

@@ -15,10 +15,13 @@ from embedrl.hil.sandbox import MODES
 
 def cmd_run(args: argparse.Namespace) -> int:
     from embedrl.common import table, write_json
+    from embedrl.export import chain
     from embedrl.hil.options import RunOptions
     from embedrl.hil.run import add_to_chain, run
     from embedrl.hil.verdict import summary_rows
 
+    if args.json and (args.export_dir / chain.MANIFEST).is_file():
+        chain.check_appendable(args.export_dir)  # before the run: its report's link is written at the end
     data = run(RunOptions.of(vars(args)))
     print(table(summary_rows(data)))
     pictures = sorted(args.plot.glob("hil_*.png")) if args.plot else []

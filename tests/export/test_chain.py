@@ -4,7 +4,9 @@ reports) hashed; ``embedrl verify-chain`` names the first link a one-byte change
 from __future__ import annotations
 
 import json
+import multiprocessing
 import shutil
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -120,3 +122,32 @@ def test_a_folder_without_a_readable_manifest_is_refused_in_one_line(
     assert main(["verify-chain", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and len(err.splitlines()) == 1
+
+
+def _append_reports(export: Path, first: int, count: int) -> None:
+    """Append ``count`` HIL report links to ``export``'s manifest (one writer of several)."""
+    for index in range(first, first + count):
+        report = export / f"report-{index}.json"
+        report.write_text(json.dumps({"index": index}))
+        chain.append(export, chain.link(export, f"HIL report {index}", report, ["interface"]))
+
+
+def test_concurrent_appends_keep_every_link_and_every_reader_sees_a_whole_manifest(tmp_path: Path) -> None:
+    # Several `hil run --json` on one export append at once: each writer reads, changes and replaces
+    # the manifest under its lock, so no link is lost and a reader never sees a half-written file.
+    (tmp_path / "interface.json").write_text("{}")
+    chain.write(tmp_path, [chain.link(tmp_path, "interface", tmp_path / "interface.json", [])])
+    writers, each = 6, 15
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=writers, mp_context=context) as pool:
+        futures = [pool.submit(_append_reports, tmp_path, w * each, each) for w in range(writers)]
+        reads = 0
+        while not all(f.done() for f in futures):
+            chain.read(tmp_path)  # a torn manifest raises ChainError ("not a chain manifest")
+            reads += 1
+        for future in futures:
+            future.result()
+    names = {k.name for k in chain.read(tmp_path)}
+    assert names == {"interface", *(f"HIL report {i}" for i in range(writers * each))}
+    assert reads > 0
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no partial file left

@@ -7,9 +7,11 @@ the same suite runs against the compiled node over SocketCAN in ``test_hil_vcan.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import signal
 import subprocess
+import sys
 import time
 import types
 from pathlib import Path
@@ -263,3 +265,35 @@ def test_the_python_node_says_start_until_its_first_step_and_resets_on_safe_as_t
     assert node.state == "SAFE" and node.fresh and state_now() == "SAFE"
     node.bus.shutdown()
     listener.shutdown()
+
+
+def _with_read_only(folder: Path, argv: list[str]) -> list[str]:
+    """``argv`` run with ``folder`` read-only: for root (whom a folder's mode does not stop), in a mount
+    namespace of its own where the folder is a read-only bind mount; for others, the folder's mode."""
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        return argv
+    mount = 'mount --bind "$0" "$0" && mount -o remount,ro,bind "$0" "$0" && exec "$@"'
+    probe = subprocess.run(["unshare", "-m", "sh", "-c", mount, str(folder), "true"], capture_output=True)
+    if probe.returncode != 0:
+        pytest.skip(f"no mount namespace here: {probe.stderr.decode().strip()}")
+    return ["unshare", "-m", "sh", "-c", mount, str(folder), *argv]
+
+
+def test_a_report_for_a_read_only_export_is_refused_before_the_run(export_dir: Path, tmp_path: Path) -> None:
+    # The report's link goes into the export's chain.json at the end: a folder that cannot take it is
+    # refused before the run, not after a whole run that then leaves no link.
+    export = tmp_path / "export"
+    shutil.copytree(export_dir, export)
+    report = tmp_path / "hil.json"
+    argv = [sys.executable, "-m", "embedrl.cli", "hil", "run", "--export-dir", str(export),
+            "--node", "python", "--episodes", "3", "--json", str(report)]  # fmt: skip
+    start = time.monotonic()
+    try:
+        result = subprocess.run(_with_read_only(export, argv), capture_output=True, text=True, timeout=300)
+    finally:
+        export.chmod(0o755)
+    elapsed = time.monotonic() - start
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1 and "is not writable" in lines[0], result.stderr[-2000:]
+    assert not report.exists() and elapsed < 10, f"{elapsed:.1f} s"
