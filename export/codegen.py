@@ -252,6 +252,9 @@ def _section_lines(section: FixedSection, ctx: _Context) -> tuple[list[str], lis
         f"/* 16-bit fixed point: {len(section.layers)} layer(s); "
         f"input with {section.in_frac} fractional bits */",
         f"for (int i = 0; i < {section.layers[0].weights.shape[1]}; ++i) {{",
+        f"    if (!{p}_finite({src_ref}[i])) {{",
+        f"        return {p}_safe(act, {p.upper()}_ERR_ACT_NOT_FINITE); /* never converted to an integer */",
+        "    }",
         f"    float v = {src_ref}[i] * {scale};",
         "    v = v > 32767.0f ? 32767.0f : (v < -32767.0f ? -32767.0f : v);",
         "    v = v + 0.5f;",
@@ -300,6 +303,7 @@ def generate(
     quantize: str | None = None,
     section: FixedSection | None = None,
     interface: Interface | None = None,
+    checks: bool = True,
 ) -> dict[str, str]:
     """Generate ``{name}.h`` and ``{name}.c`` for ``graph``.
 
@@ -308,7 +312,9 @@ def generate(
     ``interface`` adds a named index constant per observation and action field (``{NAME}_OBS_X``) and
     the sample time. ``provenance`` lines (e.g. hashes) go into both file headers.
     ``quantize`` is None, "int8" or "q15"; q15 needs the ``section`` planned by
-    :func:`export.fixed_point.plan`.
+    :func:`export.fixed_point.plan`. ``checks=False`` leaves out the finite checks of the observation and
+    the result, so ``{name}_step`` returns whatever the graph computes, NaN included: a probe of one op's NaN
+    semantics for verification (:mod:`embedrl.export.nan_check`), never a deployable policy.
     """
     check_name(name)
     safe = _safe_action(graph, safe_action)
@@ -345,7 +351,7 @@ def generate(
         f"static float {name}_state{k}[{graph.size(read)}]; /* {_sanitize(read)}, next: {_sanitize(write)} */"
         for k, (read, write) in enumerate(graph.states)
     ]
-    source = _source(banner, name, ctx, body, [*states, *buffers, *int16_decls], ram)
+    source = _source(banner, name, ctx, body, [*states, *buffers, *int16_decls], ram, checks)
     return {
         f"{name}.h": _header(banner, graph, name, safe, interface),
         f"{name}.c": source + (_batch_source(name, ctx, block) if block is not None else _row_batch(name)),
@@ -570,11 +576,27 @@ def _state_lines(name: str, ctx: _Context) -> tuple[str, str, str]:
     return "\n".join(reset), "\n".join(check) + "\n", "\n".join(keep) + "\n"
 
 
-def _source(banner: str, name: str, ctx: _Context, body: list[str], buffers: list[str], ram: int) -> str:
+def _source(
+    banner: str, name: str, ctx: _Context, body: list[str], buffers: list[str], ram: int, checks: bool
+) -> str:
     up = name.upper()
     out_ref = ctx.ref(ctx.graph.output)
     reset, check_state, keep_state = _state_lines(name, ctx)
+    check_obs = f"""    for (int i = 0; i < {up}_OBS_DIM; ++i) {{
+        if (!{name}_finite(obs[i])) {{
+            return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
+        }}
+    }}
+"""
     act_bad = f"{name}_reset();\n            " if ctx.graph.states else ""
+    check_act = f"""    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+        if (!{name}_finite({out_ref}[i])) {{
+            {act_bad}return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
+        }}
+    }}
+"""
+    if not checks:
+        check_obs = check_act = check_state = ""
     safe_decl = f"static const float {name}_safe_action[{up}_ACT_DIM] = {up}_SAFE_ACTION;"
     indented = "\n".join(("    " + line) if line else "" for line in body)
     return f"""{banner}
@@ -617,18 +639,8 @@ void {name}_reset(void)
 {up}_TARGETS
 int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
 {{
-    for (int i = 0; i < {up}_OBS_DIM; ++i) {{
-        if (!{name}_finite(obs[i])) {{
-            return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
-        }}
-    }}
-{indented}
-    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        if (!{name}_finite({out_ref}[i])) {{
-            {act_bad}return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
-        }}
-    }}
-{check_state}{keep_state}    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
+{check_obs}{indented}
+{check_act}{check_state}{keep_state}    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
         act[i] = {out_ref}[i];
     }}
     return {up}_OK;

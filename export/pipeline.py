@@ -24,7 +24,7 @@ import onnx
 
 from embedrl import train
 from embedrl.common import provenance, sha256
-from embedrl.export import build, chain, cycles, fixed_point, quantize, stack, target, verify
+from embedrl.export import build, chain, cycles, fixed_point, nan_check, quantize, stack, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
@@ -552,6 +552,12 @@ def _verify(
         )  # fmt: skip
     checks["non_finite_observation"] = _safe_on_nan(built.compiled, lowered.graph.size(lowered.graph.input))
     return Verified(checks, targets, _closed_loop(lowered, built, opts, log))
+    log("[4/5] NaN propagation: each op with a NaN at each input position, C vs ONNX")
+    opset = {o.domain: o.version for o in loaded.model.opset_import}.get("", 0)
+    section = generated.section.nodes if generated.section is not None else frozenset()
+    checks["nan_propagation"] = nan_check.check(
+        lowered.graph, opts.quantize, opset, section, opts.tolerance, opts.seed
+    )
 
 
 def _numerical_checks(
