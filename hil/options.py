@@ -11,6 +11,7 @@ from embedrl.hil.candb import WATCHDOG_MS
 DEFAULT_TIMEOUT_MS = WATCHDOG_MS
 """The node's watchdog on the host (stretched by a slow guest's slowdown)."""
 MAX_TIMEOUT_MS = 60_000
+NODE_KINDS = ("c", "firmware", "python")
 
 
 @dataclass(frozen=True)

@@ -327,10 +327,46 @@ def _report_row(edit: Callable[[dict[str, Any]], object]) -> Callable[[Path, Pat
     return argv
 
 
+def non_elf_node(tmp: Path, export: Path) -> list[str]:
+    copy = tmp / "export"
+    shutil.copytree(export, copy)
+    (copy / "bin" / "cortex-m4" / "node.elf").write_text("not an image\n")
+    return ["report", str(copy), "--out", str(tmp / "out" / "r.html")]
+
+
+def renamed_policy(tmp: Path, export: Path) -> list[str]:
+    copy = _damaged_export(tmp, export, "export_report.json", lambda d: d.update(name="other"))
+    return ["report", str(copy), "--out", str(tmp / "out" / "r.html")]
+
+
+def firmware_run_without_firmware(data: dict[str, Any]) -> None:
+    data.update(node="firmware", target="cortex-m4")
+    del data["firmware"]
+
+
+def also_another_policy(tmp: Path, export: Path) -> list[str]:
+    sac = export.parent / "sac"
+    if not sac.is_dir():
+        assert main(["export", str(TD3.with_name("sac.zip")), "--out", str(sac), "--episodes", "0"]) == 0
+    return ["report", str(export), "--also", str(sac), "--out", str(tmp / "out" / "r.html")]
+
+
 EXPORT_ROWS: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
     "verify-chain of a chain without links": (_chain_row(lambda d: d.update(links=[])), "(no links)"),
     "verify-chain of a number for a digest": (_chain_row(_link("sha256", 5)), "sha256 5 is not a SHA-256"),
     "verify-chain of a number for a path": (_chain_row(_link("path", 5)), "path 5 is not a file's path"),
+    "report of an export whose node.elf is no ELF": (non_elf_node, "node.elf: not an ELF image"),
+    "report of an export_report.json naming another policy": (renamed_policy, "there is no c/other.c"),
+    "report --hil without node": (_report_row(lambda d: d.pop("node")), "(no 'node')"),
+    "report --hil of the firmware node without firmware": (
+        _report_row(firmware_run_without_firmware),
+        "(no 'firmware')",
+    ),
+    "report --hil with export_files a list": (
+        _report_row(lambda d: d.update(export_files=list(d["export_files"]))),
+        "'export_files' is ['policy.onnx'",
+    ),
+    "report --also of another policy's export": (also_another_policy, "exports another policy"),
 }
 
 

@@ -21,6 +21,8 @@ def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[
 
     export = facts.load_export(export_dir)
     others = [(d, facts.load_export(d)) for d in also]
+    for folder in also:
+        facts.check_same_policy(export_dir, folder)
     hils = [(p.name, facts.load_hil(p, export_dir)) for p in hil_reports]
     try:
         links = chain.verify(export_dir)

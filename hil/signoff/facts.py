@@ -25,6 +25,7 @@ TOP_SYMBOLS = 12
 """Largest symbols listed per image."""
 RAM_ORIGIN = 0x20000000
 """Where the targets' RAM starts (runtime_c/Makefile's memory.ld): symbols below it are in flash."""
+ELF_MAGIC = b"\x7fELF"
 SECTIONS = (".isr_vector", ".text", ".ARM.exidx", ".data", ".bss", ".heap", ".stack")
 
 
@@ -42,21 +43,76 @@ def load_export(export_dir: Path) -> dict[str, Any]:
         data["interface"]["observation"]
     except (ValueError, KeyError, TypeError) as exc:
         raise HilError(f"{report}: not an export report ({exc})") from None
+    name = data.get("name")
+    if not isinstance(name, str) or not name.isidentifier():
+        raise HilError(f"{report}: the policy's name {name!r} is not a C identifier")
+    for generated in (f"{name}.c", f"{name}.h"):
+        if not (export_dir / "c" / generated).is_file():
+            raise HilError(
+                f"{report} names the policy {name!r}, but there is no c/{generated}: the report is not this "
+                "export's (export it again)"
+            )
     return dict(data)
+
+
+def check_same_policy(export_dir: Path, other: Path) -> None:
+    """Refuse ``other`` (``--also``) unless it exports the same ONNX as ``export_dir`` (the same policy,
+    maybe in another precision): its errors would otherwise share one table with another policy's."""
+    digests = []
+    for folder in (export_dir, other):
+        onnx = folder / "policy.onnx"
+        if not onnx.is_file():
+            raise HilError(f"{folder}: no policy.onnx (is it an `embedrl export` folder?)")
+        digests.append(sha256(onnx))
+    if digests[0] != digests[1]:
+        raise HilError(
+            f"--also {other} exports another policy: its policy.onnx (sha256 {digests[1][:12]}...) is not "
+            f"{export_dir}'s (sha256 {digests[0][:12]}...); --also takes the same policy in another precision"
+        )
 
 
 def load_hil(path: Path, export_dir: Path) -> dict[str, Any]:
-    """A HIL report made on exactly this export's files."""
+    """A HIL report made on exactly this export's files, each key the page reads of the type it needs."""
     try:
         data = parse_json(path.read_text())
-        files = data["export_files"]
-        data["verdict"]["passed"]
+        _check_hil(data)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise HilError(f"{path}: not a HIL report of `embedrl hil run --json` ({exc})") from None
-    for name, recorded in files.items():
+    for name, recorded in data["export_files"].items():
         if not (export_dir / name).is_file() or sha256(export_dir / name) != recorded:
             raise HilError(f"{path} was made on another export: its {name} differs from {export_dir}'s")
     return dict(data)
+
+
+def _check_hil(data: Any) -> None:
+    """ValueError naming the first key the page reads that is missing or of another type."""
+    from embedrl.hil.options import NODE_KINDS
+
+    def expect(where: dict[str, Any], key: str, kinds: tuple[type, ...], what: str) -> Any:
+        if key not in where:
+            raise ValueError(f"no {key!r}")
+        if not isinstance(where[key], kinds) or (isinstance(where[key], bool) and bool not in kinds):
+            raise ValueError(f"{key!r} is {where[key]!r}, not {what}")
+        return where[key]
+
+    if not isinstance(data, dict):
+        raise ValueError(f"a {type(data).__name__}, not an object")
+    files = expect(data, "export_files", (dict,), "an object of file names and hashes")
+    if not all(isinstance(k, str) and isinstance(v, str) for k, v in files.items()):
+        raise ValueError("'export_files' is not an object of file names and hashes")
+    expect(expect(data, "verdict", (dict,), "an object"), "passed", (bool,), "true or false")
+    node = expect(data, "node", (str,), "a node kind")
+    if node not in NODE_KINDS:
+        raise ValueError(f"'node' is {node!r}, not one of {', '.join(NODE_KINDS)}")
+    expect(data, "target", (str, type(None)), "a target's name or null")
+    expect(data, "simulation", (dict, type(None)), "an object or null")
+    firmware = expect(data, "firmware", (dict,) if node == "firmware" else (dict, type(None)), "an object")
+    if node == "firmware":
+        expect(firmware, "stack_peak_bytes", (int, type(None)), "a number of bytes or null")
+        step = expect(data, "time_on_target", (dict, type(None)), "an object or null")
+        if step is not None:
+            expect(step, "estimated_step_us", (int, float), "a number")
+            expect(step, "margin_s", (int, float), "a number")
 
 
 def interface_facts(export: dict[str, Any], export_dir: Path) -> dict[str, Any]:
@@ -90,15 +146,24 @@ def errors_per_sample(export_dir: Path, export: dict[str, Any]) -> np.ndarray:
 
 
 def image_memory(elf: Path) -> dict[str, Any]:
-    """Bytes per section (``arm-none-eabi-size -A``) and the largest symbols (``readelf -s``)."""
-    sizes = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True, check=True)
+    """Bytes per section (``arm-none-eabi-size -A``) and the largest symbols (``readelf -s``); an image
+    that is no ELF file is refused in one line."""
+    with elf.open("rb") as f:
+        if f.read(len(ELF_MAGIC)) != ELF_MAGIC:
+            raise HilError(f"{elf}: not an ELF image (export it again to rebuild it)")
+    sizes = subprocess.run(["arm-none-eabi-size", "-A", str(elf)], capture_output=True, text=True)
+    if sizes.returncode != 0:
+        why = (sizes.stderr.strip().splitlines() or ["no output"])[-1]
+        raise HilError(f"{elf}: arm-none-eabi-size cannot read it ({why})")
     sections = {}
     for line in sizes.stdout.splitlines():
         parts = line.split()
         if len(parts) == 3 and parts[0] in SECTIONS:
             sections[parts[0]] = int(parts[1])
-    table = subprocess.run(["arm-none-eabi-readelf", "-sW", str(elf)], capture_output=True, text=True,
-                           check=True)  # fmt: skip
+    table = subprocess.run(["arm-none-eabi-readelf", "-sW", str(elf)], capture_output=True, text=True)
+    if table.returncode != 0:
+        why = (table.stderr.strip().splitlines() or ["no output"])[-1]
+        raise HilError(f"{elf}: arm-none-eabi-readelf cannot read it ({why})")
     symbols: list[dict[str, Any]] = []
     for line in table.stdout.splitlines():
         parts = line.split()
