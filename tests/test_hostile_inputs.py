@@ -199,7 +199,40 @@ def deep_interface(tmp: Path) -> list[str]:
     return ["hil", "run", "--export-dir", str(export), "--node", "python"]
 
 
+RUN_CONFIG = {
+    "algo": "td3", "preset": "tuned", "seed": 0, "scenario": "static", "hyperparameters": {}, "overrides": [],
+    "budget": {"max_steps": 1000, "max_episodes": 100, "checkpoint_every": 500, "eval_every": 500},
+    "machine": {"portable": False},
+}  # fmt: skip
+"""A run's config.json as ``train`` writes it (the hyperparameters left out)."""
+
+
+def damaged_run(edit: Callable[[dict[str, Any]], object]) -> Callable[[Path], list[str]]:
+    """``train --resume`` of a run folder whose config.json was edited."""
+
+    def argv(tmp: Path) -> list[str]:
+        config = json.loads(json.dumps(RUN_CONFIG))
+        edit(config)
+        (tmp / "run").mkdir()
+        (tmp / "run" / "config.json").write_text(json.dumps(config))
+        return ["train", "--resume", str(tmp / "run")]
+
+    return argv
+
+
 ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
+    "train --resume of a config.json with budget []": (
+        damaged_run(lambda c: c.update(budget=[])),
+        "config.json is damaged (budget is [], not an object)",
+    ),
+    "train --resume of a config.json with machine 'x'": (
+        damaged_run(lambda c: c.update(machine="x")),
+        "machine is 'x', not an object",
+    ),
+    "train --resume of a config.json with max_steps 'lots'": (
+        damaged_run(lambda c: c["budget"].update(max_steps="lots")),
+        "budget.max_steps is 'lots', not a whole number",
+    ),
     "ONNX of 20,000 Relu nodes": (_onnx_row(many_relus), "20,001 nodes exceed the limit"),
     "ONNX Reshape to [1, 6, 0]": (_onnx_row(reshape_with_zero), "Reshape"),
     "ONNX input 2^40 wide": (_onnx_row(wide_input), "1,099,511,627,776"),

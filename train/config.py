@@ -207,6 +207,43 @@ class RunConfig:
 
 
 SCENARIO_NAMES = tuple(SCENARIOS)
+BUDGET_COUNTS = ("max_steps", "max_episodes", "checkpoint_every", "eval_every")
+"""The counts of a run's budget that config.json records and ``--resume`` takes from it."""
+
+
+def check_run_config(saved: Any) -> None:
+    """A run's config.json as read back for ``--resume`` (the user's file): ValueError naming the first
+    key that is missing or not of its kind."""
+    if not isinstance(saved, dict):
+        raise ValueError(f"a {type(saved).__name__}, not an object")
+
+    def one_of(key: str, choices: Sequence[str], value: Any) -> None:
+        if value not in choices:
+            raise ValueError(f"{key} is {value!r}, not one of {', '.join(choices)}")
+
+    for key in ("algo", "preset", "seed", "budget"):
+        if key not in saved:
+            raise ValueError(f"no {key!r}")
+    one_of("algo", ALGOS, saved["algo"])
+    one_of("preset", PRESETS, saved["preset"])
+    one_of("scenario", SCENARIO_NAMES, saved.get("scenario", DEFAULT_SCENARIO))
+    seed = saved["seed"]
+    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
+        raise ValueError(f"seed is {seed!r}, not a whole number >= 0")
+    budget = saved["budget"]
+    if not isinstance(budget, dict):
+        raise ValueError(f"budget is {budget!r}, not an object")
+    for key in BUDGET_COUNTS:
+        value = budget.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ValueError(f"budget.{key} is {value!r}, not a whole number >= 1")
+    one_of("budget.stop", STOP_RULES, budget.get("stop", "validation"))
+    kinds: dict[str, type] = {"machine": dict, "overrides": list, "extensions": list}
+    for key, kind in kinds.items():
+        if key in saved and not isinstance(saved[key], kind):
+            raise ValueError(f"{key} is {saved[key]!r}, not {'an object' if kind is dict else 'a list'}")
+    if not all(isinstance(o, str) for o in saved.get("overrides", [])):
+        raise ValueError("overrides is not a list of NAME=VALUE texts")
 
 
 def preset(algo: str, name: str, scenario: str = DEFAULT_SCENARIO) -> AlgoConfig:

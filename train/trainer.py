@@ -737,10 +737,11 @@ class _Run:
 
 def read_run_config(out: Path) -> dict[str, Any]:
     """A run directory's config.json (the run's algorithm, preset, seed, budget and overrides)."""
+    from embedrl.train.config import check_run_config
+
     try:
         saved: dict[str, Any] = parse_json((out / "config.json").read_text())
-        for key in ("algo", "preset", "seed", "budget"):
-            saved[key]
+        check_run_config(saved)
     except FileNotFoundError:
         raise UsageError(f"cannot resume {out}: no config.json (not a run directory)") from None
     except (ValueError, KeyError, TypeError) as exc:
