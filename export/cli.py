@@ -9,6 +9,7 @@ from typing import Any
 
 from embedrl.common import on_terminal, parse_json, table
 from embedrl.export.errors import ExportError
+from embedrl.train import arguments
 from embedrl.train.arguments import add_model_file_arguments, add_scenario_argument
 from embedrl.train.scenarios import DEFAULT_SCENARIO
 
@@ -265,7 +266,7 @@ def register(sub: Any) -> None:
     )
     add_scenario_argument(p, default=None)  # None: static, unless --env names another env
     p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=arguments.seed, default=0)
     add_model_file_arguments(p)
     p.add_argument(
         "--safe-action",
@@ -337,7 +338,7 @@ def _register_benchmarks(sub: Any) -> None:
     p.add_argument(
         "--export-dir", type=Path, help="an export folder (default: the study's 6-100-100-2 actor)"
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=arguments.seed, default=0)
     p.add_argument(
         "--emx", type=Path, help="emx-onnx-cgen's command: its C timed as a peer (make bench: tools/emx)"
     )

@@ -11,6 +11,7 @@ from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import MODES
+from embedrl.train import arguments
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -79,7 +80,7 @@ def register(sub: Any) -> None:
     r = hil_sub.add_parser("run", help="run episodes with the exported C policy as a CAN node")
     r.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
     r.add_argument("--episodes", type=int, default=10)
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=arguments.seed, default=0)
     r.add_argument(
         "--realtime", action="store_true", help="pace at the env's sample time (a report, not a verdict)"
     )
@@ -175,7 +176,7 @@ def _register_scope(sub: Any) -> None:
         "what the CAN signals make of them (PNG)",
     )  # fmt: skip
     add_policy_arguments(p)
-    p.add_argument("--seed", type=int, default=0, help="the episode's reset seed")
+    p.add_argument("--seed", type=arguments.seed, default=0, help="the episode's reset seed")
     p.add_argument("--out", type=Path, required=True, help="the picture (.png)")
     p.set_defaults(func=cmd_scope)
 

@@ -62,6 +62,9 @@ def too_many_bytes(tmp: Path) -> list[str]:
     return ["export", str(path), "--out", str(tmp / "out"), "--episodes", "0", "--max-model-mb", "1"]
 
 
+NEGATIVE_SEED = "argument --seed: a seed is a whole number within 0..2,147,483,647, got -5"
+PF = ["--controller", "potential-field"]
+
 ROWS = {
     "external data outside the model's folder": (traversal, "is outside the model's folder"),
     "a declared 50,000 x 50,000 Gemm": (huge_declared, "parameters exceed the limit of 4,000,000"),
@@ -105,6 +108,22 @@ ROWS = {
     "an unknown fault": (
         lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--json", str(tmp / "h.json"), "--inject", "x"],
         "unknown fault 'x'",
+    ),
+    "eval --seed -5": (
+        lambda tmp: ["eval", *PF, "--seed", "-5", "--json", str(tmp / "e.json")],
+        NEGATIVE_SEED,
+    ),
+    "render --seed -5": (
+        lambda tmp: ["render", *PF, "--seed", "-5", "--out", str(tmp / "r.png")],
+        NEGATIVE_SEED,
+    ),
+    "scope --seed -5": (
+        lambda tmp: ["scope", *PF, "--seed", "-5", "--out", str(tmp / "s.png")],
+        NEGATIVE_SEED,
+    ),
+    "hil run --seed -5": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--node", "python", "--seed", "-5"],
+        NEGATIVE_SEED,
     ),
 }
 

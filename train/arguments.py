@@ -36,6 +36,23 @@ def add_model_file_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+MAX_SEED = 2**31 - 1
+"""The largest ``--seed``: the seeds derived from it (an episode's seed + i, the seed bases of
+:mod:`embedrl.common`) stay below 2^32, NumPy's and SB3's limit."""
+
+
+def seed(text: str) -> int:
+    """The type of every ``--seed``: a whole number 0..:data:`MAX_SEED` (Gymnasium and NumPy refuse a
+    negative seed), refused at parsing in one line."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"a seed is a whole number within 0..{MAX_SEED:,}, got {value}")
+    return value
+
+
 CONTROLLERS = ("potential-field",)
 """Built-in scripted controllers, usable wherever a policy is expected."""
 

@@ -21,6 +21,7 @@ from embedrl.train.arguments import (
     add_scenario_argument,
     env_id_of,
     policy_from,
+    seed,
 )
 from embedrl.train.errors import TrainError, UsageError
 from embedrl.train.scenarios import DEFAULT_SCENARIO, TWO_ROBOTS
@@ -335,14 +336,14 @@ def register(sub: Any) -> None:
     p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
     add_policy_arguments(p)
     p.add_argument("--episodes", type=_positive, default=200)
-    p.add_argument("--seed", type=int, default=0, help="episode i is reset with seed + i")
+    p.add_argument("--seed", type=seed, default=0, help="episode i is reset with seed + i")
     p.add_argument("--json", type=Path, help="write the JSON report here")
     p.add_argument("--plot", type=Path, help="write the trajectories over the map here (PNG)")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("render", help="write one episode as an animated GIF or a PNG strip")
     add_policy_arguments(p)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
     _register_train(sub)
@@ -356,7 +357,7 @@ def register(sub: Any) -> None:
 
     p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
     p.add_argument("--steps", type=_positive, default=50_000)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_env)
 
@@ -379,7 +380,7 @@ def _register_train(sub: Any) -> None:
         metavar="NAME=VALUE",
         help="change one of the preset's hyperparameters, e.g. --set learning_rate=3e-4 (repeatable)",
     )
-    p.add_argument("--seed", type=int, help="default 0")
+    p.add_argument("--seed", type=seed, help="default 0")
     p.add_argument("--out", type=Path, help="new run directory")
     p.add_argument(
         "--resume",
@@ -414,7 +415,7 @@ def _register_tune(sub: Any) -> None:
     p.add_argument("--trials", type=_positive, default=20, help="trials in total (a resumed search counts "
                    "the ones it has)")  # fmt: skip
     p.add_argument("--max-steps", type=_positive, default=100_000, help="each trial's training budget")
-    p.add_argument("--seed", type=int, default=0, help="the sampler's and every trial's training seed")
+    p.add_argument("--seed", type=seed, default=0, help="the sampler's and every trial's training seed")
     p.add_argument("--out", type=Path, required=True, help="the study's folder (study.db, trials/, results)")
     p.add_argument(
         "--ray",
@@ -437,7 +438,7 @@ def _register_sweeps(sub: Any) -> None:
     p.add_argument("--seeds", type=_positive, default=5)
     p.add_argument(
         "--seed-offset",
-        type=int,
+        type=seed,
         default=0,
         help="train seeds OFFSET .. OFFSET + SEEDS - 1 (new seeds to try)",
     )
@@ -457,7 +458,7 @@ def _register_sweeps(sub: Any) -> None:
     )
     p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS))
     p.add_argument("--seeds", type=_positive, default=5)
-    p.add_argument("--seed-offset", type=int, default=300, help="train seeds OFFSET .. OFFSET + SEEDS - 1")
+    p.add_argument("--seed-offset", type=seed, default=300, help="train seeds OFFSET .. OFFSET + SEEDS - 1")
     p.add_argument(
         "--preset", choices=PRESETS, default="tuned", help="without its demonstrations (default tuned)"
     )
