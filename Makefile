@@ -5,9 +5,9 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: setup deps apt-packages demo test test-fast lint type format bench bench-target export-example targets-example policies clean
+.PHONY: help setup deps apt-packages demo test test-fast lint type format bench bench-target export-example targets-example policies clean
 
-setup: $(STAMP)
+setup: $(STAMP) ## the virtual environment .venv with embedrl and its Python dependencies
 
 # Debian packages the tests need: cross compiler, newlib, QEMU (Cortex-M); can-utils (its cangen floods the
 # bus in the fault catalogue); clang (libFuzzer: make -C runtime_c fuzz); for the CAN sandboxes where the
@@ -17,10 +17,10 @@ setup: $(STAMP)
 # which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision; no network once cached).
 APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
     patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang cppcheck chromium
-deps: apt-packages $(STAMP)
+deps: apt-packages $(STAMP) ## setup, the Debian packages and the cached User-Mode Linux the tests need
 	$(PY) -m embedrl.hil.sandbox.provision
 
-apt-packages:
+apt-packages: ## install the missing Debian packages (as root or with passwordless sudo)
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	echo "installing Debian packages:$$missing"; \
@@ -42,7 +42,7 @@ $(STAMP): pyproject.toml
 # vcan (User-Mode Linux where the kernel has no CAN), then the same node as Cortex-M4 firmware on QEMU in
 # the loop; the int8 and q15 exports; the deployment report (report.html) and the plots in $(OUT)/demo.
 DEMO_POLICY ?= $(firstword $(wildcard policies/static/td3.zip) $(OUT)/example/td3.zip)
-demo: deps $(STAMP)
+demo: deps $(STAMP) ## the whole chain: baseline, export, HIL (host and firmware node), report, in $(OUT)/demo
 	$(VENV)/bin/embedrl eval --controller potential-field --episodes 20 --seed 0 \
 	    --json $(OUT)/demo/eval.json --plot $(OUT)/demo/trajectories.png
 	$(VENV)/bin/embedrl render --controller potential-field --seed 0 --out $(OUT)/demo/episode.gif
@@ -66,7 +66,7 @@ demo: deps $(STAMP)
 # training never used (train/ship.py). policies/static/{ddpg,td3,sac,ppo}.zip were trained past the stop
 # criterion to the budget and shipped as trained last (before runs kept their best validated checkpoint: a
 # re-run ships that one); policies/{moving-shelf,two-robots}/td3.zip are their runs' best validated checkpoints.
-policies: $(STAMP)
+policies: $(STAMP) ## train the shipped policies again (hours), each shipped only if it passes its test
 	for a in ddpg td3 sac; do \
 	    $(VENV)/bin/embedrl train --algo $$a --preset tuned --seed 1 --out $(OUT)/ship/$$a --max-steps 100000 \
 	        --keep-training && $(PY) -m embedrl.train.ship $(OUT)/ship/$$a $$a || exit 1; \
@@ -78,20 +78,20 @@ policies: $(STAMP)
 	        --max-steps 300000 && $(PY) -m embedrl.train.ship $(OUT)/ship/$$s-td3 td3 || exit 1; \
 	done
 
-test: deps $(STAMP)
+test: deps $(STAMP) ## the whole test suite
 	$(PY) -m pytest
 
-test-fast: $(STAMP)
+test-fast: $(STAMP) ## the tests not marked slow
 	$(PY) -m pytest -m "not slow"
 
-lint: $(STAMP)
+lint: $(STAMP) ## ruff check and ruff format --check
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 
-type: $(STAMP)
+type: $(STAMP) ## mypy over every file (tests/typecheck.py)
 	$(PY) -m tests.typecheck
 
-format: $(STAMP)
+format: $(STAMP) ## ruff format and ruff check --fix
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
@@ -102,7 +102,7 @@ $(EMX):
 	$(PYTHON) -m venv tools/emx
 	tools/emx/bin/pip install --quiet emx-onnx-cgen==1.4.0
 
-bench: deps $(STAMP) $(EMX)
+bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/bench
 	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
 	for q in int8 q15; do \
@@ -115,18 +115,18 @@ bench: deps $(STAMP) $(EMX)
 
 # Instructions and estimated cycles per inference on the Cortex-M cores: embedrl's C against emx-onnx-cgen's
 # C of the same shipped policy, both on QEMU in one run.
-bench-target: $(STAMP) $(EMX)
+bench-target: $(STAMP) $(EMX) ## instructions and cycles per inference on Cortex-M, embedrl vs emx-onnx-cgen
 	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3 --force --episodes 0
 	$(VENV)/bin/embedrl bench-target --export-dir $(OUT)/bench/td3 --emx $(EMX) --json $(OUT)/bench/target.json
 
 # A TD3 with the study's 6-100-100-2 actor trained in a minute by imitating the potential-field controller
 # (independent of the shipped policies), exported with the full verification (10,000 samples, 200 episodes).
-export-example: $(STAMP)
+export-example: $(STAMP) ## an example TD3 trained by imitation in a minute, exported and verified
 	$(PY) -m embedrl.export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force
 
 # The same policy on bare-metal Cortex-M4F and Cortex-M3 under QEMU: float32, int8 and q15.
-targets-example: deps $(STAMP)
+targets-example: deps $(STAMP) ## the example on Cortex-M4F and Cortex-M3 under QEMU: float32, int8, q15
 	test -f $(OUT)/example/td3.zip || $(PY) -m embedrl.export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/float32 --force \
 	    --target cortex-m4 --target cortex-m3
@@ -135,5 +135,8 @@ targets-example: deps $(STAMP)
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/q15 --force --quantize q15 \
 	    --target cortex-m4 --target cortex-m3
 
-clean:
+clean: ## remove $(OUT), build folders and caches
 	rm -rf $(OUT) build *.egg-info .pytest_cache .mypy_cache .ruff_cache
+
+help: ## this list: each target and what it does
+	@sed -n 's/^\([a-z-]*\):.*## \(.*\)/\1|\2/p' $(MAKEFILE_LIST) | awk -F'|' '{printf "  %-16s %s\n", $$1, $$2}' | sed 's|$$(OUT)|$(OUT)|g'

@@ -16,6 +16,7 @@ import signal
 import sys
 import threading
 import traceback
+from collections.abc import Sequence
 from types import FrameType
 from typing import Any, NoReturn
 
@@ -24,6 +25,7 @@ from embedrl.common import check_output
 from embedrl.export import cli as export_cli
 from embedrl.hil import cli as hil_cli
 from embedrl.train import cli as train_cli
+from embedrl.train.arguments import EXPORT_DIR, ExportDirAction
 
 PACKAGES = (train_cli, export_cli, hil_cli)
 OUTPUTS = (("json", False), ("log", False), ("plot", True))
@@ -76,6 +78,16 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def parse_known_args(  # type: ignore[override]
+        self, args: Sequence[str] | None = None, namespace: argparse.Namespace | None = None
+    ) -> tuple[argparse.Namespace, list[str]]:
+        """argparse's, then: an export folder the command needs is given (either way it may be given)."""
+        parsed, unknown = super().parse_known_args(args, namespace)
+        for action in self._actions:
+            if isinstance(action, ExportDirAction) and action.needed and getattr(parsed, action.dest) is None:
+                self.error(f"the export folder is missing: give {EXPORT_DIR} or --export-dir {EXPORT_DIR}")
+        return parsed, unknown
 
 
 def build_parser() -> argparse.ArgumentParser:

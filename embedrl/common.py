@@ -52,6 +52,25 @@ def atomic_write(path: Path, write: Callable[[Path], object]) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def process_umask() -> int:
+    """The process's umask: read where Linux shows it, otherwise set and restored at once."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def with_umask(folder: Path) -> None:
+    """Give a folder that ``tempfile.mkdtemp`` made (mode 0700: private) the mode ``mkdir`` would have
+    given it, 0777 less the umask: for a temporary folder that becomes an output."""
+    folder.chmod(0o777 & ~process_umask())
+
+
 def sha256(path: Path) -> str:
     """The file's SHA-256 in hex, read in blocks."""
     digest = hashlib.sha256()

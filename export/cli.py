@@ -9,8 +9,9 @@ from typing import Any
 
 from embedrl.common import on_terminal, parse_json, table
 from embedrl.export.errors import ExportError
+from embedrl.export.target import TARGETS
 from embedrl.train import arguments
-from embedrl.train.arguments import add_model_file_arguments, add_scenario_argument
+from embedrl.train.arguments import add_export_dir_argument, add_model_file_arguments, add_scenario_argument
 from embedrl.train.scenarios import DEFAULT_SCENARIO
 
 
@@ -221,9 +222,6 @@ def cmd_bench_target(args: argparse.Namespace) -> int:
     from embedrl.common import table, write_json
     from embedrl.export import target, target_bench
 
-    unknown = [t for t in args.target if t not in target.TARGETS]
-    if unknown:
-        raise ExportError(f"--target {unknown[0]}: use one of {', '.join(target.TARGETS)}")
     if not (args.export_dir / "policy.onnx").is_file():
         raise ExportError(f"{args.export_dir}: no policy.onnx (give an `embedrl export` folder)")
     report = target_bench.run(args.export_dir, args.target or list(target.TARGETS), args.emx)
@@ -258,7 +256,10 @@ def register(sub: Any) -> None:
     """Add the export subcommands to the ``embedrl`` parser."""
     p = sub.add_parser("export", help="SB3 model or ONNX -> ONNX + generated C, verified")
     p.add_argument("source", type=Path, help="SB3 model (.zip) or ONNX file (.onnx)")
-    p.add_argument("--out", type=Path, required=True, help="output folder (written atomically)")
+    p.add_argument(
+        "--out", "--export-dir", type=Path, required=True, metavar="EXPORT_DIR",
+        help="the export folder to write (written atomically; every other command reads it)",
+    )  # fmt: skip
     p.add_argument("--name", default="policy", help="symbol prefix and file name of the generated C")
     p.add_argument(
         "--env",
@@ -266,7 +267,7 @@ def register(sub: Any) -> None:
     )
     add_scenario_argument(p, default=None)  # None: static, unless --env names another env
     p.add_argument("--episodes", type=int, default=200, help="closed-loop episodes (0 skips)")
-    p.add_argument("--seed", type=arguments.seed, default=0)
+    p.add_argument("--seed", type=arguments.seed, default=0, help="the verification's samples and episodes")
     add_model_file_arguments(p)
     p.add_argument(
         "--safe-action",
@@ -287,26 +288,26 @@ def register(sub: Any) -> None:
         "--names",
         type=Path,
         help='JSON {"observation": [...], "action": [...]}: names for the interface\'s fields '
-        "(default obs0.., act0.. for envs without a spec)",
+        "(default: the scenario's names; obs0.., act0.. for envs without a spec)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument(
         "--tolerance",
         type=_tolerance,
         default=1e-5,
-        help="allowed error between export steps, times max(1, |output|) (default 1e-5)",
+        help="allowed error between export steps, times max(1, |output|)",
     )
     p.add_argument(
         "--max-model-mb",
         type=_model_mb,
         default=64.0,
-        help="refuse models larger than this, external data included (default 64)",
+        help="refuse models larger than this, external data included",
     )
     p.add_argument(
         "--max-params",
         type=_param_count,
         default=4_000_000,
-        help="refuse models with more weights (default 4,000,000)",
+        help="refuse models with more weights",
     )
     p.add_argument(
         "--quantize",
@@ -316,7 +317,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--target",
         action="append",
-        choices=["cortex-m4", "cortex-m3", "cortex-m7"],
+        choices=tuple(TARGETS),
         help="also build firmware for this Cortex-M, run it on QEMU and measure it (repeatable)",
     )
     p.set_defaults(func=cmd_export)
@@ -325,7 +326,7 @@ def register(sub: Any) -> None:
         "verify-chain",
         help="recompute every hash of an export's traceability chain; name the first link that changed",
     )
-    p.add_argument("export_dir", type=Path, help="an `embedrl export` folder (with chain.json)")
+    add_export_dir_argument(p, "an `embedrl export` folder (with chain.json)")
     p.add_argument("--verbose", action="store_true", help="one line per link")
     p.set_defaults(func=cmd_verify_chain)
 
@@ -335,10 +336,10 @@ def register(sub: Any) -> None:
 def _register_benchmarks(sub: Any) -> None:
     """``bench-export`` (inference time on this machine) and ``bench-target`` (on the Cortex-M cores)."""
     p = sub.add_parser("bench-export", help="ns per inference: generated C vs onnxruntime vs torch")
+    add_export_dir_argument(p, "an export folder (default: the study's 6-100-100-2 actor)", needed=False)
     p.add_argument(
-        "--export-dir", type=Path, help="an export folder (default: the study's 6-100-100-2 actor)"
+        "--seed", type=arguments.seed, default=0, help="the study actor's weights and the observations timed"
     )
-    p.add_argument("--seed", type=arguments.seed, default=0)
     p.add_argument(
         "--emx", type=Path, help="emx-onnx-cgen's command: its C timed as a peer (make bench: tools/emx)"
     )
@@ -348,11 +349,13 @@ def _register_benchmarks(sub: Any) -> None:
     p = sub.add_parser(
         "bench-target", help="instructions and cycles per inference on Cortex-M: embedrl vs emx-onnx-cgen"
     )
-    p.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
+    add_export_dir_argument(p, "an `embedrl export` folder")
     p.add_argument(
-        "--target", action="append", default=[], help="a Cortex-M target (repeatable; default: every one)"
-    )
-    p.add_argument("--emx", type=Path, default=Path("tools/emx/bin/emx-onnx-cgen"), help="emx-onnx-cgen")
+        "--target", action="append", choices=tuple(TARGETS), default=[],
+        help="a Cortex-M target, repeatable (default: every one)",
+    )  # fmt: skip
+    p.add_argument("--emx", type=Path, default=Path("tools/emx/bin/emx-onnx-cgen"),
+                   help="emx-onnx-cgen's command (make bench-target installs it)")  # fmt: skip
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_target)
 

@@ -23,7 +23,7 @@ import numpy as np
 import onnx
 
 from embedrl import train
-from embedrl.common import provenance, sha256
+from embedrl.common import provenance, sha256, with_umask
 from embedrl.export import build, chain, cycles, fixed_point, nan_check, quantize, stack, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
@@ -150,6 +150,7 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
         _check_output_folder(opts.out, opts.force)  # again: an export that held the lock may have written it
         try:
             staging = Path(tempfile.mkdtemp(prefix=f".{opts.out.name}.partial-", dir=opts.out.parent))
+            with_umask(staging)  # it becomes the export folder, which others read too
         except OSError as exc:
             raise ExportError(f"cannot create the output folder {opts.out}: {exc.strerror or exc}") from None
         try:

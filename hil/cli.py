@@ -7,11 +7,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from embedrl.export.target import TARGETS
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import MODES
 from embedrl.train import arguments
+from embedrl.train.arguments import add_export_dir_argument
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -78,9 +80,9 @@ def register(sub: Any) -> None:
     p = sub.add_parser("hil", help="hardware-in-the-loop over virtual SocketCAN")
     hil_sub = p.add_subparsers(dest="hil_command", required=True, metavar="COMMAND")
     r = hil_sub.add_parser("run", help="run episodes with the exported C policy as a CAN node")
-    r.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
-    r.add_argument("--episodes", type=int, default=10)
-    r.add_argument("--seed", type=arguments.seed, default=0)
+    add_export_dir_argument(r, "an `embedrl export` folder")
+    r.add_argument("--episodes", type=int, default=10, help="episodes in the loop")
+    r.add_argument("--seed", type=arguments.seed, default=0, help="episode i is reset with seed + i")
     r.add_argument(
         "--realtime", action="store_true", help="pace at the env's sample time (a report, not a verdict)"
     )
@@ -96,21 +98,21 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--timeout-ms",
         type=int,
-        help=f"the node's watchdog (default {candb.WATCHDOG_MS}, times the sandbox's slowdown: 10 under QEMU "
-        "emulation); must exceed the policy's sample time",
+        help="the node's watchdog in ms; must exceed the policy's sample time "
+        f"(default: {candb.WATCHDOG_MS}, times the sandbox's slowdown: 10 under QEMU emulation)",
     )
     r.add_argument(
         "--inject",
         action="append",
         default=[],
         metavar="FAULT[@EPISODE:STEP]",
-        help=f"inject a fault (repeatable; default at step {INJECT_STEP} of episode 0): "
-        + ", ".join(INJECTORS),
+        help=f"inject a fault, at step {INJECT_STEP} of episode 0 unless @EPISODE:STEP says when "
+        "(repeatable): " + ", ".join(INJECTORS),
     )
     r.add_argument(
         "--allow-faults",
         action="store_true",
-        help="pass even if episodes end in a fault (fault-injection runs); by default a fault fails the run",
+        help="pass even if episodes end in a fault (fault-injection runs); without it a fault fails the run",
     )
     r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
     r.add_argument(
@@ -142,9 +144,9 @@ def register(sub: Any) -> None:
     )
     r.add_argument(
         "--target",
+        choices=tuple(TARGETS),
         default="cortex-m4",
-        help="the firmware node's core: cortex-m4 (default), cortex-m3 or cortex-m7 "
-        "(runtime_c/cortex_m/targets.mk)",
+        help="the firmware node's core (runtime_c/cortex_m/targets.mk)",
     )
     r.set_defaults(func=cmd_run)
     _register_bench(hil_sub)
@@ -187,7 +189,7 @@ def _register_report(sub: Any) -> None:
         help="the deployment report: one self-contained HTML page (interface, verification, closed loop, "
         "target resources, MISRA, traceability)",
     )
-    p.add_argument("export_dir", type=Path, help="an `embedrl export` folder")
+    add_export_dir_argument(p, "an `embedrl export` folder")
     p.add_argument(
         "--hil", type=Path, action="append", default=[], metavar="REPORT.json",
         help="a report of `embedrl hil run --json` on this export (repeatable: host node, firmware node)",
@@ -229,7 +231,7 @@ def _register_bench(hil_sub: Any) -> None:
     b = hil_sub.add_parser(
         "bench", help="the HIL lock-step rate against the bus's floor (a trivial C responder), same sandbox"
     )
-    b.add_argument("--export-dir", type=Path, required=True, help="an `embedrl export` folder")
+    add_export_dir_argument(b, "an `embedrl export` folder")
     b.add_argument("--episodes", type=int, default=20, help="HIL episodes of the lock-step measurement")
     b.add_argument("--exchanges", type=int, default=2000, help="exchanges of the floor measurement")
     b.add_argument("--sandbox", choices=MODES, default="auto", help="where vcan0 comes from (as hil run)")

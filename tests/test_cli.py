@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
+import re
+import stat
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
+import onnx
 import pytest
 from PIL import Image
 
-from embedrl.cli import main
+from embedrl.cli import build_parser, main
+from embedrl.export.target import TARGETS
 from embedrl.train.evaluate import REPORT_KEYS
 from embedrl.train.rendering import STRIP_FRAMES
+from tests.export.helpers import mlp_model
+from tests.source_tree import REPO
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -216,3 +225,122 @@ def test_progress_bars_only_on_a_terminal(
     assert main(argv) == 0
     err = capsys.readouterr().err
     assert ("eval potential-field: 100%" in err) == terminal and ("train: 100%" in err) == terminal
+
+
+def _commands(
+    parser: argparse.ArgumentParser, name: str = "embedrl"
+) -> Iterator[tuple[str, argparse.ArgumentParser]]:
+    """Every (sub)command's parser, ``embedrl hil run`` included, with its name."""
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for word, sub in action.choices.items():
+                yield from _commands(sub, f"{name} {word}")
+
+
+def _options(parser: argparse.ArgumentParser) -> list[argparse.Action]:
+    skip = (argparse._HelpAction, argparse._VersionAction, argparse._SubParsersAction)
+    return [a for a in parser._actions if not isinstance(a, skip)]
+
+
+def test_every_option_has_help_lists_its_choices_and_states_defaults_one_way() -> None:
+    commands = dict(_commands(build_parser()))
+    assert {"embedrl report", "embedrl hil run", "embedrl tune", "embedrl bench-target"} <= set(commands)
+    for name, parser in commands.items():
+        for action in _options(parser):
+            option = f"{name} {'/'.join(action.option_strings) or action.dest}"
+            assert action.help, f"{option} has no help"
+            formatter = parser.formatter_class(prog=parser.prog)
+            formatter.add_argument(action)
+            shown = formatter.format_help()
+            missing = [c for c in action.choices or () if str(c) not in shown]
+            assert not missing, f"{option}: its help does not list {missing}"
+        # one way to state a default: "(default: X)", whether the formatter or the help wrote it
+        other = re.sub(r"\(default:\s", "", parser.format_help())
+        assert "default" not in other.lower(), f"{name}: a default not written as (default: X)"
+
+
+def test_every_target_option_offers_the_same_targets() -> None:
+    targets = [
+        (name, action.choices)
+        for name, parser in _commands(build_parser())
+        for action in _options(parser)
+        if "--target" in action.option_strings
+    ]
+    assert {name for name, _ in targets} == {"embedrl export", "embedrl bench-target", "embedrl hil run"}
+    assert all(tuple(choices or ()) == tuple(TARGETS) for _, choices in targets)
+
+
+EXPORT_READERS = [
+    ["report", "--out", "r.html"],
+    ["verify-chain"],
+    ["bench-export"],
+    ["bench-target"],
+    ["hil", "run"],
+    ["hil", "bench"],
+]
+"""Every command that reads an export folder (and an option it needs besides)."""
+
+
+@pytest.mark.parametrize("command", EXPORT_READERS, ids=lambda c: " ".join(c[: 2 if c[0] == "hil" else 1]))
+def test_every_command_takes_the_export_folder_both_ways(
+    command: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    parser = build_parser()
+    words = 2 if command[0] == "hil" else 1
+    head, rest = command[:words], command[words:]
+    given = parser.parse_args([*head, "out/td3", *rest]).export_dir
+    assert given == parser.parse_args([*head, *rest, "--export-dir", "out/td3"]).export_dir == Path("out/td3")
+    for argv in ([*head, "a", "--export-dir", "b", *rest], [*head, "--export-dir", "b", *rest, "a"]):
+        with pytest.raises(SystemExit) as stop:
+            parser.parse_args(argv)
+        assert stop.value.code == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "the export folder is given twice" in err
+    if command[0] == "bench-export":  # without one it times the study's actor
+        assert parser.parse_args(head).export_dir is None
+        return
+    with pytest.raises(SystemExit) as stop:
+        parser.parse_args([*head, *rest])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"embedrl {' '.join(head)}: error: the export folder is missing: give EXPORT_DIR or --export-dir "
+        f"EXPORT_DIR (see embedrl {' '.join(head)} --help)"
+    )
+
+
+def test_export_writes_the_folder_it_is_given_either_way() -> None:
+    parser = build_parser()
+    for option in ("--out", "--export-dir"):
+        assert parser.parse_args(["export", "m.zip", option, "out/td3"]).out == Path("out/td3")
+
+
+def test_make_help_lists_every_target_in_one_line() -> None:
+    makefile = REPO / "Makefile"
+    phony = re.search(r"^\.PHONY:(.*)$", makefile.read_text(), re.MULTILINE)
+    assert phony is not None
+    result = subprocess.run(["make", "-s", "-f", str(makefile), "help"], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    listed = {line.split()[0]: line for line in result.stdout.splitlines()}
+    assert set(listed) == set(phony.group(1).split())
+    assert all(len(line.split()) > 2 for line in listed.values())  # a target and what it does
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027])
+def test_an_export_folder_is_created_with_the_users_umask(tmp_path: Path, umask: int) -> None:
+    """The export is written into a private temporary folder (mkdtemp: 0700) and renamed into place: it must
+    still have the mode a plain mkdir would give it, so that the group and CI users can read it."""
+    model = tmp_path / "mlp.onnx"
+    onnx.save(mlp_model([6, 8, 2]), model)
+    out = tmp_path / "export"
+    argv = [sys.executable, "-m", "embedrl.cli", "export", str(model), "--out", str(out), "--episodes", "0"]
+    result = subprocess.run(
+        argv, capture_output=True, text=True, timeout=300, preexec_fn=lambda: os.umask(umask)
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    folders = [out, *(p for p in out.rglob("*") if p.is_dir())]
+    files = [p for p in out.rglob("*") if p.is_file()]
+    assert len(files) > 5
+    assert {oct(stat.S_IMODE(p.stat().st_mode)) for p in folders} == {oct(0o777 & ~umask)}
+    assert {oct(stat.S_IMODE(p.stat().st_mode) & 0o666) for p in files} == {oct(0o666 & ~umask)}

@@ -1,9 +1,11 @@
-"""Command-line options several commands share (train, eval, render, bench, shaping, export), defined once."""
+"""Command-line options several commands share (train, eval, render, bench, shaping, export, hil, report),
+defined once."""
 
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from embedrl.train.errors import UsageError
 from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, scenario_help
@@ -15,8 +17,10 @@ PORTABLE_HELP = (
 
 
 def add_scenario_argument(p: argparse.ArgumentParser, default: str | None = DEFAULT_SCENARIO) -> None:
-    """``--scenario``: which of the scenarios (None as default: the command tells it from elsewhere)."""
-    p.add_argument("--scenario", choices=tuple(SCENARIOS), default=default, help=scenario_help())
+    """``--scenario``: which of the scenarios (None as default: the command tells it from elsewhere, the
+    default scenario unless something else says)."""
+    said = "" if default is not None else f" (default: {DEFAULT_SCENARIO})"
+    p.add_argument("--scenario", choices=tuple(SCENARIOS), default=default, help=scenario_help() + said)
 
 
 def add_model_file_arguments(p: argparse.ArgumentParser) -> None:
@@ -31,8 +35,8 @@ def add_model_file_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--vecnormalize",
         type=Path,
-        help="the model's normalisation statistics (.npz, or SB3's .pkl read without running code); "
-        "default: found beside the model, RL Zoo's <env>/vecnormalize.pkl included",
+        help="the model's normalisation statistics (.npz, or SB3's .pkl read without running code) "
+        "(default: found beside the model, RL Zoo's <env>/vecnormalize.pkl included)",
     )
 
 
@@ -108,3 +112,41 @@ def add_policy_arguments(p: argparse.ArgumentParser) -> None:
     src.add_argument("model", nargs="?", type=Path, help="a trained Stable-Baselines3 model (.zip)")
     src.add_argument("--controller", choices=CONTROLLERS, help="a built-in scripted controller")
     add_model_file_arguments(p)
+
+
+EXPORT_DIR = "EXPORT_DIR"
+
+
+class ExportDirAction(argparse.Action):
+    """The export folder, given as a positional argument or as ``--export-dir`` (one destination, once).
+    ``needed``: the command cannot run without it (``embedrl.cli.Parser`` checks that after parsing)."""
+
+    def __init__(self, *args: Any, needed: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.needed = needed
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: object,
+        option_string: str | None = None,
+    ) -> None:
+        if values is None:  # the positional spelling, not given
+            return
+        if getattr(namespace, self.dest, None) is not None:
+            parser.error(f"the export folder is given twice: give {EXPORT_DIR} or --export-dir {EXPORT_DIR}")
+        setattr(namespace, self.dest, values)
+
+
+def add_export_dir_argument(p: argparse.ArgumentParser, help: str, needed: bool = True) -> None:
+    """The export folder a command reads, ``args.export_dir``: ``embedrl CMD DIR`` and ``embedrl CMD
+    --export-dir DIR`` both work, in every command."""
+    p.add_argument(
+        "export_dir", nargs="?", type=Path, action=ExportDirAction, metavar=EXPORT_DIR, needed=needed,
+        help=f"{help} (or --export-dir {EXPORT_DIR})",
+    )  # fmt: skip
+    p.add_argument(
+        "--export-dir", dest="export_dir", type=Path, action=ExportDirAction, metavar=EXPORT_DIR,
+        help="the same folder, as an option",
+    )  # fmt: skip

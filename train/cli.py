@@ -320,22 +320,24 @@ def _add_run_set_arguments(p: argparse.ArgumentParser, max_steps: int) -> None:
         metavar="NAME=VALUE",
         help="change one of the preset's hyperparameters in every run, e.g. --set success_bonus=20",
     )
-    p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--max-steps", type=_positive, default=max_steps)
-    p.add_argument("--eval-episodes", type=_positive, default=200)
+    p.add_argument("--out", type=Path, required=True, help="the sweep's folder (tables, plots, runs/)")
+    p.add_argument("--max-steps", type=_positive, default=max_steps, help="each run's training budget")
+    p.add_argument(
+        "--eval-episodes", type=_positive, default=200, help="test episodes of each trained policy"
+    )
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1,
                    help="runs at once on this machine (with --ray local: the CPUs Ray may use)")  # fmt: skip
     p.add_argument(
         "--ray", metavar="ADDRESS",
         help="run each (algorithm, seed) as a Ray task: local (a Ray instance here), auto (the cluster this "
-        "machine joined with `ray start`) or HOST:PORT; default: a process pool on this machine",
+        "machine joined with `ray start`) or HOST:PORT (default: a process pool on this machine)",
     )  # fmt: skip
 
 
 def register(sub: Any) -> None:
     p = sub.add_parser("eval", help="evaluate a policy on seeded episodes; table, JSON report, plot")
     add_policy_arguments(p)
-    p.add_argument("--episodes", type=_positive, default=200)
+    p.add_argument("--episodes", type=_positive, default=200, help="episodes to run")
     p.add_argument("--seed", type=seed, default=0, help="episode i is reset with seed + i")
     p.add_argument("--json", type=Path, help="write the JSON report here")
     p.add_argument("--plot", type=Path, help="write the trajectories over the map here (PNG)")
@@ -343,7 +345,7 @@ def register(sub: Any) -> None:
 
     p = sub.add_parser("render", help="write one episode as an animated GIF or a PNG strip")
     add_policy_arguments(p)
-    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="the episode's reset seed")
     p.add_argument("--out", type=Path, required=True, help="file.gif (animation) or file.png (strip)")
     p.set_defaults(func=cmd_render)
     _register_train(sub)
@@ -356,8 +358,8 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd_reward_field)
 
     p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
-    p.add_argument("--steps", type=_positive, default=50_000)
-    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--steps", type=_positive, default=50_000, help="env steps to time")
+    p.add_argument("--seed", type=seed, default=0, help="the env's and the random actions' seed")
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_env)
 
@@ -366,12 +368,12 @@ def _register_train(sub: Any) -> None:
     from embedrl.train.config import ALGOS, PRESETS, STOP_RULES
 
     p = sub.add_parser("train", help="train an SB3 agent on the warehouse env (stop criterion, checkpoints)")
-    p.add_argument("--algo", choices=ALGOS, help=f"default {TRAIN_DEFAULTS['algo']}")
+    p.add_argument("--algo", choices=ALGOS, help=f"the algorithm {_default('algo')}")
     add_scenario_argument(p, default=None)
     p.add_argument(
         "--preset", metavar="NAME|FILE",
-        help=f"{' or '.join(PRESETS)} (default {TRAIN_DEFAULTS['preset']}), or a preset file that `embedrl "
-        "tune` wrote (best_preset.json: a preset and its changes)",
+        help=f"{' or '.join(PRESETS)}, or a preset file that `embedrl tune` wrote (best_preset.json: a "
+        f"preset and its changes) {_default('preset')}",
     )  # fmt: skip
     p.add_argument(
         "--set",
@@ -380,7 +382,7 @@ def _register_train(sub: Any) -> None:
         metavar="NAME=VALUE",
         help="change one of the preset's hyperparameters, e.g. --set learning_rate=3e-4 (repeatable)",
     )
-    p.add_argument("--seed", type=seed, help="default 0")
+    p.add_argument("--seed", type=seed, help=f"the run's seed {_default('seed')}")
     p.add_argument("--out", type=Path, help="new run directory")
     p.add_argument(
         "--resume",
@@ -388,19 +390,26 @@ def _register_train(sub: Any) -> None:
         help="continue the run in this directory from its last checkpoint, with its own configuration "
         "(flags that contradict it are refused, except a larger --max-steps: training on)",
     )
-    p.add_argument("--max-steps", type=_positive, help="default 300000")
-    p.add_argument("--max-episodes", type=_positive, help="default 100000")
-    p.add_argument("--checkpoint-every", type=_positive, help="default 10000")
-    p.add_argument("--eval-every", type=_positive, help="default 5000")
+    p.add_argument("--max-steps", type=_positive, help=f"env steps at most {_default('max_steps')}")
+    p.add_argument("--max-episodes", type=_positive, help=f"episodes at most {_default('max_episodes')}")
+    p.add_argument("--checkpoint-every", type=_positive,
+                   help=f"env steps between checkpoints {_default('checkpoint_every')}")  # fmt: skip
+    p.add_argument("--eval-every", type=_positive,
+                   help=f"env steps between validation evaluations {_default('eval_every')}")  # fmt: skip
     p.add_argument(
         "--stop",
         choices=STOP_RULES,
-        help="what ends the run before --max-steps: validation (default: a validation evaluation reaches "
-        "the target success), study (the study's criterion: 50-episode average >= 2) or budget",
+        help="what ends the run before --max-steps: validation (a validation evaluation reaches the target "
+        f"success), study (the study's criterion: 50-episode average >= 2) or budget {_default('stop')}",
     )
     p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.set_defaults(func=cmd_train)
+
+
+def _default(name: str) -> str:
+    """A new run's default as the help states it (the option itself defaults to None: see TRAIN_DEFAULTS)."""
+    return f"(default: {TRAIN_DEFAULTS[name]})"
 
 
 def _register_tune(sub: Any) -> None:
@@ -409,7 +418,7 @@ def _register_tune(sub: Any) -> None:
     p = sub.add_parser(
         "tune", help="search an algorithm's hyperparameters with Optuna; success on validation seeds"
     )
-    p.add_argument("--algo", choices=ALGOS, required=True)
+    p.add_argument("--algo", choices=ALGOS, required=True, help="the algorithm whose preset is searched")
     add_scenario_argument(p)
     p.add_argument("--preset", choices=PRESETS, default="tuned", help="the preset the search changes")
     p.add_argument("--trials", type=_positive, default=20, help="trials in total (a resumed search counts "
@@ -421,7 +430,7 @@ def _register_tune(sub: Any) -> None:
         "--ray",
         metavar="ADDRESS",
         help="run the trials with Ray Tune: local (a Ray instance "
-        "here), auto (the cluster this machine joined) or HOST:PORT; default: one by one here",
+        "here), auto (the cluster this machine joined) or HOST:PORT (default: one by one here)",
     )
     p.add_argument("--workers", type=_positive, default=os.cpu_count() or 1,
                    help="with --ray local: trials at once (the CPUs Ray may use)")  # fmt: skip
@@ -434,15 +443,17 @@ def _register_sweeps(sub: Any) -> None:
 
     p = sub.add_parser("bench", help="train K seeds per algorithm in parallel; the study's table")
     add_scenario_argument(p)
-    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS))
-    p.add_argument("--seeds", type=_positive, default=5)
+    p.add_argument(
+        "--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS), help="the algorithms to train"
+    )
+    p.add_argument("--seeds", type=_positive, default=5, help="training seeds per algorithm")
     p.add_argument(
         "--seed-offset",
         type=seed,
         default=0,
         help="train seeds OFFSET .. OFFSET + SEEDS - 1 (new seeds to try)",
     )
-    p.add_argument("--preset", choices=PRESETS, default="tuned")
+    p.add_argument("--preset", choices=PRESETS, default="tuned", help="every run's preset")
     _add_run_set_arguments(p, 300_000)
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
     p.add_argument(
@@ -456,11 +467,13 @@ def _register_sweeps(sub: Any) -> None:
         "shaping",
         help="train from scratch with the study's reward and with potential-based shaping; table and curves",
     )
-    p.add_argument("--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS))
-    p.add_argument("--seeds", type=_positive, default=5)
+    p.add_argument(
+        "--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS), help="the algorithms to train"
+    )
+    p.add_argument("--seeds", type=_positive, default=5, help="training seeds per algorithm")
     p.add_argument("--seed-offset", type=seed, default=300, help="train seeds OFFSET .. OFFSET + SEEDS - 1")
     p.add_argument(
-        "--preset", choices=PRESETS, default="tuned", help="without its demonstrations (default tuned)"
+        "--preset", choices=PRESETS, default="tuned", help="every run's preset, without its demonstrations"
     )
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
     _add_run_set_arguments(p, 1_000_000)

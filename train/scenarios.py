@@ -150,9 +150,7 @@ def has_moving_shelf(env_id: str) -> bool:
 def scenario_help() -> str:
     """The scenarios as a command's help lists them: name, observation size and what happens."""
     return "; ".join(
-        f"{name}{' (default)' if name == DEFAULT_SCENARIO else ''}: {SUMMARIES[name]}, "
-        f"{len(spec.observation)} observations"
-        for name, spec in SCENARIOS.items()
+        f"{name}: {SUMMARIES[name]}, {len(spec.observation)} observations" for name, spec in SCENARIOS.items()
     )
 
 
