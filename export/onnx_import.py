@@ -304,6 +304,12 @@ def to_ir(model: onnx.ModelProto) -> Graph:
                 f"state input '{read}' {list(shapes[read])} and its next value, output '{write}' "
                 f"{list(shapes[write])}, differ in size (inputs after the first pair with outputs in order)"
             )
+        if shapes[read] != shapes[write]:  # onnxruntime feeds the output back as the input: same shape
+            raise UnsupportedOpError(
+                f"state input '{read}' {list(shapes[read])} and its next value, output '{write}' "
+                f"{list(shapes[write])}, differ in shape: the next state is fed back as the state input, so "
+                "it needs the input's shape (reshape it before the output)"
+            )
     output = g.output[0].name
     used_nodes = _live_nodes(nodes, {value.name for value in g.output})
     return Graph.freeze(inputs[0].name, output, used_nodes, shapes, constants, states)

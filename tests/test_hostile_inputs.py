@@ -23,6 +23,7 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 
 from embedrl.cli import main
+from tests.export.test_recurrent import lstm_state_of_another_rank
 from tests.test_user_errors import TD3, _external, _gemm_model, assert_refused, run_measured
 
 TIME_BUDGET_S = 10.0
@@ -220,7 +221,27 @@ def damaged_run(edit: Callable[[dict[str, Any]], object]) -> Callable[[Path], li
     return argv
 
 
+def bench_from(result: object) -> Callable[[Path], list[str]]:
+    """``bench --from`` a folder whose one run's result.json holds ``result``."""
+
+    def argv(tmp: Path) -> list[str]:
+        run = tmp / "bench" / "runs" / "td3-seed0"
+        run.mkdir(parents=True)
+        (run / "result.json").write_text(json.dumps(result))
+        return ["bench", "--from", str(tmp / "bench"), "--out", str(tmp / "table")]
+
+    return argv
+
+
 ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
+    "bench --from a result.json that is a list": (
+        bench_from([]),
+        "not a bench result (a list, not an object)",
+    ),
+    "bench --from a result.json without its keys": (
+        bench_from({"algo": "td3", "seed": 0}),
+        "not a bench result (preset is missing)",
+    ),
     "train --resume of a config.json with budget []": (
         damaged_run(lambda c: c.update(budget=[])),
         "config.json is damaged (budget is [], not an object)",
@@ -234,6 +255,10 @@ ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
         "budget.max_steps is 'lots', not a whole number",
     ),
     "ONNX of 20,000 Relu nodes": (_onnx_row(many_relus), "20,001 nodes exceed the limit"),
+    "ONNX LSTM whose next state has another rank": (
+        _onnx_row(lstm_state_of_another_rank, "--obs-range=-1:1", "--act-range=-1:1", "--sample-time", "0.1"),
+        "output 'h_next' [1, 16], differ in shape",
+    ),
     "ONNX Reshape to [1, 6, 0]": (_onnx_row(reshape_with_zero), "Reshape"),
     "ONNX input 2^40 wide": (_onnx_row(wide_input), "1,099,511,627,776"),
     "ONNX input 2^40 wide with --obs-range": (

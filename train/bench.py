@@ -256,6 +256,8 @@ def table_from(folders: list[Path], out: Path) -> str:
         own = folder / RESULT_FILE
         found += [own] if own.is_file() else sorted(folder.glob(f"runs/*/{RESULT_FILE}"))
     runs = [parse_json(p.read_text()) for p in found]
+    for path, run in zip(found, runs, strict=True):
+        _check_result(path, run)
     if not runs:
         raise ValueError(
             f"no finished runs ({RESULT_FILE} or runs/*/{RESULT_FILE}) under {', '.join(map(str, folders))}"
@@ -266,6 +268,52 @@ def table_from(folders: list[Path], out: Path) -> str:
     named = ", ".join(f"`{p}`" for p in presets)
     note = f"preset {named}, budget {budgets} steps, from {len(runs)} run folders"
     return write_table(runs, out, note, [])
+
+
+NUMBER = (int, float)
+OPTIONAL_COUNT = (int, type(None))
+RESULT_KEYS: dict[str, tuple[type, ...]] = {
+    "algo": (str,), "preset": (str,), "scenario": (str,), "seed": (int,), "run": (str,),
+    "total_steps": (int,), "criterion_reached": (bool,), "evaluation": (dict,),
+    "episodes_to_criterion": OPTIONAL_COUNT, "steps_to_criterion": OPTIONAL_COUNT,
+    "demonstration_episodes": (int,), "warmup_episodes": (int,), "validation_target_step": OPTIONAL_COUNT,
+    "average50_at_stop": (*NUMBER, type(None)), "updates": (int,), "wall_clock_s": NUMBER,
+}  # fmt: skip
+"""What the table reads of each run's result.json, and its types."""
+EVALUATION_KEYS: dict[str, tuple[type, ...]] = {
+    "episodes": (int,), "successes": (int,), "collisions": (int,), "timeouts": (int,),
+    "success_rate": NUMBER, "mean_return": NUMBER, "mean_time_s": (*NUMBER, type(None)),
+}  # fmt: skip
+
+
+def _check_result(path: Path, result: Any) -> None:
+    """A run's result.json as the table reads it (``bench --from`` takes them from anywhere): ValueError
+    naming the file and the first key missing or of another type, or the run folder's missing curve."""
+
+    def check(data: dict[str, Any], keys: dict[str, tuple[type, ...]], prefix: str) -> None:
+        for key, kinds in keys.items():
+            value = data.get(key, ...)
+            wrong = not isinstance(value, kinds) or (isinstance(value, bool) and bool not in kinds)
+            if value is ... or wrong:
+                shown = "missing" if value is ... else f"{value!r}"
+                raise ValueError(f"{path}: not a bench result ({prefix}{key} is {shown})")
+
+    if not isinstance(result, dict):
+        raise ValueError(f"{path}: not a bench result (a {type(result).__name__}, not an object)")
+    check(result, RESULT_KEYS, "")
+    check(result["evaluation"], EVALUATION_KEYS, "evaluation.")
+    if result["algo"] not in ALGOS:
+        raise ValueError(f"{path}: not a bench result (algo {result['algo']!r}: none of {', '.join(ALGOS)})")
+    from embedrl.train.scenarios import SCENARIOS
+
+    if result["scenario"] not in SCENARIOS:
+        raise ValueError(f"{path}: not a bench result (scenario {result['scenario']!r}: an unknown one)")
+    reached_at = (result["episodes_to_criterion"], result["steps_to_criterion"])
+    if result["criterion_reached"] and None in reached_at:
+        raise ValueError(f"{path}: not a bench result (criterion_reached without its step and episode)")
+    for name in ("curve.csv", "config.json"):  # the learning curves are drawn from the run's folder
+        if not (Path(result["run"]) / name).is_file():
+            raise ValueError(f"{path}: its run folder {result['run']} has no {name}")
 
 
 def write_table(runs: list[dict[str, Any]], out: Path, note: str, failed: list[str]) -> str:

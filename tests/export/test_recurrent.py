@@ -227,7 +227,26 @@ def test_a_state_input_without_its_next_value_is_refused() -> None:
     swapped.graph.output[0].CopyFrom(
         helper.make_tensor_value_info("h_next", TensorProto.FLOAT, [1, 1, HIDDEN])
     )
-    assert to_ir(swapped).states == (("h", "act"),)  # pairs by position: the output order is the contract
+    # pairs by position (the output order is the contract): h with act, which onnxruntime could not feed back
+    with pytest.raises(UnsupportedOpError, match=r"'h' \[1, 1, 16\] and its next value, output 'act'"):
+        to_ir(swapped)
+
+
+def lstm_state_of_another_rank() -> onnx.ModelProto:
+    """An LSTM cell whose next hidden state leaves as [1, 16]: its input h is [1, 1, 16] (the same size)."""
+    model = _cell_model("LSTM")
+    graph = model.graph
+    graph.node[1].output[1] = "h_cell"
+    graph.initializer.append(numpy_helper.from_array(np.array([1, HIDDEN], np.int64), "rank2"))
+    graph.node.append(helper.make_node("Reshape", ["h_cell", "rank2"], ["h_next"]))
+    graph.output[1].CopyFrom(helper.make_tensor_value_info("h_next", TensorProto.FLOAT, [1, HIDDEN]))
+    return model
+
+
+def test_a_state_output_of_the_right_size_and_another_rank_is_refused() -> None:
+    with pytest.raises(UnsupportedOpError, match="differ in shape") as info:
+        to_ir(lstm_state_of_another_rank())
+    assert "\n" not in str(info.value)
 
 
 @pytest.mark.parametrize(("kind", "linear_before_reset"), [("LSTM", 0), ("GRU", 0), ("GRU", 1)])
