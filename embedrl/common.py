@@ -8,6 +8,7 @@ import hashlib
 import json
 import math
 import os
+import stat
 import sys
 from collections.abc import Callable, Iterable
 from importlib import metadata
@@ -87,6 +88,33 @@ def parse_json(text: str | bytes) -> Any:
         return json.loads(text)
     except RecursionError:
         raise ValueError("JSON nested too deeply") from None
+
+
+MAX_JSON_BYTES = 16 * 2**20
+"""The largest JSON file any command reads (reports, manifests, configurations are far smaller)."""
+
+
+def read_json(path: Path, limit: int = MAX_JSON_BYTES) -> Any:
+    """A JSON file parsed as :func:`parse_json` does, read only if it is a regular file of at most
+    ``limit`` bytes: a FIFO (which would block), a device (``/dev/zero`` never ends) or a huge file is a
+    ValueError naming ``path``, before anything is read. OSError if it cannot be opened."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # opening a FIFO does not wait for a writer
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{path}: not a regular file but {_file_kind(info.st_mode)}")
+        if info.st_size > limit:
+            raise ValueError(f"{path}: {info.st_size:,} bytes exceed the limit of {limit:,} for a JSON file")
+        data = f.read(limit + 1)
+    if len(data) > limit:  # grew since
+        raise ValueError(f"{path}: more than {limit:,} bytes, the limit for a JSON file")
+    return parse_json(data)
+
+
+def _file_kind(mode: int) -> str:
+    kinds = {stat.S_ISDIR: "a folder", stat.S_ISFIFO: "a FIFO", stat.S_ISCHR: "a character device",
+             stat.S_ISBLK: "a block device", stat.S_ISSOCK: "a socket"}  # fmt: skip
+    return next((name for test, name in kinds.items() if test(mode)), "not a file")
 
 
 def check_output(path: Path, option: str, folder: bool = False) -> None:

@@ -25,7 +25,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from embedrl.common import parse_json, sha256
+from embedrl.common import read_json, sha256
 from embedrl.export.errors import ExportError
 
 MANIFEST = "chain.json"
@@ -68,7 +68,7 @@ def run_config_of(source: Path) -> Path | None:
 def seed_of(config: Path) -> int | None:
     """The training seed a run configuration records (a shipped record nests it under ``config``)."""
     try:
-        data = parse_json(config.read_text())
+        data = read_json(config)
     except (ValueError, OSError):
         return None
     inner = data.get("config", data) if isinstance(data, dict) else None
@@ -106,7 +106,7 @@ def read(export_dir: Path) -> list[Link]:
     if not manifest.is_file():
         raise ChainError(f"{export_dir}: no {MANIFEST} (export it again with `embedrl export`)")
     try:
-        data = parse_json(manifest.read_text())
+        data = read_json(manifest)
         if data.get("format") != FORMAT:
             raise ValueError(f"format {data.get('format')!r}, expected {FORMAT}")
         links = [_link_of(entry) for entry in data["links"]]
@@ -208,11 +208,11 @@ def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
         found = dict(_C_HEADER.findall(path.read_text(errors="replace")[:2000]))
         return {name: found[key] for key, name in (("onnx", "ONNX"), ("source", "model")) if key in found}
     if k.name == "run config" and path.suffix == ".json":
-        data = parse_json(path.read_text())
+        data = read_json(path)
         recorded = data.get("sha256") if isinstance(data, dict) else None
         return {"model": recorded} if isinstance(recorded, str) else {}
     if k.name.startswith("HIL report") and path.suffix == ".json":
-        data = parse_json(path.read_text())
+        data = read_json(path)
         files = (data.get("export_files") or {}) if isinstance(data, dict) else None
         if not isinstance(files, dict):
             raise ValueError("its export_files is not an object of file names and hashes")

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from embedrl.common import on_terminal, parse_json, table
+from embedrl.common import on_terminal, read_json, table
 from embedrl.export.errors import ExportError
 from embedrl.export.target import TARGETS
 from embedrl.train import arguments
@@ -77,7 +77,7 @@ def _names(path: Path | None) -> dict[str, Any] | None:
     if path is None:
         return None
     try:
-        names = parse_json(path.read_text())
+        names = read_json(path)
     except (OSError, ValueError) as exc:
         raise ExportError(f"--names {path}: not a readable JSON file ({exc})") from None
     if not isinstance(names, dict):

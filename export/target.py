@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from embedrl.common import parse_json
+from embedrl.common import read_json
 from embedrl.export import build, cycles, stack
 from embedrl.export.errors import BuildError, ExportError
 from embedrl.export.ops.base import c_float
@@ -212,7 +212,7 @@ def cycles_per_instruction(export_dir: Path, target: str, work: Path) -> dict[st
     exported with ``--target``, else traced now from the size probe built in ``work``."""
     report = export_dir / "export_report.json"
     if report.is_file():
-        known = parse_json(report.read_text()).get("targets", {}).get(target)
+        known = read_json(report).get("targets", {}).get(target)
         if known and "cycle_model" in known:
             model: dict[str, Any] = known["cycle_model"]
             return {k: model[k] for k in ("traced_instructions", "traced_cycles", "cycles_per_instruction",

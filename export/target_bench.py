@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from embedrl.common import parse_json
+from embedrl.common import read_json
 from embedrl.export import build, cycles, target
 from embedrl.export.errors import ExportError
 from embedrl.train.interface import INTERFACE_FILE, Interface
@@ -61,7 +61,7 @@ def measure(export_dir: Path, target_name: str, emx: Path, work: Path) -> dict[s
     t = target.TARGETS[target_name]
     c_dir, vectors = export_dir / "c", export_dir / "test" / "test_vectors.c"
     out = target.build_firmware(t, c_dir, vectors, work)
-    interface = Interface.from_json(parse_json((export_dir / INTERFACE_FILE).read_text()))
+    interface = Interface.from_json(read_json(export_dir / INTERFACE_FILE))
     run = target.run_qemu(t, out / "firmware.elf", 256, len(interface.action))
     ours = _figures(
         t, run.instructions_per_inference, cycles.profile(out / "policy.elf", t.qemu_machine, t.name),

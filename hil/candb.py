@@ -44,7 +44,7 @@ from cantools.database.can.formats.dbc.dbc_attribute_definition import DbcAttrib
 from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
 from cantools.database.conversion import BaseConversion
 
-from embedrl.common import parse_json
+from embedrl.common import read_json
 from embedrl.export.ops.base import c_float
 from embedrl.hil import e2e
 from embedrl.hil.errors import HilError
@@ -571,7 +571,7 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_IO_ACT_DI
 def load_interface(path: Path) -> Interface:
     """An export's ``interface.json`` (untrusted input: validated)."""
     try:
-        return Interface.from_json(parse_json(path.read_text()))
+        return Interface.from_json(read_json(path))
     except (OSError, ValueError) as exc:
         raise HilError(f"{path}: {exc}") from None
 

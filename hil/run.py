@@ -17,7 +17,7 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from embedrl.common import parse_json, sha256
+from embedrl.common import read_json, sha256
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
@@ -133,7 +133,7 @@ def onnx_of(export_dir: Path) -> Path:
         return onnx
     report = export_dir / "export_report.json"
     if report.is_file():
-        source = Path(parse_json(report.read_text())["source"]["path"])
+        source = Path(read_json(report)["source"]["path"])
         if source.suffix == ".onnx" and source.is_file():
             return source
     raise HilError(f"{export_dir}: no policy.onnx (is it an `embedrl export` folder?)")

@@ -221,6 +221,40 @@ def damaged_run(edit: Callable[[dict[str, Any]], object]) -> Callable[[Path], li
     return argv
 
 
+def _special(tmp: Path, kind: str) -> Path:
+    """A path that is no regular file: a FIFO (opening it waits for a writer), /dev/zero (endless), or a
+    sparse file above the JSON size limit."""
+    if kind == "/dev/zero":
+        return Path("/dev/zero")
+    path = tmp / f"{kind}.json"
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        with path.open("wb") as f:
+            f.truncate(100 * 2**20)
+    return path
+
+
+def _report_of_a_fake_export(kind: str) -> Callable[[Path], list[str]]:
+    """``report --hil`` of a special file, on a folder with just what the report reads first."""
+
+    def argv(tmp: Path) -> list[str]:
+        export = tmp / "export"
+        (export / "c").mkdir(parents=True)
+        for name in ("policy.c", "policy.h"):
+            (export / "c" / name).write_text("")
+        (export / "interface.json").write_text("{}")
+        (export / "export_report.json").write_text('{"name": "policy", "interface": {"observation": []}}')
+        hil = _special(tmp, kind)
+        return ["report", str(export), "--hil", str(hil), "--out", str(tmp / "out" / "r.html")]
+
+    return argv
+
+
+def _names_row(kind: str) -> Callable[[Path], list[str]]:
+    return lambda tmp: ["export", str(TD3), "--names", str(_special(tmp, kind)), "--out", str(tmp / "out")]
+
+
 def bench_from(result: object) -> Callable[[Path], list[str]]:
     """``bench --from`` a folder whose one run's result.json holds ``result``."""
 
@@ -301,6 +335,16 @@ ROWS: dict[str, tuple[Callable[[Path], list[str]], str]] = {
     "shaping --ray without a port": (
         lambda tmp: ["shaping", "--ray", "somehost", "--out", str(tmp / "out")],
         "give local, auto, HOST:PORT",
+    ),
+    "report --hil a FIFO": (_report_of_a_fake_export("fifo"), "fifo.json: not a regular file but a FIFO"),
+    "report --hil /dev/zero": (_report_of_a_fake_export("/dev/zero"), "not a regular file but a character"),
+    "report --hil of 100 MB": (_report_of_a_fake_export("big"), "104,857,600 bytes exceed the limit"),
+    "--names a FIFO": (_names_row("fifo"), "fifo.json: not a regular file but a FIFO"),
+    "--names /dev/zero": (_names_row("/dev/zero"), "/dev/zero: not a regular file but a character device"),
+    "--names of 100 MB": (_names_row("big"), "104,857,600 bytes exceed the limit"),
+    "train --preset a FIFO": (
+        lambda tmp: ["train", "--preset", str(_special(tmp, "fifo")), "--out", str(tmp / "out")],
+        "fifo.json: not a regular file but a FIFO",
     ),
 }
 

@@ -249,13 +249,13 @@ def run_bench(
 def table_from(folders: list[Path], out: Path) -> str:
     """The table again from finished runs (``runs/*/result.json`` under each of ``folders``, as a bench on
     any machine of a cluster wrote them, or a run folder's own ``result.json``), written into ``out``."""
-    from embedrl.common import parse_json
+    from embedrl.common import read_json
 
     found = []
     for folder in folders:
         own = folder / RESULT_FILE
         found += [own] if own.is_file() else sorted(folder.glob(f"runs/*/{RESULT_FILE}"))
-    runs = [parse_json(p.read_text()) for p in found]
+    runs = [read_json(p) for p in found]
     for path, run in zip(found, runs, strict=True):
         _check_result(path, run)
     if not runs:

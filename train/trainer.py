@@ -48,7 +48,7 @@ from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm import tqdm
 
-from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, atomic_write, parse_json, provenance
+from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, atomic_write, provenance, read_json
 from embedrl.train.config import (
     ALGOS,
     Budget,
@@ -740,7 +740,7 @@ def read_run_config(out: Path) -> dict[str, Any]:
     from embedrl.train.config import check_run_config
 
     try:
-        saved: dict[str, Any] = parse_json((out / "config.json").read_text())
+        saved: dict[str, Any] = read_json(out / "config.json")
         check_run_config(saved)
     except FileNotFoundError:
         raise UsageError(f"cannot resume {out}: no config.json (not a run directory)") from None
@@ -753,7 +753,7 @@ def _refuse_a_fired_stop_rule(out: Path, budget: Budget) -> None:
     """A run that stopped at its stop rule would stop again at once: resuming it to a larger budget
     under the same rule is refused, naming the option that trains on (before anything is changed)."""
     try:
-        state = parse_json((_complete_checkpoint(out) / "state.json").read_text())
+        state = read_json(_complete_checkpoint(out) / "state.json")
         steps = int(state.get("steps", 0))
     except (OSError, ValueError, AttributeError, TypeError):
         return  # a damaged checkpoint: the checkpoint loader says what is wrong
@@ -836,7 +836,7 @@ def _load_checkpoint(
     """Model, training env, counters and random generators' states of a checkpoint (the run's own files:
     pickles it wrote itself)."""
     try:
-        state: dict[str, Any] = parse_json((checkpoint / "state.json").read_text())
+        state: dict[str, Any] = read_json(checkpoint / "state.json")
         with (checkpoint / "random.pkl").open("rb") as f:
             generators: dict[str, Any] = pickle.load(f)
         with (checkpoint / "env.pkl").open("rb") as f:

@@ -11,13 +11,12 @@ that the trials' budget ended within the random warm-up, so that no trial traine
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from embedrl.common import VALIDATION_SEED, on_terminal, write_json
+from embedrl.common import VALIDATION_SEED, on_terminal, read_json, write_json
 
 RUNGS = 3
 """Evaluations per trial (at 1/3, 2/3 and all of the budget): what the pruner compares."""
@@ -180,7 +179,7 @@ def read_preset_file(path: Path) -> tuple[str, list[str]]:
     from embedrl.train.config import PRESETS
 
     try:
-        data = json.loads(path.read_text())
+        data = read_json(path)
         base, overrides = data["base_preset"], data["overrides"]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise ValueError(f"{path}: not a preset file of `embedrl tune` ({exc})") from None

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from embedrl.common import parse_json, sha256
+from embedrl.common import read_json, sha256
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.train.interface import INTERFACE_FILE
@@ -39,7 +39,7 @@ def load_export(export_dir: Path) -> dict[str, Any]:
             f"{export_dir}: not an `embedrl export` folder (no export_report.json or interface.json)"
         )
     try:
-        data = parse_json(report.read_text())
+        data = read_json(report)
         data["interface"]["observation"]
     except (ValueError, KeyError, TypeError) as exc:
         raise HilError(f"{report}: not an export report ({exc})") from None
@@ -74,7 +74,7 @@ def check_same_policy(export_dir: Path, other: Path) -> None:
 def load_hil(path: Path, export_dir: Path) -> dict[str, Any]:
     """A HIL report made on exactly this export's files, each key the page reads of the type it needs."""
     try:
-        data = parse_json(path.read_text())
+        data = read_json(path)
         _check_hil(data)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise HilError(f"{path}: not a HIL report of `embedrl hil run --json` ({exc})") from None
@@ -128,21 +128,50 @@ def interface_facts(export: dict[str, Any], export_dir: Path) -> dict[str, Any]:
     }
 
 
-def errors_per_sample(export_dir: Path, export: dict[str, Any]) -> np.ndarray:
-    """max |C - ONNX| per sample over the export's verification observations, the C rebuilt from ``c/``
-    (a quantised policy: its distance to the float ONNX, the quantisation error)."""
-    from embedrl.export import build
-    from embedrl.export.reference import OnnxPolicy
+def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
+    """The numerical verification of an export done again, never copied from its report: the C generated
+    again from its ONNX must equal ``c/`` byte for byte (else none of it is built or run on this host, and
+    the row fails); then it is built and run on the export's observations against the float ONNX
+    (``max |C - ONNX|`` per sample; a quantised policy's is its quantisation error) and, quantised, against
+    its integer model bit for bit. ``passed``: the C is the generator's, and float32 within the export's
+    tolerance (``tolerance x max(1, |ONNX|)`` per output) or quantised bit-exact with its model."""
+    from embedrl.export import build, quantize
+    from embedrl.export.reference import OnnxPolicy, precision_of
+    from embedrl.export.regenerate import regenerate
 
-    observations = np.load(export_dir / "test" / "observations.npy", allow_pickle=False).astype(np.float32)
+    precision = precision_of(export_dir)
+    source = export["verification"].get("onnx_vs_sb3_max_abs_error")
+    row: dict[str, Any] = {
+        "precision": precision, "samples": 0, "max_error": None, "p99_error": None, "errors": np.zeros(0),
+        "bit_exact_with_model": None, "onnx_vs_source": source, "generated_c": None, "passed": False,
+    }  # fmt: skip
+    again = regenerate(export_dir)
+    problem = again if isinstance(again, str) else again.problem
+    if problem is not None or isinstance(again, str):
+        row["generated_c"] = problem
+        return row
+    observations = again.observations
     expected = OnnxPolicy(export_dir / "policy.onnx")(observations)  # a recurrent policy: one sequence
     with tempfile.TemporaryDirectory(prefix="embedrl-report-") as tmp:
         build.make("lib", export_dir / "c", Path(tmp))
         policy = build.CPolicy(Path(tmp) / "libpolicy.so", export["name"], export["observation_dim"],
                                export["action_dim"])  # fmt: skip
         policy.reset()
-        actions, _ = policy.batch(observations)
-    return np.asarray(np.max(np.abs(actions.astype(np.float64) - expected), axis=1))
+        actions, codes = policy.batch(observations)
+    diff = np.abs(actions.astype(np.float64) - expected)
+    errors = np.max(diff, axis=1)
+    row.update(samples=len(errors), errors=errors, generated_c="identical to the generator's")
+    row["max_error"], row["p99_error"] = float(errors.max()), float(np.percentile(errors, 99))
+    if export.get("quantize"):
+        model = quantize.evaluate(again.graph, observations, again.section)
+        a32, m32 = np.ascontiguousarray(actions, np.float32), np.ascontiguousarray(model, np.float32)
+        row["bit_exact_with_model"] = bool(np.array_equal(a32.view(np.uint32), m32.view(np.uint32)))
+        row["passed"] = row["bit_exact_with_model"] and not np.any(codes)
+    else:
+        tolerance = float(export["verification"]["tolerance"])
+        within = diff <= tolerance * np.maximum(1.0, np.abs(expected))
+        row["passed"] = bool(np.all(within)) and not np.any(codes)
+    return row
 
 
 def image_memory(elf: Path) -> dict[str, Any]:
