@@ -26,6 +26,7 @@ def test_a_tiny_bench_on_local_ray_reports_a_failed_run_and_keeps_the_others(
     assert main(argv) == 1
     captured = capsys.readouterr()
     assert "1 run(s) failed" in captured.err
+    assert captured.err.startswith("warning: td3: a budget of 300 steps ends within the random warm-up")
     table = (out / "bench.md").read_text()
     assert "Failed: td3 seed 1: UsageError: cannot resume" in table
     data = json.loads((out / "bench.json").read_text())

@@ -246,6 +246,15 @@ def _warn(message: str) -> None:
     print(f"warning: {message}", file=sys.stderr)
 
 
+def _warn_untrained(algo: str, config: Any, max_steps: int) -> None:
+    """A sweep's warning that an algorithm's runs will train nothing (the budget within the warm-up)."""
+    from embedrl.train.config import untrained_budget
+
+    idle = untrained_budget(config, max_steps)
+    if idle is not None:
+        _warn(f"{algo}: {idle} (in every run); give a larger --max-steps or --set learning_starts=N")
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from embedrl.train.bench import run_bench
     from embedrl.train.config import preset, with_overrides
@@ -256,9 +265,11 @@ def cmd_bench(args: argparse.Namespace) -> int:
         restart_portable(args.argv, args.as_command)
     for algo in args.algos:  # a bad --set fails here, in one line, before any run starts
         try:
-            with_overrides(preset(algo, args.preset, args.scenario), args.set)
+            config = with_overrides(preset(algo, args.preset, args.scenario), args.set)
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+        if not args.from_runs:
+            _warn_untrained(algo, config, args.max_steps)
 
     if args.ray is not None:
         from embedrl.train.sweep import check_ray_address
@@ -294,9 +305,10 @@ def cmd_shaping(args: argparse.Namespace) -> int:
         raise UsageError(f"--gain must be a finite number >= 0, got {args.gain}")
     for algo in args.algos:  # a bad --set fails here, in one line, before any run starts
         try:
-            with_overrides(preset(algo, args.preset), [*FROM_SCRATCH[algo], *args.set])
+            config = with_overrides(preset(algo, args.preset), [*FROM_SCRATCH[algo], *args.set])
         except ValueError as exc:
             raise UsageError(str(exc)) from None
+        _warn_untrained(algo, config, args.max_steps)
     if args.ray is not None:
         from embedrl.train.sweep import check_ray_address
 
