@@ -4,11 +4,16 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
+import optuna
 import pytest
+from optuna.trial import TrialState
 
 from embedrl.cli import main
-from embedrl.train.tune import SPACE
+from embedrl.train.errors import UsageError
+from embedrl.train.scenarios import DEFAULT_SCENARIO
+from embedrl.train.tune import RUNGS, SPACE, Search, _only_search, run_tune, sample
 
 
 def test_a_tiny_search_resumes_and_its_best_preset_trains(
@@ -97,3 +102,44 @@ def test_no_cluster_to_join_is_one_line_and_leaves_no_folder(
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Ray instance" in err and not out.exists()
+
+
+def _quick_objective(trial: Any, search: Search, fields: set[str]) -> float:
+    """A trial that samples its changes and reports every evaluation without training."""
+    sample(trial, fields)
+    for rung in range(1, RUNGS + 1):
+        trial.report(0.5, rung)
+    return 0.5
+
+
+def test_a_search_resumed_after_kill_and_interrupt_fails_the_stale_trial_and_samples_afresh(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The study as a search left it: trial 0 complete, trial 1 interrupted (Ctrl-C: failed), trial 2
+    # running when the search was killed (kill -9: running for ever).
+    search = Search("td3", DEFAULT_SCENARIO, 300, tmp_path)
+    fields = set(SPACE)
+    study = optuna.create_study(study_name=search.name, storage=search.storage, direction="maximize",
+                                sampler=optuna.samplers.TPESampler(seed=search.seed))  # fmt: skip
+    for state in ("complete", "fail", "running"):
+        trial = study.ask()
+        _quick_objective(trial, search, fields)
+        if state != "running":
+            study.tell(trial, 0.5 if state == "complete" else None, state=getattr(TrialState, state.upper()))
+    monkeypatch.setattr("embedrl.train.tune._objective", _quick_objective)
+    run_tune(search, 3)
+    trials = optuna.load_study(study_name=search.name, storage=search.storage).trials
+    assert [t.state for t in trials] == [TrialState.COMPLETE, TrialState.FAIL, TrialState.FAIL,
+                                         TrialState.COMPLETE, TrialState.COMPLETE]  # fmt: skip
+    earlier = [t.params for t in trials[:3]]
+    assert all(t.params not in earlier for t in trials[3:])  # not the first trials' values again
+
+
+def test_a_second_search_in_the_same_folder_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    search = Search("td3", DEFAULT_SCENARIO, 300, tmp_path)
+    monkeypatch.setattr("embedrl.train.tune._objective", _quick_objective)
+    with _only_search(search), pytest.raises(UsageError, match="another `embedrl tune` is searching"):
+        run_tune(search, 1)
+    run_tune(search, 1)  # the folder free again

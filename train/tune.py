@@ -4,19 +4,26 @@ Each trial trains a run from a preset with the sampled changes (Optuna's TPE sam
 budget, in :data:`RUNGS` steps; after each, its selected model is evaluated on the validation seeds (never
 the test seeds) and the success rate is reported, so Optuna's median pruner can stop a trial that is behind
 the others at the same step. The study lives in ``DIR/study.db`` (SQLite): an interrupted search goes on
-where it stopped. The best trial is written as a preset file (``DIR/best_preset.json``) that ``embedrl
-train --preset FILE`` reads, with the trials' table (``DIR/trials.md``); ``"untrained": true`` in it says
-that the trials' budget ended within the random warm-up, so that no trial trained at all.
+where it stopped, with fresh suggestions (the sampler is seeded with the seed plus the trials so far); a
+trial a killed search left running is marked failed, and failed trials do not count towards ``--trials``.
+One search at a time works in a folder (a lock on ``study.db``). The best trial is written as a preset
+file (``DIR/best_preset.json``) that ``embedrl train --preset FILE`` reads, with the trials' table
+(``DIR/trials.md``); ``"untrained": true`` in it says that the trials' budget ended within the random
+warm-up, so that no trial trained at all.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import fcntl
+import os
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from embedrl.common import VALIDATION_SEED, on_terminal, read_json, write_json
+from embedrl.train.errors import UsageError
 
 RUNGS = 3
 """Evaluations per trial (at 1/3, 2/3 and all of the budget): what the pruner compares."""
@@ -81,18 +88,20 @@ def run_tune(search: Search, trials: int, optimize: Optimize | None = None) -> d
     search.out.mkdir(parents=True, exist_ok=True)
     fields = set(to_dict(preset(search.algo, search.base, search.scenario)))
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    study = optuna.create_study(
-        study_name=search.name, storage=search.storage, load_if_exists=True, direction="maximize",
-        sampler=optuna.samplers.TPESampler(seed=search.seed),
-        pruner=optuna.pruners.MedianPruner(n_startup_trials=2, n_warmup_steps=0),
-    )  # fmt: skip
-    left = trials - len([t for t in study.trials if t.state.is_finished()])
-    if left > 0 and optimize is not None:
-        optimize(search, fields, left)
-        study = optuna.load_study(study_name=search.name, storage=search.storage)
-    elif left > 0:
-        study.optimize(lambda trial: _objective(trial, search, fields), n_trials=left,
-                       show_progress_bar=on_terminal())  # fmt: skip
+    with _only_search(search):
+        study = optuna.create_study(
+            study_name=search.name, storage=search.storage, load_if_exists=True, direction="maximize",
+            pruner=optuna.pruners.MedianPruner(n_startup_trials=2, n_warmup_steps=0),
+        )  # fmt: skip
+        fail_stale_trials(study, search)
+        study.sampler = sampler(search, len(study.trials))
+        left = trials - len(counted(study.trials))
+        if left > 0 and optimize is not None:
+            optimize(search, fields, left)
+            study = optuna.load_study(study_name=search.name, storage=search.storage)
+        elif left > 0:
+            study.optimize(lambda trial: _objective(trial, search, fields), n_trials=left,
+                           show_progress_bar=on_terminal())  # fmt: skip
     best = _best(study)
     overrides = overrides_of(best.params)
     idle = untrained_budget(with_overrides(preset(search.algo, search.base, search.scenario), overrides),
@@ -105,6 +114,51 @@ def run_tune(search: Search, trials: int, optimize: Optimize | None = None) -> d
     write_json(result, search.out / "best_preset.json")
     (search.out / "trials.md").write_text(_table(study))
     return result
+
+
+@contextlib.contextmanager
+def _only_search(search: Search) -> Iterator[None]:
+    """Hold a lock on ``DIR/study.db`` (beside SQLite's own locks): one search at a time in a folder, so
+    that a trial left running in the study is a stale one (its search was killed), never another's."""
+    database = search.out / "study.db"
+    database.touch()
+    fd = os.open(database, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise UsageError(f"another `embedrl tune` is searching in {search.out}; wait for it") from None
+        yield
+    finally:
+        os.close(fd)
+
+
+def fail_stale_trials(study: Any, search: Search) -> None:
+    """Mark the trials a killed search left running as failed (they never end otherwise)."""
+    import optuna
+
+    storage = optuna.storages.RDBStorage(search.storage)
+    study_id = storage.get_study_id_from_name(search.name)
+    for t in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
+        trial_id = storage.get_trial_id_from_study_id_trial_number(study_id, t.number)
+        storage.set_trial_state_values(trial_id, optuna.trial.TrialState.FAIL)
+
+
+def sampler(search: Search, known: int) -> Any:
+    """The TPE sampler of a search whose study holds ``known`` trials: seeded with the search's seed plus
+    ``known``, so that a resumed search does not suggest its first trials' values again (the sampler's
+    random start would repeat them from the same seed)."""
+    import optuna
+
+    return optuna.samplers.TPESampler(seed=search.seed + known)
+
+
+def counted(trials: list[Any]) -> list[Any]:
+    """The trials that count towards ``--trials``: complete or pruned, not failed (interrupted, killed)."""
+    import optuna
+
+    finished = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+    return [t for t in trials if t.state in finished]
 
 
 def overrides_of(params: dict[str, Any]) -> list[str]:

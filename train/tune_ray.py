@@ -16,7 +16,7 @@ from typing import Any
 
 from embedrl.common import on_terminal
 from embedrl.train.sweep import CPUS_PER_RUN
-from embedrl.train.tune import SPACE, Search, overrides_of, train_trial
+from embedrl.train.tune import SPACE, Search, overrides_of, sampler, train_trial
 
 METRIC = "success"
 """The metric each trial reports after each evaluation: the validation success rate."""
@@ -35,8 +35,9 @@ def optimize_on_ray(search: Search, fields: set[str], trials: int, *, address: s
     if not ray.is_initialized():
         ray.init(address=None if local else address, num_cpus=workers if local else None,
                  include_dashboard=False, log_to_driver=False, configure_logging=False)  # fmt: skip
+    known = len(optuna.load_study(study_name=search.name, storage=search.storage).trials)
     searcher = OptunaSearch(
-        metric=METRIC, mode="max", sampler=optuna.samplers.TPESampler(seed=search.seed),
+        metric=METRIC, mode="max", sampler=sampler(search, known),
         study_name=search.name, storage=optuna.storages.RDBStorage(search.storage),
     )  # fmt: skip
     stopper = _median_rule()
