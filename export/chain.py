@@ -178,7 +178,7 @@ def _locked(export_dir: Path) -> Iterator[None]:
 def verify(export_dir: Path) -> list[Check]:
     """Every link in order: its file's hash now against the manifest, then what it records of its parents."""
     links = read(export_dir)
-    by_name = {k.name: k for k in links}
+    by_name = {k.name: k for k in links} | {f"file {k.path}": k for k in links}
     return [_check(export_dir, k, by_name) for k in links]
 
 
@@ -195,7 +195,12 @@ def _check(export_dir: Path, k: Link, by_name: dict[str, Link]) -> Check:
         return Check(k, False, f"{k.path}: cannot read the hashes it records of its parents ({exc})")
     for parent, recorded in parents.items():
         if parent in by_name and by_name[parent].sha256 != recorded:
-            return Check(k, False, f"{k.path} was made from another {parent} (sha256 {recorded[:12]}...)")
+            said = (
+                f"records another {parent.removeprefix('file ')} (sha256 {recorded[:12]}...) than the chain's"
+                if parent.startswith("file ")
+                else f"was made from another {parent} (sha256 {recorded[:12]}...)"
+            )
+            return Check(k, False, f"{k.path} {said}")
     return Check(k, True, f"{k.path} sha256 {now[:12]}...")
 
 
@@ -211,11 +216,12 @@ def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
         data = read_json(path)
         recorded = data.get("sha256") if isinstance(data, dict) else None
         return {"model": recorded} if isinstance(recorded, str) else {}
-    if k.name.startswith("HIL report") and path.suffix == ".json":
+    if k.name in ("verification report",) or k.name.startswith("HIL report"):
+        # Every export file a report records, against the chain's link of the same path ("file PATH").
         data = read_json(path)
-        files = (data.get("export_files") or {}) if isinstance(data, dict) else None
-        if not isinstance(files, dict):
-            raise ValueError("its export_files is not an object of file names and hashes")
-        names = {"policy.onnx": "ONNX", "c/policy.c": "C source policy.c", "interface.json": "interface"}
-        return {names[f]: h for f, h in files.items() if f in names}
+        key = "files" if k.name == "verification report" else "export_files"
+        files = (data.get(key) or {}) if isinstance(data, dict) else None
+        if not isinstance(files, dict) or not all(isinstance(h, str) for h in files.values()):
+            raise ValueError(f"its {key} is not an object of file names and hashes")
+        return {f"file {f}": h for f, h in files.items()}
     return {}

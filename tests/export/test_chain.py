@@ -93,6 +93,25 @@ def test_a_file_regenerated_from_another_parent_is_named_even_with_a_fresh_hash(
     assert "C source policy.c: c/policy.c was made from another ONNX" in capsys.readouterr().out
 
 
+def test_an_edit_rehashed_into_the_manifest_is_named_by_the_export_report_s_own_record(
+    traced: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One weight changed in the C and its new hash put into chain.json: the verification report still
+    records the hash the export wrote, and the two are cross-checked."""
+    export = _copy(traced, tmp_path)
+    source = export / "c" / "policy.c"
+    old = sha256(source)
+    text = source.read_text()
+    start = text.index("static const float")
+    weight = text[start:].split("{", 1)[1].split(",", 1)[0].strip()
+    source.write_text(text[:start] + text[start:].replace(weight, "0.5f", 1))
+    manifest = export / chain.MANIFEST
+    manifest.write_text(manifest.read_text().replace(old, sha256(source)))
+    assert main(["verify-chain", str(export)]) == 1
+    said = capsys.readouterr().out
+    assert "verification report: export_report.json records another c/policy.c" in said
+
+
 def test_a_hil_report_joins_the_chain_and_is_checked_against_the_export(traced: Path, tmp_path: Path) -> None:
     export = _copy(traced, tmp_path)
     report = tmp_path / "hil report.json"
@@ -109,7 +128,7 @@ def test_a_hil_report_joins_the_chain_and_is_checked_against_the_export(traced: 
     report.write_text(json.dumps(data))
     assert add_to_chain(export, report, data)
     failed = [c for c in chain.verify(export) if not c.ok]
-    assert len(failed) == 1 and "made from another C source policy.c" in failed[0].detail
+    assert len(failed) == 1 and "records another c/policy.c (sha256 000000000000...)" in failed[0].detail
     assert not add_to_chain(tmp_path, report, data)  # a folder without a manifest: nothing to add to
 
 
