@@ -142,7 +142,7 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
             build.make("responder", options.export_dir / "c", work / "build")
         except BuildError as exc:
             raise HilError(str(exc)) from None
-        with nullcontext(guest) if guest else sandbox.opened(options.sandbox, work / "sandbox") as where:
+        with nullcontext(guest) if guest else sandbox.opened(options.sandbox_mode, work / "sandbox") as where:
             scratch = where.scratch()
             cfg = session_config(options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
                                  results=str(scratch / "results.json"), slowdown=where.slowdown)  # fmt: skip

@@ -11,6 +11,7 @@ from embedrl.export.target import TARGETS
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS
+from embedrl.hil.options import DEFAULT_SANDBOX, DEFAULT_TARGET, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS, NODE_KINDS
 from embedrl.hil.sandbox import MODES
 from embedrl.train import arguments
 from embedrl.train.arguments import add_export_dir_argument
@@ -92,14 +93,15 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--sandbox",
         choices=MODES,
-        default="auto",
-        help="where vcan0 comes from (auto: the first of host, uml, qemu that passes its self-test)",
+        help="where vcan0 comes from, for the c and firmware nodes (auto: the first of host, uml, qemu that "
+        f"passes its self-test) (default: {DEFAULT_SANDBOX})",
     )
     r.add_argument(
         "--timeout-ms",
         type=int,
-        help="the node's watchdog in ms; must exceed the policy's sample time "
-        f"(default: {candb.WATCHDOG_MS}, times the sandbox's slowdown: 10 under QEMU emulation)",
+        help=f"the node's watchdog in ms, {MIN_TIMEOUT_MS}..{MAX_TIMEOUT_MS}; with --realtime it must exceed "
+        f"the policy's sample time (default: {candb.WATCHDOG_MS}, times the sandbox's slowdown: 10 under "
+        "QEMU emulation)",
     )
     r.add_argument(
         "--inject",
@@ -135,7 +137,7 @@ def register(sub: Any) -> None:
     )
     r.add_argument(
         "--node",
-        choices=("c", "firmware", "python"),
+        choices=tuple(NODE_KINDS),
         default="c",
         help="c: the compiled node over SocketCAN vcan0 (the verdict); firmware: the node as Cortex-M "
         "firmware on qemu-system-arm, its UART bridged to vcan0 as serial CAN (SLCAN), with instructions "
@@ -145,8 +147,7 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--target",
         choices=tuple(TARGETS),
-        default="cortex-m4",
-        help="the firmware node's core (runtime_c/cortex_m/targets.mk)",
+        help=f"the firmware node's core (runtime_c/cortex_m/targets.mk) (default: {DEFAULT_TARGET})",
     )
     r.set_defaults(func=cmd_run)
     _register_bench(hil_sub)

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -10,8 +11,47 @@ from embedrl.hil.candb import WATCHDOG_MS
 
 DEFAULT_TIMEOUT_MS = WATCHDOG_MS
 """The node's watchdog on the host (stretched by a slow guest's slowdown)."""
+MIN_TIMEOUT_MS = 50
+"""The shortest watchdog a run accepts. Between two observations the node waits for the simulator: its
+env step and a CAN round trip, a few ms on the host and about ten times that in an emulated sandbox, and
+longer at an episode's start. A shorter watchdog trips in lock-step and the run fails blaming the node."""
 MAX_TIMEOUT_MS = 60_000
-NODE_KINDS = ("c", "firmware", "python")
+DEFAULT_SANDBOX = "auto"
+DEFAULT_TARGET = "cortex-m4"
+"""The firmware node's core unless ``--target`` names another."""
+
+
+@dataclass(frozen=True)
+class NodeKind:
+    """A kind of node (``--node``): the programs it needs and the run's options that do not apply to it."""
+
+    tools: tuple[str, ...] = ()
+    """Programs it needs on PATH, looked for before anything is built or booted."""
+    refuses: Mapping[str, str] = field(default_factory=dict)
+    """Options (:class:`RunOptions` fields) it cannot honour, each with the reason."""
+
+
+ONE_BOARD = "the firmware node runs one robot on one emulated board"
+NODE_KINDS: dict[str, NodeKind] = {
+    "c": NodeKind(
+        refuses={"target": "the C node runs on this machine; --target picks the firmware node's core"}
+    ),
+    "firmware": NodeKind(
+        tools=("arm-none-eabi-gcc", "qemu-system-arm"),
+        refuses={
+            "fd": "the firmware node speaks classic CAN over its serial line (SLCAN)",
+            "nodes": ONE_BOARD,
+            "kill_node": ONE_BOARD,
+        },
+    ),
+    "python": NodeKind(
+        refuses={
+            "sandbox": "the Python node runs in this process on python-can's virtual bus, in no sandbox",
+            "target": "the Python node runs in this process; --target picks the firmware node's core",
+        }
+    ),
+}
+"""Every node kind; an option a kind does not refuse applies to it (tests/hil checks each pair)."""
 
 
 @dataclass(frozen=True)
@@ -26,7 +66,9 @@ class RunOptions:
     """Every frame, written here (candump ``.log`` or ``.blf``)."""
     plot: Path | None = None
     """A folder for the trajectory and latency plots."""
-    sandbox: str = "auto"
+    sandbox: str | None = None
+    """Where vcan0 comes from (:data:`embedrl.hil.sandbox.MODES`); None: :data:`DEFAULT_SANDBOX` for the nodes
+    that run in a sandbox."""
     timeout_ms: int | None = None
     """The node's watchdog; None: :data:`DEFAULT_TIMEOUT_MS` times the sandbox's slowdown."""
     inject: tuple[str, ...] = ()
@@ -39,8 +81,24 @@ class RunOptions:
     node: str = "c"
     """``c``: the compiled node over SocketCAN; ``firmware``: the Cortex-M image on QEMU, bridged over
     SLCAN; ``python``: the reference node on a virtual bus."""
-    target: str = "cortex-m4"
-    """The core the firmware node is built for (``node="firmware"``): a name of ``cortex_m/targets.mk``."""
+    target: str | None = None
+    """The core the firmware node is built for (``node="firmware"``): a name of ``cortex_m/targets.mk``;
+    None: :data:`DEFAULT_TARGET`."""
+
+    @property
+    def sandbox_mode(self) -> str:
+        """Where vcan0 comes from: ``sandbox``, or :data:`DEFAULT_SANDBOX`."""
+        return self.sandbox or DEFAULT_SANDBOX
+
+    @property
+    def firmware_target(self) -> str:
+        """The core the firmware node is built for: ``target``, or :data:`DEFAULT_TARGET`."""
+        return self.target or DEFAULT_TARGET
+
+    def given(self, name: str) -> bool:
+        """Whether the option ``name`` was set to something other than its default."""
+        default = next(f.default for f in fields(self) if f.name == name)
+        return bool(getattr(self, name) != default)
 
     @classmethod
     def of(cls, values: dict[str, Any]) -> RunOptions:

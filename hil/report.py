@@ -68,7 +68,7 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
     extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
     extra["node"] = options.node
     firmware = results.get("firmware")
-    extra["target"] = options.target if firmware else None
+    extra["target"] = options.firmware_target if firmware else None
     extra["instructions_per_step"] = firmware["instructions_per_step"] if firmware else None
     extra["time_on_target"] = (
         _time_on_target(options, firmware["instructions_per_step"], interface.sample_time_s)
@@ -171,8 +171,8 @@ def _time_on_target(options: RunOptions, per_step: dict[str, Any], sample_time_s
     from embedrl.export import cycles, target
 
     with tempfile.TemporaryDirectory(prefix="embedrl-cycles-") as tmp:
-        traced = target.cycles_per_instruction(options.export_dir, options.target, Path(tmp))
-    timed = cycles.time_on_target(per_step["max"], traced, options.target, sample_time_s)
+        traced = target.cycles_per_instruction(options.export_dir, options.firmware_target, Path(tmp))
+    timed = cycles.time_on_target(per_step["max"], traced, options.firmware_target, sample_time_s)
     step_s = timed["estimated_inference_us"] / 1e6
     return {
         "worst_step_instructions": per_step["max"],

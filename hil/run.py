@@ -21,7 +21,13 @@ from embedrl.common import read_json, sha256
 from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
-from embedrl.hil.options import DEFAULT_TIMEOUT_MS, MAX_TIMEOUT_MS, RunOptions
+from embedrl.hil.options import (
+    DEFAULT_TIMEOUT_MS,
+    MAX_TIMEOUT_MS,
+    MIN_TIMEOUT_MS,
+    NODE_KINDS,
+    RunOptions,
+)
 from embedrl.hil.progress import episode_bar
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
 from embedrl.train.scenarios import TWO_ROBOTS
@@ -43,8 +49,14 @@ def check(options: RunOptions) -> list[Scheduled]:
     """The options on their own (before anything is built); the fault schedule."""
     if options.episodes < 1:
         raise HilError(f"--episodes must be at least 1, got {options.episodes}")
-    if options.timeout_ms is not None and not 1 <= options.timeout_ms <= MAX_TIMEOUT_MS:
-        raise HilError(f"--timeout-ms must be within 1..{MAX_TIMEOUT_MS}, got {options.timeout_ms}")
+    _check_node_kind(options)
+    if options.timeout_ms is not None and not MIN_TIMEOUT_MS <= options.timeout_ms <= MAX_TIMEOUT_MS:
+        raise HilError(
+            f"--timeout-ms {options.timeout_ms}: the node's watchdog must be within {MIN_TIMEOUT_MS}.."
+            f"{MAX_TIMEOUT_MS} ms; between two observations the node waits for the simulator's step and a "
+            "CAN round trip (a few ms here, about ten times that in an emulated sandbox), so a shorter "
+            "watchdog would trip in lock-step and fail the run blaming the node"
+        )
     try:
         schedule = parse_schedule(list(options.inject))
     except ValueError as exc:
@@ -66,20 +78,33 @@ def check(options: RunOptions) -> list[Scheduled]:
                 f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only the C "
                 "node has: use --node c"
             )
-    if options.node == "firmware":
-        _check_firmware(options)
+    if options.target is not None:
+        _check_target(options.target)
     return schedule
 
 
-def _check_firmware(options: RunOptions) -> None:
+def _check_node_kind(options: RunOptions) -> None:
+    """The options the node kind cannot honour, refused; the programs it needs, looked for on PATH."""
+    if options.node not in NODE_KINDS:
+        raise HilError(f"--node {options.node}: not a node kind; use one of {', '.join(NODE_KINDS)}")
+    kind = NODE_KINDS[options.node]
+    for name, why in kind.refuses.items():
+        if options.given(name):
+            flag = "--" + name.replace("_", "-")
+            raise HilError(f"{flag} does not apply to --node {options.node}: {why}; drop {flag}")
+    missing = [tool for tool in kind.tools if shutil.which(tool) is None]
+    if missing:
+        raise HilError(
+            f"--node {options.node} needs {' and '.join(missing)}, not found on PATH (Debian: "
+            "gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-system-arm; `make deps` installs them)"
+        )
+
+
+def _check_target(target: str) -> None:
     from embedrl.export.target import TARGETS
 
-    if options.target not in TARGETS:
-        raise HilError(f"--target {options.target}: not a Cortex-M target; use one of {', '.join(TARGETS)}")
-    if options.fd:
-        raise HilError("the firmware node speaks classic CAN over its serial line (SLCAN): drop --fd")
-    if options.nodes > 1:
-        raise HilError("the firmware node runs one robot on one emulated board: drop --nodes")
+    if target not in TARGETS:
+        raise HilError(f"--target {target}: not a Cortex-M target; use one of {', '.join(TARGETS)}")
 
 
 def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
@@ -298,7 +323,7 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
     """The C node built in ``work`` and the session, both in ``guest`` (or the selected sandbox)."""
     from embedrl.hil import sandbox
 
-    with nullcontext(guest) if guest else sandbox.opened(options.sandbox, work / "sandbox") as where:
+    with nullcontext(guest) if guest else sandbox.opened(options.sandbox_mode, work / "sandbox") as where:
         if options.timeout_ms is None and where.slowdown > 1:
             print(
                 f"node watchdog {DEFAULT_TIMEOUT_MS * where.slowdown:.0f} ms: {where.provider} runs the "
@@ -337,10 +362,10 @@ def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> Sessi
     """The firmware image built with the session's watchdog and recovery count, and its board."""
     from embedrl.export.target import TARGETS
 
-    extra = {"TARGET": options.target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
+    extra = {"TARGET": options.firmware_target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
     elf = make_node(options, work, extra)
-    return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.target].qemu_machine)
+    return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.firmware_target].qemu_machine)
 
 
 def _firmware_stack_bound(options: RunOptions, elf: Path) -> dict[str, Any]:
@@ -349,7 +374,7 @@ def _firmware_stack_bound(options: RunOptions, elf: Path) -> dict[str, Any]:
     from embedrl.export.target import TARGETS
 
     try:
-        return stack.node_bound(elf, fpu=TARGETS[options.target].has_fpu)
+        return stack.node_bound(elf, fpu=TARGETS[options.firmware_target].has_fpu)
     except stack.StackError as exc:
         raise HilError(f"the firmware node's stack: {exc}") from None
 

@@ -125,6 +125,22 @@ ROWS = {
         lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--node", "python", "--seed", "-5"],
         NEGATIVE_SEED,
     ),
+    "hil run --node python --target cortex-m3": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--node", "python", "--target", "cortex-m3"],
+        "--target does not apply to --node python",
+    ),
+    "hil run --node python --target cortex-m0": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--node", "python", "--target", "cortex-m0"],
+        "argument --target: invalid choice: 'cortex-m0'",
+    ),
+    "hil run --node python --sandbox uml": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--node", "python", "--sandbox", "uml"],
+        "--sandbox does not apply to --node python",
+    ),
+    "hil run --timeout-ms 1": (
+        lambda tmp: ["hil", "run", "--export-dir", str(tmp), "--node", "python", "--timeout-ms", "1"],
+        "--timeout-ms 1: the node's watchdog must be within 50..60000 ms",
+    ),
 }
 
 
@@ -184,6 +200,27 @@ def assert_refused(argv: list[str], said: str, tmp_path: Path) -> tuple[float, f
 def test_a_user_error_is_one_line_exit_2_and_writes_nothing(row: str, tmp_path: Path) -> None:
     make_argv, said = ROWS[row]
     assert_refused(make_argv(tmp_path), said, tmp_path)
+
+
+def test_the_firmware_node_without_its_tools_is_refused_before_anything_is_built(tmp_path: Path) -> None:
+    # PATH without qemu-system-arm and arm-none-eabi-gcc: refused before the sandbox boots or make runs
+    argv = [
+        "hil",
+        "run",
+        "--export-dir",
+        str(tmp_path),
+        "--node",
+        "firmware",
+        "--json",
+        str(tmp_path / "h.json"),
+    ]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    result, _, _ = run_measured(argv, {**os.environ, "PATH": str(empty)})
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1, result.stderr[-2000:]
+    assert "--node firmware needs arm-none-eabi-gcc and qemu-system-arm, not found on PATH" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
 
 
 def _export_over_an_input(tmp: Path, where: str) -> tuple[list[str], list[Path]]:

@@ -211,9 +211,9 @@ def test_the_firmware_node_refuses_what_it_cannot_do_in_one_line(
 ) -> None:
     base = ["hil", "run", "--export-dir", str(export_dir), "--node", "firmware"]
     for extra, message in (
-        (["--target", "cortex-m0"], "not a Cortex-M target"),
         (["--fd"], "drop --fd"),
         (["--nodes", "2"], "drop --nodes"),
+        (["--kill-node", "1@0:3"], "drop --kill-node"),
         (["--inject", "link-down-up", "--allow-faults"], "only the C node has"),
     ):
         assert main([*base, *extra]) == 2

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import time
 import types
+from dataclasses import fields
 from pathlib import Path
 
 import can
@@ -22,11 +23,14 @@ import onnx
 import pytest
 from onnx import helper, numpy_helper
 
-from embedrl.cli import main
+from embedrl.cli import build_parser, main
 from embedrl.export.reference import reference_policy
 from embedrl.hil.candb import load_interface
 from embedrl.hil.codec import Action, Codec, Status
+from embedrl.hil.errors import HilError
 from embedrl.hil.nodes import PythonNode
+from embedrl.hil.options import NODE_KINDS, RunOptions
+from embedrl.hil.run import check
 from tests.hil.contract import HilContract
 from tests.test_user_errors import run_and_interrupt
 
@@ -297,3 +301,23 @@ def test_a_report_for_a_read_only_export_is_refused_before_the_run(export_dir: P
     lines = result.stderr.strip().splitlines()
     assert result.returncode == 2 and len(lines) == 1 and "is not writable" in lines[0], result.stderr[-2000:]
     assert not report.exists() and elapsed < 10, f"{elapsed:.1f} s"
+
+
+GIVEN = {"sandbox": "host", "target": "cortex-m3", "fd": True, "nodes": 2, "kill_node": (1, 0, 3)}
+"""A value other than the default for each option some node kind refuses."""
+
+
+@pytest.mark.parametrize(
+    ("node", "option"), [(node, option) for node, kind in NODE_KINDS.items() for option in kind.refuses]
+)
+def test_an_option_that_does_not_apply_to_the_node_kind_is_refused(node: str, option: str) -> None:
+    options = RunOptions(Path("unused"), node=node, episodes=2, **{option: GIVEN[option]})  # type: ignore[arg-type]
+    with pytest.raises(HilError, match=f"--{option.replace('_', '-')} does not apply to --node {node}"):
+        check(options)
+
+
+def test_every_node_kind_is_an_option_of_hil_run_and_refuses_only_run_options() -> None:
+    names = {f.name for f in fields(RunOptions)}
+    for node, kind in NODE_KINDS.items():
+        assert set(kind.refuses) <= names and set(kind.refuses) <= set(GIVEN)
+        assert build_parser().parse_args(["hil", "run", "--export-dir", "x", "--node", node]).node == node
