@@ -1,16 +1,21 @@
-"""Shared by every package (the bottom layer): atomic files, JSON reports with provenance, key-value
-tables, and the seed bases that keep the seeds of different purposes apart.
+"""Shared by every package (the bottom layer): atomic files, temporary folders a killed process leaves
+are removed by the next, JSON reports with provenance, key-value tables, and the seed bases that keep the
+seeds of different purposes apart.
 """
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import hashlib
 import json
 import math
 import os
+import shutil
 import stat
 import sys
-from collections.abc import Callable, Iterable
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -70,6 +75,55 @@ def with_umask(folder: Path) -> None:
     """Give a folder that ``tempfile.mkdtemp`` made (mode 0700: private) the mode ``mkdir`` would have
     given it, 0777 less the umask: for a temporary folder that becomes an output."""
     folder.chmod(0o777 & ~process_umask())
+
+
+OWNER_FILE = ".owner"
+"""In a folder made by :func:`owned_temporary_folder`: the file its process holds a lock on."""
+
+
+@contextlib.contextmanager
+def owned_temporary_folder(prefix: str, parent: Path | None = None) -> Iterator[Path]:
+    """A temporary folder (``prefix`` + random, in ``parent`` or the temporary folder) removed at the end,
+    like ``tempfile.TemporaryDirectory``. Its process holds a lock on a file in it while it is used, so a
+    folder left by a killed process (its lock free) is told from a live one: folders of the same prefix
+    left that way are removed first."""
+    base = Path(parent or tempfile.gettempdir())
+    remove_abandoned_folders(base, prefix)
+    folder = Path(tempfile.mkdtemp(prefix=prefix, dir=base))
+    claim = folder / f"{OWNER_FILE}.new"
+    fd = os.open(claim, os.O_CREAT | os.O_RDWR, 0o600)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        os.rename(claim, folder / OWNER_FILE)  # seen by others only once locked
+        yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.close(fd)
+
+
+def remove_abandoned_folders(base: Path, prefix: str) -> None:
+    """Remove the folders of :func:`owned_temporary_folder` in ``base`` whose name starts with ``prefix``,
+    that this user owns and whose process is gone (the lock on their owner file is free)."""
+    try:
+        candidates = [p for p in base.iterdir() if p.name.startswith(prefix)]
+    except OSError:
+        return
+    for folder in candidates:
+        try:
+            if folder.is_symlink() or folder.lstat().st_uid != os.getuid():
+                continue
+            fd = os.open(folder / OWNER_FILE, os.O_RDWR | os.O_NOFOLLOW)
+        except OSError:
+            continue  # not such a folder (or no longer there)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            continue  # its process is running
+        try:
+            shutil.rmtree(folder, ignore_errors=True)
+        finally:
+            os.close(fd)
 
 
 def sha256(path: Path) -> str:

@@ -6,7 +6,6 @@ import contextlib
 import ctypes
 import os
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from embedrl.common import owned_temporary_folder
 from embedrl.export.errors import BuildError
 
 RUNTIME_C = Path(__file__).resolve().parents[1] / "runtime_c"
@@ -78,16 +78,13 @@ def _without_spaces(*folders: Path) -> Iterator[list[Path]]:
         yield list(folders)
         return
     base = tempfile.gettempdir()
-    links = Path(tempfile.mkdtemp(prefix="embedrl-make-", dir=base if " " not in base else "/tmp"))
-    try:
+    with owned_temporary_folder("embedrl-make-", Path(base if " " not in base else "/tmp")) as links:
         aliases = []
         for index, folder in enumerate(folders):
             alias = links / f"f{index}"
             alias.symlink_to(folder, target_is_directory=True)
             aliases.append(alias)
         yield aliases
-    finally:
-        shutil.rmtree(links, ignore_errors=True)
 
 
 def compiler() -> dict[str, str]:

@@ -19,12 +19,12 @@ from __future__ import annotations
 
 import re
 import subprocess
-import tempfile
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from embedrl.common import owned_temporary_folder
 from embedrl.export.errors import ExportError
 
 BOARD_CLOCK_HZ = 25_000_000
@@ -159,8 +159,8 @@ def _disassembly(elf: Path) -> dict[int, tuple[str, str, int]]:
 
 def _trace(elf: Path, machine: str) -> list[tuple[int, str]]:
     """(address, function) of every instruction QEMU executed running ``elf`` to its exit."""
-    with tempfile.TemporaryDirectory(prefix="embedrl-trace-") as tmp:
-        log = Path(tmp) / "exec.log"
+    with owned_temporary_folder("embedrl-trace-") as tmp:
+        log = tmp / "exec.log"
         cmd = ["qemu-system-arm", "-M", machine, "-nographic", "-monitor", "none", "-semihosting",
                "-singlestep", "-d", "exec,nochain", "-D", str(log), "-kernel", str(elf)]  # fmt: skip
         try:

@@ -10,6 +10,7 @@ import contextlib
 import fcntl
 import json
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Callable, Iterator
@@ -23,7 +24,7 @@ import numpy as np
 import onnx
 
 from embedrl import train
-from embedrl.common import provenance, sha256, with_umask
+from embedrl.common import owned_temporary_folder, provenance, sha256, with_umask
 from embedrl.export import build, chain, cycles, fixed_point, nan_check, quantize, stack, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
@@ -148,6 +149,7 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
         raise ExportError(f"cannot create the output folder {opts.out}: {exc.strerror or exc}") from None
     with _locked(opts.out):
         _check_output_folder(opts.out, opts.force)  # again: an export that held the lock may have written it
+        _remove_abandoned_staging(opts.out)
         try:
             staging = Path(tempfile.mkdtemp(prefix=f".{opts.out.name}.partial-", dir=opts.out.parent))
             with_umask(staging)  # it becomes the export folder, which others read too
@@ -159,6 +161,15 @@ def run_export(opts: ExportOptions, log: Callable[[str], None] = print) -> dict[
         finally:
             shutil.rmtree(staging, ignore_errors=True)
     return report
+
+
+def _remove_abandoned_staging(out: Path) -> None:
+    """Remove what a killed export into ``out`` left beside it: its staging folder and the previous output
+    it had renamed away. Called holding ``out``'s lock, so no live export is using them."""
+    left = re.compile(re.escape(f".{out.name}.") + r"(partial-[a-z0-9_]{8}|old-[0-9]+)")
+    for path in out.parent.iterdir():
+        if left.fullmatch(path.name) and path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
 
 
 @contextlib.contextmanager
@@ -308,8 +319,8 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
     loaded = _load(staging, opts, log)
     lowered = _lower(loaded, staging, opts)
     generated = _generate(loaded, lowered, staging, opts, log)
-    with tempfile.TemporaryDirectory(prefix="embedrl-build-") as tmp:
-        built = _build(generated, Path(tmp), opts, lowered.graph, log)
+    with owned_temporary_folder("embedrl-build-") as tmp:
+        built = _build(generated, tmp, opts, lowered.graph, log)
         verified = _verify(loaded, lowered, generated, built, staging, opts, log)
         _keep_binaries(built.build_dir, staging, opts.targets)
     report = _write_report(loaded, lowered, built, verified, staging, opts)

@@ -17,6 +17,8 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from embedrl.common import owned_temporary_folder
+
 ROOT = Path(__file__).resolve().parents[1]
 TD3 = ROOT / "policies" / "static" / "td3.zip"
 
@@ -297,6 +299,26 @@ def test_an_interrupted_export_leaves_nothing_behind(sig: signal.Signals, tmp_pa
     assert done.returncode == 128 + sig and done.stderr.strip().splitlines()[-1] == "interrupted", done.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tmp"]  # no export, no staging folder
     assert not [p for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")]  # no build folder
+
+
+def test_a_killed_export_s_folders_are_removed_by_the_next_export(tmp_path: Path) -> None:
+    # kill -9 runs no clean-up: the staging folder beside the output and the build folder in TMPDIR stay
+    # until the next export, which removes them (and only them: a live export's build folder stays).
+    (tmp_path / "tmp").mkdir()
+    weights = np.random.default_rng(2).normal(scale=0.3, size=(2, 6)).astype(np.float32)
+    model = tmp_path / "m.onnx"
+    onnx.save(_gemm_model(numpy_helper.from_array(weights, "W"), 6, 2), model)
+    argv = ["export", str(model), "--out", str(tmp_path / "export"), "--episodes", "0"]
+    done = run_and_interrupt(argv, tmp_path, "[4/5]", signal.SIGKILL)
+    assert done.returncode == -signal.SIGKILL
+    staging = [p.name for p in tmp_path.iterdir() if p.name.startswith(".export.partial-")]
+    built = [p.name for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl-build-")]
+    assert len(staging) == 1 and len(built) == 1
+    with owned_temporary_folder("embedrl-build-", tmp_path / "tmp") as live:
+        result, _, _ = run_measured(argv, {**os.environ, "TMPDIR": str(tmp_path / "tmp")})
+        assert result.returncode == 0, result.stderr[-2000:]
+        assert [p.name for p in (tmp_path / "tmp").iterdir() if p.name.startswith("embedrl")] == [live.name]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["export", "m.onnx", "tmp"]
 
 
 def test_an_onnx_with_a_fixed_batch_of_one_exports_and_verifies(tmp_path: Path) -> None:
