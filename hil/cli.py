@@ -50,7 +50,11 @@ def cmd_report(args: argparse.Namespace) -> int:
         f"MISRA {data['coding_standard']['findings']} findings ({unexplained} unexplained), "
         f"chain {'intact' if intact else 'BROKEN'}"
     )
-    return 0
+    verdict = data["verdict"]
+    for check in verdict["checks"]:
+        print(f"  {'PASS' if check['passed'] else 'FAIL'}  {check['check']}: {check['detail']}")
+    print(f"verdict: {'PASS' if verdict['passed'] else 'FAIL'}")
+    return 0 if verdict["passed"] else 1
 
 
 def _kill_spec(text: str) -> tuple[int, int, int]:

@@ -7,17 +7,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from embedrl.hil.errors import HilError
 
 
 def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[str, Any]:
     """Every fact the page shows (its JSON form); bad inputs are refused before any work."""
     from embedrl.export import chain
-    from embedrl.export.reference import precision_of
     from embedrl.hil import misra
-    from embedrl.hil.signoff import facts
+    from embedrl.hil.signoff import checks, facts
 
     export = facts.load_export(export_dir)
     others = [(d, facts.load_export(d)) for d in also]
@@ -28,16 +25,8 @@ def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[
         links = chain.verify(export_dir)
     except chain.ChainError as exc:
         raise HilError(str(exc)) from None
-    verification = []
-    for folder, data in [(export_dir, export), *others]:
-        errors = facts.errors_per_sample(folder, data)
-        verification.append({
-            "precision": precision_of(folder), "samples": len(errors), "max_error": float(errors.max()),
-            "p99_error": float(np.percentile(errors, 99)), "errors": errors,
-            "bit_exact_with_model": True if data.get("quantize") else None,
-            "onnx_vs_source": data["verification"].get("onnx_vs_sb3_max_abs_error"),
-        })  # fmt: skip
-    return {
+    verification = [facts.recompute(folder, data) for folder, data in [(export_dir, export), *others]]
+    gathered = {
         "export_dir": str(export_dir),
         "export": export,
         "interface": facts.interface_facts(export, export_dir),
@@ -50,6 +39,8 @@ def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[
         "warnings": export["compiler"]["command"],
         "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
     }
+    gathered["verdict"] = checks.verdict(gathered, hils)
+    return gathered
 
 
 def render(data: dict[str, Any]) -> str:
@@ -58,8 +49,8 @@ def render(data: dict[str, Any]) -> str:
     from embedrl.hil.signoff import figures, page, sections
 
     data["figures"] = {
-        "errors": figures.error_histograms({v["precision"]: v["errors"] for v in data["verification"]},
-                                           data["tolerance"]),
+        "errors": figures.error_histograms({v["precision"]: v["errors"] for v in data["verification"]
+                                            if len(v["errors"])}, data["tolerance"]),
         "closed_loop": figures.closed_loop(data["closed_loop"]) if data["closed_loop"] else "",
         "stack_and_memory": figures.stack_and_memory(data["targets"]) if data["targets"] else "",
     }  # fmt: skip
@@ -79,7 +70,8 @@ def render(data: dict[str, Any]) -> str:
         "coding-standard": sections.coding_standard(data),
         "traceability": sections.traceability(data),
     }
-    return page.page(f"Deployment report: {export['name']} ({data['interface']['name']})", intro, body)
+    title = f"Deployment report: {export['name']} ({data['interface']['name']})"
+    return page.page(title, intro, body, sections.verdict(data))
 
 
 def write(export_dir: Path, hil_reports: list[Path], also: list[Path], out: Path) -> dict[str, Any]:

@@ -30,7 +30,10 @@ def _svg(fig: Any) -> str:
 
 
 def error_histograms(errors: dict[str, np.ndarray], tolerance: float) -> str:
-    """One histogram per precision of max |C - ONNX| per sample, on a log axis, with the tolerance."""
+    """One histogram per precision of max |C - ONNX| per sample, on a log axis, with the tolerance (none
+    without a recomputed precision)."""
+    if not errors:
+        return ""
     fig, axes = plt.subplots(1, len(errors), figsize=(4.2 * len(errors), 3.2), squeeze=False)
     for ax, (precision, err) in zip(axes[0], errors.items(), strict=True):
         exact = int(np.sum(err == 0))

@@ -48,8 +48,8 @@ def table(headers: Iterable[str], rows: Iterable[Iterable[str]]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def page(title: str, intro: str, sections: dict[str, str]) -> str:
-    """The whole page: a title, a line of facts, a table of contents and each section's HTML."""
+def page(title: str, intro: str, sections: dict[str, str], verdict: str = "") -> str:
+    """The whole page: a title, a line of facts, the verdict, a table of contents and each section's HTML."""
     nav = "".join(f'<a href="#{sid}">{escape(name)}</a>' for sid, name in SECTIONS)
     body = "".join(
         f'<section id="{sid}"><h2>{escape(name)}</h2>{sections[sid]}</section>' for sid, name in SECTIONS
@@ -57,5 +57,5 @@ def page(title: str, intro: str, sections: dict[str, str]) -> str:
     return (
         '<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8">'
         f"<title>{escape(title)}</title><style>{CSS}</style></head><body>"
-        f"<h1>{escape(title)}</h1><p>{intro}</p><nav>{nav}</nav>{body}</body></html>\n"
+        f"<h1>{escape(title)}</h1><p>{intro}</p>{verdict}<nav>{nav}</nav>{body}</body></html>\n"
     )

@@ -46,21 +46,38 @@ def _plain(text: str) -> str:
     return text.replace("``", "")
 
 
+def verdict(facts: dict[str, Any]) -> str:
+    """The page's first block: PASS or FAIL, then one line per check."""
+    v = facts["verdict"]
+    rows = [
+        [cell(c["check"]), cell(c["passed"], f"check-{c['check']}"), cell(c["detail"])] for c in v["checks"]
+    ]
+    word = '<span class="ok">PASS</span>' if v["passed"] else '<span class="fail">FAIL</span>'
+    return str(
+        f'<section id="verdict"><h2>Verdict: <span data-key="verdict">{word}</span></h2>'
+        + table(["check", "passed", "what was checked"], rows)
+        + "</section>"
+    )
+
+
 def verification(facts: dict[str, Any]) -> str:
     rows = []
     for v in facts["verification"]:
         rows.append([
-            cell(v["precision"], f"precision-{v['precision']}"), cell(v["samples"]),
+            cell(v["precision"], f"precision-{v['precision']}"), cell(v["generated_c"]), cell(v["samples"]),
             cell(v["max_error"], f"max-error-{v['precision']}"), cell(v["p99_error"]),
-            cell(v["bit_exact_with_model"]), cell(v["onnx_vs_source"]),
+            cell(v["bit_exact_with_model"]), cell(v["passed"], f"passed-{v['precision']}"),
+            cell(v["onnx_vs_source"]),
         ])  # fmt: skip
     return str(
-        "<p>The generated C rebuilt from the export's sources and run on the export's verification "
-        "observations (uniform over the interface's ranges and recorded from rollouts), against the float "
-        "ONNX with onnxruntime; a quantised policy's distance is its quantisation error, and its C equals "
-        "its integer model bit for bit.</p>"
-        + table(["precision", "samples", "max |C - ONNX|", "99th percentile", "bit-exact with its model",
-                 "max |ONNX - source model|"], rows)
+        "<p>Recomputed for this page, not copied from the export's report. The C is first generated "
+        "again from the export's ONNX and compared byte for byte with its <code>c/</code> folder: C that is "
+        "not the generator's is never built or run here. Then it is built and run on the export's "
+        "verification observations (uniform over the interface's ranges and recorded from rollouts), "
+        "against the float ONNX with onnxruntime; a quantised policy's distance is its quantisation error, "
+        "and its C must equal its integer model bit for bit.</p>"
+        + table(["precision", "generated C", "samples", "max |C - ONNX|", "99th percentile",
+                 "bit-exact with its model", "passed", "max |ONNX - source model|"], rows)
         + facts["figures"]["errors"]
     )  # fmt: skip
 

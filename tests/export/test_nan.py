@@ -14,7 +14,7 @@ import pytest
 from onnx import helper
 
 from embedrl.cli import main
-from embedrl.export import build, fixed_point, nan_check
+from embedrl.export import build, fixed_point, nan_check, regenerate
 from embedrl.export.codegen import generate
 from embedrl.export.errors import VerificationError
 from embedrl.export.onnx_import import to_ir
@@ -170,6 +170,7 @@ def test_a_policy_nan_where_sampling_never_looks_gives_the_safe_action(
     report = json.loads((out / "export_report.json").read_text())
     assert report["action_clamp"]["added"] is clamped
     assert report["verification"]["nan_propagation"]["ops"] >= 2
+    assert regenerate.mismatch(out) is None  # the report may build this C: it is the generator's
     policy = build.CPolicy(out / "bin" / "host" / "libpolicy.so", "policy", 6, 2)
     x = np.array([0.0, 1.0, -2.0, 3.0, 0.5, -0.5], F)
     session = ort.InferenceSession(str(out / "policy.onnx"), providers=["CPUExecutionProvider"])

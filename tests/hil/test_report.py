@@ -99,7 +99,8 @@ def test_the_page_opens_offline_with_every_section_and_key_figure(
     assert "<script" not in html and not re.search(r"""(src|href)=["']?(https?:)?//""", html)
     dom = _Keys()
     dom.feed(_chromium(page, "--dump-dom"))
-    assert dom.sections == list(SECTIONS)
+    assert dom.sections == ["verdict", *SECTIONS]
+    assert dom.keys["verdict"] == "PASS" and dom.keys["check-numerics, float32"] == "yes"
     m4 = export["targets"]["cortex-m4"]  # type: ignore[index]
     assert dom.keys["sample-time-s"] == "0.3"
     assert dom.keys["stack-bound-cortex-m4"] == str(m4["stack_bound"]["bytes"])
@@ -139,3 +140,61 @@ def test_a_hil_report_of_another_export_or_a_folder_that_is_no_export_is_refused
     err = capsys.readouterr().err.strip()
     assert "not an `embedrl export` folder" in err and len(err.splitlines()) == 1
     assert not out.exists()
+
+
+def _copy_with_c_edit(export: Path, tmp_path: Path, edit: str) -> Path:
+    """A copy of ``export`` whose c/policy.c got ``edit`` appended, its new hash put consistently into
+    chain.json and export_report.json (as someone rewriting the evidence would)."""
+    from embedrl.common import sha256
+
+    copy = tmp_path / "copy of export"
+    shutil.copytree(export, copy)
+    source = copy / "c" / "policy.c"
+    old = sha256(source)
+    source.write_text(source.read_text() + edit)
+    report = copy / "export_report.json"
+    report.write_text(report.read_text().replace(old, sha256(source)))
+    manifest = copy / "chain.json"
+    manifest.write_text(manifest.read_text().replace(old, sha256(source)))
+    return copy
+
+
+def test_the_report_never_builds_or_runs_c_that_is_not_the_generators(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export, _, _ = reported
+    marker = tmp_path / "ran on the host"
+    payload = (
+        "\n#include <stdio.h>\n__attribute__((constructor)) static void payload(void)\n{\n"
+        f'    FILE *f = fopen("{marker}", "w");\n    if (f != NULL) {{\n        (void)fclose(f);\n    }}\n'
+        "}\n"
+    )
+    copy = _copy_with_c_edit(export, tmp_path, payload)
+    page = tmp_path / "page.html"
+    assert main(["report", str(copy), "--out", str(page)]) == 1
+    out = capsys.readouterr().out
+    assert not marker.exists()
+    assert "FAIL  numerics, float32: not recomputed: " in out and "is not what embedrl generates" in out
+    assert out.rstrip().endswith("verdict: FAIL") and page.is_file()  # the page is written, with its FAIL
+    assert '<span class="fail">FAIL</span>' in page.read_text()
+
+
+def test_a_weight_edit_rewritten_into_every_manifest_fails_the_report(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export, _, _ = reported
+    copy = _copy_with_c_edit(export, tmp_path, "")
+    source = copy / "c" / "policy.c"
+    text = source.read_text()
+    start = text.index("static const float")
+    weight = text[start:].split("{", 1)[1].split(",", 1)[0].strip()
+    source.write_text(text[:start] + text[start:].replace(weight, "0.5f", 1))
+    from embedrl.common import sha256
+
+    for record in ("chain.json", "export_report.json"):
+        path = copy / record
+        path.write_text(path.read_text().replace(sha256(export / "c" / "policy.c"), sha256(source)))
+    capsys.readouterr()
+    assert main(["report", str(copy), "--out", str(tmp_path / "page.html")]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  numerics, float32: not recomputed" in out and "verdict: FAIL" in out
