@@ -13,9 +13,11 @@ import math
 import os
 import shutil
 import stat
+import subprocess
 import sys
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
+from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -190,14 +192,41 @@ def check_output(path: Path, option: str, folder: bool = False) -> None:
 
 
 def provenance() -> dict[str, Any]:
-    """What produced a result: the command line and the versions of the packages that matter."""
+    """What produced a result: the command line, when (UTC), the versions of the packages that matter and
+    the embedrl source's git commit (:func:`source_commit`)."""
     versions: dict[str, str | None] = {}
     for pkg in PROVENANCE_PACKAGES:
         try:
             versions[pkg] = metadata.version(pkg)
         except metadata.PackageNotFoundError:
             versions[pkg] = None
-    return {"command": sys.argv, "python": sys.version.split()[0], "versions": versions}
+    return {
+        "command": sys.argv,
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "python": sys.version.split()[0],
+        "versions": versions,
+        "commit": source_commit(),
+    }
+
+
+def source_commit() -> dict[str, Any] | None:
+    """The git commit of the embedrl source that ran (``sha``) and whether tracked files differed from it
+    (``modified``); None outside a git checkout (an installed wheel) or without git."""
+    root = Path(__file__).resolve().parents[1]
+    if not (root / ".git").exists():
+        return None
+    try:
+        sha = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+        status = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+        )
+    except OSError:
+        return None
+    if sha.returncode != 0 or status.returncode != 0:
+        return None
+    return {"sha": sha.stdout.strip(), "modified": bool(status.stdout.strip())}
 
 
 def write_json(data: dict[str, Any], path: Path) -> None:

@@ -87,10 +87,11 @@ def _without_spaces(*folders: Path) -> Iterator[list[Path]]:
         yield aliases
 
 
-def compiler() -> dict[str, str]:
-    """The compiler command and flags the Makefile uses, and the compiler's version line."""
+def compiler(target: str = "host") -> dict[str, str]:
+    """The compiler command and flags the Makefile uses for ``target`` (``host`` or a Cortex-M target of
+    ``runtime_c/cortex_m/targets.mk``), and the compiler's version line."""
     flags = subprocess.run(
-        ["make", "--no-print-directory", "-s", "-C", str(RUNTIME_C), "flags"],
+        ["make", "--no-print-directory", "-s", "-C", str(RUNTIME_C), "flags", f"TARGET={target}"],
         env=_own_make_env(),
         capture_output=True,
         text=True,

@@ -245,6 +245,7 @@ def _verify_target(
         "bit_exact_with_model": True if quantized else None,
         "samples": len(vectors),
         "memory_kib": {"flash": t.flash_kib, "ram": t.ram_kib},
+        "compiler": build.compiler(t.name),
     }
 
 
