@@ -122,6 +122,12 @@ def register(sub: Any) -> None:
     )
     r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
     r.add_argument(
+        "--trust-c",
+        action="store_true",
+        help="build and run the export's C even if it is not what embedrl generates from its ONNX "
+        "(edited by hand); without it such C is refused before anything is built",
+    )
+    r.add_argument(
         "--fd",
         action="store_true",
         help="observation and action frames in CAN FD (64 bytes, 24 values each; vcan carries them)",

@@ -29,6 +29,9 @@ class NodeKind:
     """Programs it needs on PATH, looked for before anything is built or booted."""
     refuses: Mapping[str, str] = field(default_factory=dict)
     """Options (:class:`RunOptions` fields) it cannot honour, each with the reason."""
+    builds_c: bool = True
+    """Whether the run compiles the export's C and runs it (on this machine's kernel in a sandbox that shares
+    its files, or on QEMU with semihosting): only C that is the generator's output, unless ``--trust-c``."""
 
 
 ONE_BOARD = "the firmware node runs one robot on one emulated board"
@@ -48,7 +51,9 @@ NODE_KINDS: dict[str, NodeKind] = {
         refuses={
             "sandbox": "the Python node runs in this process on python-can's virtual bus, in no sandbox",
             "target": "the Python node runs in this process; --target picks the firmware node's core",
-        }
+            "trust_c": "the Python node runs the export's ONNX, no C",
+        },
+        builds_c=False,
     ),
 }
 """Every node kind; an option a kind does not refuse applies to it (tests/hil checks each pair)."""
@@ -84,6 +89,8 @@ class RunOptions:
     target: str | None = None
     """The core the firmware node is built for (``node="firmware"``): a name of ``cortex_m/targets.mk``;
     None: :data:`DEFAULT_TARGET`."""
+    trust_c: bool = False
+    """Build and run the export's C even if it is not what embedrl generates from its ONNX (hand-edited)."""
 
     @property
     def sandbox_mode(self) -> str:

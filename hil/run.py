@@ -199,6 +199,15 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
                 "(--kill-node takes a node down)"
             )
     for s in schedule:
+    if NODE_KINDS[options.node].builds_c and not options.trust_c:
+        from embedrl.export.regenerate import mismatch
+
+        problem = mismatch(options.export_dir)
+        if problem is not None:
+            raise HilError(
+                f"{problem}: the {options.node} node would build and run it, so only the generator's C runs "
+                "(--trust-c runs C you trust)"
+            )
         if s.step > interface.max_steps:
             raise HilError(
                 f"--inject {s.injector.name}@{s.episode}:{s.step}: episodes of {interface.name!r} end by "

@@ -49,6 +49,9 @@ class HilContract:
         """A copy of ``export_dir`` whose policy gives NaN actions while reporting success."""
         raise NotImplementedError
 
+    lying_flags: ClassVar[tuple[str, ...]] = ()
+    """What ``hil run`` needs to run the lying export (C edited by hand: ``--trust-c``)."""
+
     def run_hil(self, where: Guest | None, export_dir: Path, tmp_path: Path, *extra: str) -> dict[str, Any]:
         return hil(
             where, export_dir, tmp_path, "--node", self.node, "--timeout-ms", str(NODE_TIMEOUT_MS), *extra
@@ -224,7 +227,8 @@ class HilContract:
         # The node checks the numbers, not the status: never (-1, -1) (NaN saturated), only (0.1, 0).
         lying = self.lying_export(safe_export_dir, tmp_path)
         log = tmp_path / "frames.log"
-        argv = ["--log", str(log), "--node", self.node, "--episodes", "1", "--timeout-ms", "500"]
+        argv = ["--log", str(log), "--node", self.node, "--episodes", "1", "--timeout-ms", "500",
+                *self.lying_flags]  # fmt: skip
         report = hil_report(where, lying, *argv)
         assert report["verdict"]["passed"] is False
         assert report["node_diag"]["action_faults"] >= report["steps"] // 3  # SAFE, then K = 3 to recover

@@ -65,6 +65,28 @@ def test_an_export_without_an_interface_is_a_clear_error(
     assert "no interface.json" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("node", ["c", "firmware"])
+def test_hand_edited_c_is_refused_before_anything_is_built_or_run(
+    node: str, export_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An export's C that is not the generator's output (here with a constructor that would write a file on
+    the host) is neither built nor run by hil run, unless --trust-c says the user trusts it."""
+    edited = tmp_path / "edited export"
+    shutil.copytree(export_dir, edited)
+    marker = tmp_path / "ran"
+    with (edited / "c" / "policy.c").open("a") as source:
+        source.write(
+            f"\n#include <stdio.h>\n__attribute__((constructor)) static void payload(void)\n{{\n"
+            f'    FILE *f = fopen("{marker}", "w");\n'
+            "    if (f != NULL) {\n        (void)fclose(f);\n    }\n}\n"
+        )
+    argv = ["hil", "run", str(edited), "--node", node, "--episodes", "1", "--json", str(tmp_path / "x.json")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert "policy.c is not what embedrl generates from policy.onnx" in err and "--trust-c" in err
+    assert len(err.splitlines()) == 1 and not marker.exists() and not (tmp_path / "x.json").exists()
+
+
 def test_missing_export_folder_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["hil", "run", "--export-dir", str(tmp_path), "--json", str(tmp_path / "x.json")]) == 2
     assert "no c/policy.c" in capsys.readouterr().err
@@ -303,7 +325,9 @@ def test_a_report_for_a_read_only_export_is_refused_before_the_run(export_dir: P
     assert not report.exists() and elapsed < 10, f"{elapsed:.1f} s"
 
 
-GIVEN = {"sandbox": "host", "target": "cortex-m3", "fd": True, "nodes": 2, "kill_node": (1, 0, 3)}
+GIVEN = {
+    "sandbox": "host", "target": "cortex-m3", "fd": True, "nodes": 2, "kill_node": (1, 0, 3), "trust_c": True,
+}  # fmt: skip
 """A value other than the default for each option some node kind refuses."""
 
 

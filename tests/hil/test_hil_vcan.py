@@ -35,6 +35,8 @@ class TestCNodeOnVcan(HilContract):
     def where(self, guest: Guest) -> Guest | None:
         return guest
 
+    lying_flags = ("--trust-c",)
+
     def lying_export(self, export_dir: Path, tmp_path: Path) -> Path:
         """The generated policy_step wrapped: NaN in every action, POLICY_OK returned."""
         lying = tmp_path / "lying"
