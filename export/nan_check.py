@@ -125,7 +125,15 @@ def _compile(modules: Sequence[dict[str, str]], folder: Path) -> ctypes.CDLL:
             (folder / filename).write_text(text)
             if filename.endswith(".c"):
                 sources.append(str(folder / filename))
-    command = [*shlex.split(build.compiler()["command"]), *PROBE_FLAGS, "-o", str(folder / "probes.so")]
+    # One instruction set per module: every clone rounds the same operations alike (see codegen._targets).
+    one_target = [f"-DNAN_OP{k}_ONE_TARGET" for k in range(len(modules))]
+    command = [
+        *shlex.split(build.compiler()["command"]),
+        *PROBE_FLAGS,
+        *one_target,
+        "-o",
+        str(folder / "probes.so"),
+    ]
     result = subprocess.run([*command, *sources, "-lm"], capture_output=True, text=True)
     if result.returncode != 0:
         tail = "\n".join(result.stderr.strip().splitlines()[-10:])
