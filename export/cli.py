@@ -311,8 +311,9 @@ def register(sub: Any) -> None:
     )
     p.add_argument(
         "--quantize",
-        choices=["int8", "q15"],
-        help="int8: int8 weights per output channel, float activations; q15: 16-bit fixed point (no FPU)",
+        choices=["int8", "q15", "int8-full"],
+        help="int8: int8 weights per output channel, float activations; q15: 16-bit fixed point (no FPU); "
+        "int8-full: int8 weights and activations, int32 sums (DSP instructions on Cortex-M4/M7)",
     )
     p.add_argument(
         "--target",

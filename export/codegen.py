@@ -11,13 +11,13 @@ Output is deterministic: no timestamps; provenance is hashes and the tool versio
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from embedrl.export.errors import ExportError
-from embedrl.export.fixed_point import FixedSection
+from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
 from embedrl.export.ops.base import c_float
@@ -66,7 +66,13 @@ def check_name(name: str) -> None:
 
 
 VALUES_PER_LINE = 6
-_INTEGER_CTYPES = {"int8": "int8_t", "uint8": "uint8_t", "int16": "int16_t", "int64": "int64_t"}
+_INTEGER_CTYPES = {
+    "int8": "int8_t",
+    "uint8": "uint8_t",
+    "int16": "int16_t",
+    "int32": "int32_t",
+    "int64": "int64_t",
+}
 
 
 def _sanitize(name: str) -> str:
@@ -216,6 +222,11 @@ class _Context:
             self.helpers[name] = helper_source(self.prefix, name)
         return f"{self.prefix}_{name}"
 
+    def function(self, name: str, source: Callable[[str], str]) -> str:
+        if name not in self.helpers:
+            self.helpers[name] = source(self.prefix)
+        return f"{self.prefix}_{name}"
+
     def constant(self, value: str) -> np.ndarray | None:
         return self.graph.constants.get(value)
 
@@ -223,7 +234,7 @@ class _Context:
         return self.graph.size(value)
 
 
-def _with_section_output(graph: Graph, plan: _Plan, section: FixedSection) -> _Plan:
+def _with_section_output(graph: Graph, plan: _Plan, section: Section) -> _Plan:
     """Give the section's (float) output a buffer of its own after planning around the section."""
     buffer = str(len(plan.buffer_sizes))
     plan.buffer_sizes.append(graph.size(section.output))
@@ -232,43 +243,6 @@ def _with_section_output(graph: Graph, plan: _Plan, section: FixedSection) -> _P
         if where == "fixed" and value not in inside:  # the output and shape-only aliases of it
             plan.storage[value] = buffer
     return plan
-
-
-def _int16_buffer_sizes(section: FixedSection) -> list[int]:
-    """The q15 section's ping-pong int16 buffers: even layers read the first, odd ones the second."""
-    widths = [section.layers[0].weights.shape[1]] + [layer.weights.shape[0] for layer in section.layers[:-1]]
-    return [max(widths[0::2])] + ([max(widths[1::2])] if len(widths) > 1 else [])
-
-
-def _section_lines(section: FixedSection, ctx: _Context) -> tuple[list[str], list[str]]:
-    """C for a q15 section (see export.fixed_point) and its int16 buffer declarations."""
-    p = ctx.prefix
-    qbufs = [f"{p}_q0", f"{p}_q1"]
-    sizes = _int16_buffer_sizes(section)
-    decls = [f"static int16_t {buf}[{size}];" for buf, size in zip(qbufs, sizes, strict=False)]
-    src_ref, out_ref = ctx.ref(section.input), ctx.ref(section.output)
-    scale = c_float(2.0**section.in_frac)
-    lines = [
-        f"/* 16-bit fixed point: {len(section.layers)} layer(s); "
-        f"input with {section.in_frac} fractional bits */",
-        f"for (int i = 0; i < {section.layers[0].weights.shape[1]}; ++i) {{",
-        f"    if (!{p}_finite({src_ref}[i])) {{",
-        f"        return {p}_safe(act, {p.upper()}_ERR_ACT_NOT_FINITE); /* never converted to an integer */",
-        "    }",
-        f"    float v = {src_ref}[i] * {scale};",
-        "    v = v > 32767.0f ? 32767.0f : (v < -32767.0f ? -32767.0f : v);",
-        "    v = v + 0.5f;",
-        "    int32_t q = (int32_t)v;",
-        "    if ((float)q > v) {",
-        "        q -= 1; /* floor: round half up */",
-        "    }",
-        f"    {qbufs[0]}[i] = (int16_t)q;",
-        "}",
-    ]
-    for j, layer in enumerate(section.layers):
-        last = j == len(section.layers) - 1
-        lines += layer.c_lines(ctx, qbufs[j % 2], out_ref if last else qbufs[(j + 1) % 2])
-    return lines, decls
 
 
 def _interface_block(up: str, interface: Interface | None) -> str:
@@ -292,6 +266,7 @@ QUANTIZED_NOTE = {
     None: "",
     "int8": ", int8 weights per output channel, float32 activations",
     "q15": ", 16-bit fixed point (int16 weights and activations, int64 sums)",
+    "int8-full": ", full-integer int8 (int8 weights and activations, int32 sums, gemmlowp requantisation)",
 }
 
 
@@ -301,7 +276,7 @@ def generate(
     safe_action: Sequence[float] | None = None,
     provenance: Mapping[str, str] | None = None,
     quantize: str | None = None,
-    section: FixedSection | None = None,
+    section: Section | None = None,
     interface: Interface | None = None,
     checks: bool = True,
 ) -> dict[str, str]:
@@ -311,10 +286,10 @@ def generate(
     finite (default zeros); ``{NAME}_SAFE_ACTION`` in the header gives it to the CAN node's watchdog.
     ``interface`` adds a named index constant per observation and action field (``{NAME}_OBS_X``) and
     the sample time. ``provenance`` lines (e.g. hashes) go into both file headers.
-    ``quantize`` is None, "int8" or "q15"; q15 needs the ``section`` planned by
-    :func:`export.fixed_point.plan`. ``checks=False`` leaves out the finite checks of the observation and
-    the result, so ``{name}_step`` returns whatever the graph computes, NaN included: a probe of one op's NaN
-    semantics for verification (:mod:`embedrl.export.nan_check`), never a deployable policy.
+    ``quantize`` is None, "int8", "q15" or "int8-full"; q15 and int8-full need the integer ``section``
+    planned by :func:`export.quantize.plan_section`. ``checks=False`` leaves out the finite checks of the
+    observation and the result, so ``{name}_step`` returns whatever the graph computes, NaN included: a probe
+    of one op's NaN semantics for verification (:mod:`embedrl.export.nan_check`), never a deployable policy.
     """
     check_name(name)
     safe = _safe_action(graph, safe_action)
@@ -327,11 +302,7 @@ def generate(
     body, int16_decls = _body(graph, ctx, section)
     # A recurrent step depends on the one before: its batch is a sequence, one step per row.
     block = _block(graph, ctx) if section is None and not graph.states else None
-    ram = (
-        4 * sum(plan.buffer_sizes)
-        + (2 * sum(_int16_buffer_sizes(section)) if section else 0)
-        + 4 * graph.state_size
-    )
+    ram = 4 * sum(plan.buffer_sizes) + (section.ram_bytes() if section else 0) + 4 * graph.state_size
     banner = "\n".join(
         [
             "/*",
@@ -376,25 +347,29 @@ def _safe_action(graph: Graph, safe_action: Sequence[float] | None) -> list[floa
     return safe
 
 
-def _check_precision(graph: Graph, quantize: str | None, section: FixedSection | None) -> None:
-    if quantize not in QUANTIZED_NOTE:
-        raise ExportError(f"quantization {quantize!r} is not supported; supported: int8, q15")
-    if (quantize == "q15") != (section is not None):
-        raise ExportError("q15 code needs its fixed-point section (and only q15 takes one)")
-    if quantize:
-        from embedrl.export.quantize import check_supported
+def _check_precision(graph: Graph, quantize: str | None, section: Section | None) -> None:
+    from embedrl.export.quantize import SECTIONS, check_supported
 
+    if quantize not in QUANTIZED_NOTE:
+        supported = ", ".join(q for q in QUANTIZED_NOTE if q)
+        raise ExportError(f"quantization {quantize!r} is not supported; supported: {supported}")
+    if (quantize in SECTIONS) != (section is not None):
+        raise ExportError(
+            f"{quantize or 'float32'} code needs an integer section planned for it only if it is one of "
+            f"{', '.join(SECTIONS)}"
+        )
+    if quantize:
         check_supported(graph)
 
 
-def _body(graph: Graph, ctx: _Context, section: FixedSection | None) -> tuple[list[str], list[str]]:
+def _body(graph: Graph, ctx: _Context, section: Section | None) -> tuple[list[str], list[str]]:
     """The step's lines, node by node (a q15 section as one block), and the section's int16 buffers."""
     body: list[str] = []
     int16_decls: list[str] = []
     for node in graph.nodes:
         if section is not None and node.name in section.nodes:
             if node.name == section.first_node:
-                lines, int16_decls = _section_lines(section, ctx)
+                lines, int16_decls = section.c_lines(ctx)
                 body += lines
             continue
         emitter = EMITTERS[node.op]

@@ -4,6 +4,7 @@
   - :class:`UnsupportedModelError`: the source (SB3 model, policy class, spaces) is not supported.
   - :class:`InvalidModelError`: the file is missing, truncated, not ONNX, or holds NaN/Inf weights.
   - :class:`UnsupportedOpError`: an ONNX op, attribute, dtype or shape the code generator cannot handle.
+  - :class:`UnrepresentableRangeError`: a quantised layer's scales do not fit its integer encoding.
   - :class:`BuildError`: the generated C did not compile.
   - :class:`VerificationError`: a verification step exceeded its tolerance.
 """
@@ -23,6 +24,11 @@ class InvalidModelError(ExportError):
 
 class UnsupportedOpError(ExportError):
     """The ONNX graph uses an op, attribute, dtype or shape outside the supported set."""
+
+
+class UnrepresentableRangeError(ExportError):
+    """A layer's calibrated scales (a requantisation multiplier, a bias in accumulator units) cannot be
+    represented by the integer scheme; the message names the layer."""
 
 
 class BuildError(ExportError):

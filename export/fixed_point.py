@@ -27,6 +27,7 @@ from embedrl.export import interpret
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import Graph, Node
 from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.base import EmitContext, c_float
 from embedrl.export.ops.linear import Q15_MAX as Q_MAX
 from embedrl.export.ops.linear import Q15Layer
 
@@ -52,6 +53,47 @@ class FixedSection:
         """:func:`run` of this section."""
         return run(self, x)
 
+    def buffer_sizes(self) -> list[int]:
+        """The ping-pong int16 buffers: even layers read the first, odd ones the second."""
+        widths = [self.layers[0].weights.shape[1]] + [layer.weights.shape[0] for layer in self.layers[:-1]]
+        return [max(widths[0::2])] + ([max(widths[1::2])] if len(widths) > 1 else [])
+
+    def ram_bytes(self) -> int:
+        """RAM of the section's own buffers."""
+        return 2 * sum(self.buffer_sizes())
+
+    def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
+        """The section's C and its int16 buffer declarations."""
+        p = ctx.prefix
+        qbufs = [f"{p}_q0", f"{p}_q1"]
+        decls = [
+            f"static int16_t {buf}[{size}];" for buf, size in zip(qbufs, self.buffer_sizes(), strict=False)
+        ]
+        src_ref, out_ref = ctx.ref(self.input), ctx.ref(self.output)
+        scale = c_float(2.0**self.in_frac)
+        lines = [
+            f"/* 16-bit fixed point: {len(self.layers)} layer(s); "
+            f"input with {self.in_frac} fractional bits */",
+            f"for (int i = 0; i < {self.layers[0].weights.shape[1]}; ++i) {{",
+            f"    if (!{p}_finite({src_ref}[i])) {{",
+            f"        return {p}_safe(act, {p.upper()}_ERR_ACT_NOT_FINITE); "
+            "/* never converted to an integer */",
+            "    }",
+            f"    float v = {src_ref}[i] * {scale};",
+            "    v = v > 32767.0f ? 32767.0f : (v < -32767.0f ? -32767.0f : v);",
+            "    v = v + 0.5f;",
+            "    int32_t q = (int32_t)v;",
+            "    if ((float)q > v) {",
+            "        q -= 1; /* floor: round half up */",
+            "    }",
+            f"    {qbufs[0]}[i] = (int16_t)q;",
+            "}",
+        ]
+        for j, layer in enumerate(self.layers):
+            last = j == len(self.layers) - 1
+            lines += layer.c_lines(ctx, qbufs[j % 2], out_ref if last else qbufs[(j + 1) % 2])
+        return lines, decls
+
 
 def _frac_for(peak: float) -> int:
     if peak <= 0 or not math.isfinite(peak):
@@ -63,33 +105,42 @@ def _consumers(graph: Graph, value: str) -> list[Node]:
     return [n for n in graph.nodes if value in n.inputs]
 
 
-def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
-    """Find the Gemm chain, calibrate its scales on ``calibration`` observations, quantise it."""
+def chain(graph: Graph, scheme: str = "q15") -> list[Node]:
+    """The nodes an integer section replaces: the Gemm/MatMul layers joined by Relu, with only float ops
+    that may run around it (``q15_float``) before and after; one line naming the node otherwise."""
     gemms = [i for i, n in enumerate(graph.nodes) if EMITTERS[n.op].linear]
     if not gemms:
-        raise UnsupportedOpError("--quantize q15 needs at least one Gemm or MatMul")
+        raise UnsupportedOpError(f"--quantize {scheme} needs at least one Gemm or MatMul")
     first, last = gemms[0], gemms[-1]
     for node in graph.nodes[:first]:
         if "before" not in EMITTERS[node.op].q15_float:
             raise UnsupportedOpError(
-                f"{node.op} node '{node.name}' before the first layer is not supported with q15"
+                f"{node.op} node '{node.name}' before the first layer is not supported with {scheme}"
             )
     for node in graph.nodes[last + 1 :]:
         if "after" not in EMITTERS[node.op].q15_float:
             raise UnsupportedOpError(
-                f"{node.op} node '{node.name}' after the last layer is not supported with q15"
+                f"{node.op} node '{node.name}' after the last layer is not supported with {scheme}"
             )
     inner = graph.nodes[first : last + 1]
     for i, node in enumerate(inner):
         if EMITTERS[node.op].linear:
             if i and not (inner[i - 1].op == "Relu" or EMITTERS[inner[i - 1].op].linear):
-                raise UnsupportedOpError(f"q15 layers may only be joined by Relu, found {inner[i - 1].op}")
+                raise UnsupportedOpError(
+                    f"{scheme} layers may only be joined by Relu, found {inner[i - 1].op}"
+                )
         elif node.op != "Relu":
             raise UnsupportedOpError(
-                f"{node.op} node '{node.name}' between layers is not supported with q15 (only Relu)"
+                f"{node.op} node '{node.name}' between layers is not supported with {scheme} (only Relu)"
             )
         if node is not inner[-1] and len(_consumers(graph, node.outputs[0])) != 1:
-            raise UnsupportedOpError(f"node '{node.name}': q15 layers must form a chain")
+            raise UnsupportedOpError(f"node '{node.name}': {scheme} layers must form a chain")
+    return list(inner)
+
+
+def plan(graph: Graph, calibration: np.ndarray) -> FixedSection:
+    """Find the Gemm chain, calibrate its scales on ``calibration`` observations, quantise it."""
+    inner = chain(graph)
     values = interpret.run(graph, calibration, "float64")
     section_input = inner[0].inputs[0]
     in_frac = _frac_for(float(np.max(np.abs(values[section_input]))))

@@ -16,12 +16,13 @@ import numpy as np
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
-from embedrl.export.ops.base import PRECISIONS
+from embedrl.export.ops.base import PRECISIONS, EmitContext
 
 
 class Section(Protocol):
-    """Nodes of the graph evaluated together by their own model (q15's :class:`~embedrl.export.fixed_point.
-    FixedSection`): from the value ``input`` to the value ``output``."""
+    """Nodes of the graph evaluated together by their own integer model (q15's :class:`~embedrl.export.
+    fixed_point.FixedSection`, int8-full's :class:`~embedrl.export.full_integer.IntegerSection`): from the
+    value ``input`` to the value ``output``."""
 
     @property
     def input(self) -> str: ...
@@ -33,6 +34,15 @@ class Section(Protocol):
     def first_node(self) -> str: ...
     def run(self, x: np.ndarray) -> np.ndarray:
         """The section's output for a batch of inputs."""
+        ...
+
+    def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
+        """The section's C statements (they return the safe action on a non-finite input before converting
+        it to integers) and the declarations of its buffers."""
+        ...
+
+    def ram_bytes(self) -> int:
+        """RAM of the section's own buffers."""
         ...
 
 

@@ -68,7 +68,8 @@ def check(
     if not probes:
         return summary
     rng = np.random.default_rng(seed)
-    precision = {None: None, "int8": "int8", "q15": "int8"}[quantize]  # q15's float ops use int8's helpers
+    # The float ops around an integer section (q15, int8-full) use int8's helpers.
+    precision = {None: None, "int8": "int8", "q15": "int8", "int8-full": "int8"}[quantize]
     with tempfile.TemporaryDirectory(prefix="embedrl-nan-") as tmp:
         library = _compile([_one_op(graph, node, k, precision) for k, node in enumerate(probes)], Path(tmp))
         for k, node in enumerate(probes):

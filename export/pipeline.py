@@ -25,11 +25,11 @@ import onnx
 
 from embedrl import train
 from embedrl.common import owned_temporary_folder, provenance, sha256, with_umask
-from embedrl.export import build, chain, cycles, fixed_point, nan_check, quantize, stack, target, verify
+from embedrl.export import build, chain, cycles, nan_check, quantize, stack, target, verify
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
-from embedrl.export.fixed_point import FixedSection
+from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import Limits, load_onnx, to_ir
 from embedrl.export.reference import OBSERVATIONS_FILE, OnnxPolicy
@@ -64,7 +64,8 @@ class ExportOptions:
     targets: tuple[str, ...] = ()
     """Cortex-M targets to build, run under QEMU and measure (names in export.target.TARGETS)."""
     quantize: str | None = None
-    """None (float32), "int8" or "q15" (see export.quantize, export.fixed_point)."""
+    """None (float32), "int8", "q15" or "int8-full" (see export.quantize, export.fixed_point,
+    export.full_integer)."""
     limits: Limits = field(default_factory=Limits)
     """How large a model is accepted (checked before it is read)."""
     obs_range: tuple[tuple[float, float], ...] | None = None
@@ -294,7 +295,7 @@ class Generated:
     c_dir: Path
     samples: np.ndarray
     from_rollouts: int
-    section: FixedSection | None
+    section: Section | None
 
 
 @dataclass(frozen=True)
@@ -504,7 +505,7 @@ def _generate(
     samples, from_rollouts = verify.sample_observations(
         lowered.obs_space, opts.env_id, lowered.reference, opts.seed
     )
-    section = fixed_point.plan(graph, samples) if opts.quantize == "q15" else None
+    section = quantize.plan_section(graph, opts.quantize, samples)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     log(f"[2/5] generating C ({len(graph.nodes)} ops, {obs_dim} -> {act_dim})")
     header = {

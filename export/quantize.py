@@ -18,18 +18,36 @@ arithmetic of each op lives with the op (:mod:`embedrl.export.ops`); this module
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from embedrl.export import interpret
+from embedrl.export import fixed_point, full_integer, interpret
 from embedrl.export.errors import UnsupportedOpError
-from embedrl.export.fixed_point import FixedSection
+from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
 
 SCHEMES = {
     "int8": "int8 weights per output channel (symmetric), float32 activations",
     "q15": "16-bit fixed point: int16 weights (per-channel power-of-two scales) and activations, int64 sums",
+    "int8-full": "full-integer int8: int8 weights (per-channel symmetric) and activations (calibrated "
+    "scale and zero point), int32 sums, gemmlowp requantisation",
 }
+SECTIONS: dict[str, Callable[[Graph, np.ndarray], Section]] = {
+    "q15": fixed_point.plan,
+    "int8-full": full_integer.plan,
+}
+"""Schemes that run the layer chain as an integer section, and how each plans it from calibration
+observations."""
+
+
+def plan_section(graph: Graph, scheme: str | None, calibration: np.ndarray) -> Section | None:
+    """The scheme's integer section calibrated on ``calibration`` (None for float32 and int8)."""
+    planner = SECTIONS.get(scheme or "")
+    return None if planner is None else planner(graph, np.asarray(calibration, np.float32))
+
+
 SUPPORTED = frozenset(op for op, emitter in EMITTERS.items() if emitter.quantizable)
 """Ops with quantised code and an exact int8 model (each op says so itself)."""
 
@@ -43,11 +61,11 @@ def check_supported(graph: Graph) -> None:
             )
 
 
-def evaluate(graph: Graph, obs: np.ndarray, section: FixedSection | None = None) -> np.ndarray:
+def evaluate(graph: Graph, obs: np.ndarray, section: Section | None = None) -> np.ndarray:
     """The quantised policy's actions for a batch of observations [B, obs_dim], bit-exact with the C.
 
-    Without ``section`` the int8 scheme; with it, the q15 section replaces its nodes. A recurrent graph takes
-    the rows as one sequence from zero state.
+    Without ``section`` the int8 scheme; with it, the integer section (q15, int8-full) replaces its nodes. A
+    recurrent graph takes the rows as one sequence from zero state.
     """
     if graph.states:
         return interpret.run_sequence(graph, obs, "int8")

@@ -2,9 +2,9 @@
 
 float32: the export's ``policy.onnx`` under onnxruntime (the C agrees within the verification
 tolerance), a recurrent policy's state carried from call to call as the C carries it
-(:class:`OnnxPolicy`). int8 and q15: the Python model of the quantised arithmetic
+(:class:`OnnxPolicy`). int8, q15 and int8-full: the Python model of the quantised arithmetic
 (:func:`export.quantize.evaluate`),
-which the C equals bit for bit; q15's fixed-point section is planned again from the export's own
+which the C equals bit for bit; an integer section (q15, int8-full) is planned again from the export's own
 calibration observations (``test/observations.npy``), exactly as the export planned it.
 """
 
@@ -17,21 +17,23 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from embedrl.export import fixed_point, interpret, quantize
+from embedrl.export import interpret, quantize
 from embedrl.export.errors import ExportError
+from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import load_onnx, to_ir
 
 REPORT_FILE = "export_report.json"
 OBSERVATIONS_FILE = "observations.npy"
 """The verification observations (float32), in the export's ``test/``."""
-PRECISIONS = ("float32", "int8", "q15")
+PRECISIONS = ("float32", "int8", "q15", "int8-full")
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
 def precision_of(export_dir: Path) -> str:
-    """``float32``, ``int8`` or ``q15``, as the export's report records it (float32 without a report)."""
+    """``float32``, ``int8``, ``q15`` or ``int8-full``, as the export's report records it (float32 without a
+    report)."""
     report = export_dir / REPORT_FILE
     if not report.is_file():
         return "float32"
@@ -96,11 +98,13 @@ def reference_policy(export_dir: Path) -> Policy:
         return OnnxPolicy(onnx_path)
     graph = to_ir(load_onnx(onnx_path))
     section = None
-    if precision == "q15":
+    if precision in quantize.SECTIONS:
         observations = export_dir / "test" / OBSERVATIONS_FILE
         if not observations.is_file():
-            raise ExportError(f"{export_dir}: no test/{OBSERVATIONS_FILE} to plan the q15 section from")
-        section = fixed_point.plan(graph, np.load(observations, allow_pickle=False))
+            raise ExportError(
+                f"{export_dir}: no test/{OBSERVATIONS_FILE} to plan the {precision} section from"
+            )
+        section = quantize.plan_section(graph, precision, np.load(observations, allow_pickle=False))
 
     return QuantizedPolicy(graph, section)
 
@@ -109,7 +113,7 @@ class QuantizedPolicy:
     """The Python model of a quantised export's arithmetic as a policy: a batch [B, obs_dim] of independent
     rows, or for a recurrent graph consecutive steps with the state carried (``reset``: zero state)."""
 
-    def __init__(self, graph: Graph, section: fixed_point.FixedSection | None) -> None:
+    def __init__(self, graph: Graph, section: Section | None) -> None:
         self.graph, self.section = graph, section
         self._state: dict[str, np.ndarray] = {}
 

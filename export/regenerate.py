@@ -18,7 +18,7 @@ import numpy as np
 
 from embedrl.common import read_json, sha256
 from embedrl.export.errors import ExportError
-from embedrl.export.fixed_point import FixedSection
+from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 
 OBSERVATIONS = Path("test") / "observations.npy"
@@ -29,7 +29,7 @@ class Regenerated:
     """What an export's C is made from, read again from its folder, and the C generated from it."""
 
     graph: Graph
-    section: FixedSection | None
+    section: Section | None
     """A q15 export's fixed-point section, calibrated on the folder's observations as the export did."""
     observations: np.ndarray
     """The export's verification observations (float32)."""
@@ -66,11 +66,11 @@ def _compare(export_dir: Path, expected: dict[str, str]) -> str | None:
     return None
 
 
-def _generated(export_dir: Path) -> tuple[Graph, FixedSection | None, np.ndarray, dict[str, str]]:
-    from embedrl.export import fixed_point
+def _generated(export_dir: Path) -> tuple[Graph, Section | None, np.ndarray, dict[str, str]]:
     from embedrl.export.codegen import generate
     from embedrl.export.onnx_import import load_onnx, to_ir
     from embedrl.export.pipeline import tool_version
+    from embedrl.export.quantize import plan_section
     from embedrl.train.interface import Interface
 
     report: dict[str, Any] = read_json(export_dir / "export_report.json")
@@ -83,7 +83,7 @@ def _generated(export_dir: Path) -> tuple[Graph, FixedSection | None, np.ndarray
     observations = np.load(export_dir / OBSERVATIONS, allow_pickle=False).astype(np.float32)
     if observations.ndim != 2 or observations.shape[1] != graph.size(graph.input):
         raise ValueError(f"{OBSERVATIONS} holds {observations.shape}, not rows of the policy's observations")
-    section = fixed_point.plan(graph, observations) if quantize == "q15" else None
+    section = plan_section(graph, quantize, observations)
     interface_file = export_dir / "interface.json"
     interface = Interface.from_json(read_json(interface_file)) if interface_file.is_file() else None
     source = report["source"]

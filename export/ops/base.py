@@ -8,7 +8,7 @@ calibration (``float64``) and for the exact model of quantised C (``int8``).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import ClassVar, Protocol
 
@@ -41,6 +41,9 @@ class Affine:
 class EmitContext(Protocol):
     """What an emitter may ask of the code generator."""
 
+    prefix: str
+    """The policy's name: the prefix of every generated symbol."""
+
     quantize: str | None
     """None for float32 code, "int8" for int8 weights (see export.quantize)."""
     rows: str | None
@@ -50,6 +53,11 @@ class EmitContext(Protocol):
 
     def helper(self, name: str) -> str:
         """Emit the named deterministic math helper (``exp_det``, ``tanh_det``, ``sigmoid_det``) once."""
+        ...
+
+    def function(self, name: str, source: Callable[[str], str]) -> str:
+        """Emit the static C function ``{prefix}_{name}`` once (``source(prefix)`` is its definition) and
+        return its symbol."""
         ...
 
     def ref(self, value: str) -> str:

@@ -337,3 +337,218 @@ class MatMul(Linear):
         if precision == "float64":
             return np.asarray(inputs[0] @ constants[node.inputs[1]].astype(np.float64))
         return int8_layer(inputs[0], np.ascontiguousarray(constants[node.inputs[1]].astype(F)), None)
+
+
+INT8_MIN = -128
+INT32_MIN, INT32_MAX = -(2**31), 2**31 - 1
+SHIFT_RANGE = (-31, 30)
+"""Exponents a requantisation multiplier may have (``real = m * 2^(shift - 31)``, ``m`` in [2^30, 2^31)):
+below, the multiplier underflows (every output would be the zero point); above, ``acc << shift`` leaves no
+bit of the accumulator."""
+WORD = 4
+"""int8 values per 32-bit word: rows of weights and activation buffers are padded to whole words."""
+
+
+def quantize_multiplier(real: float) -> tuple[int, int] | None:
+    """gemmlowp / TFLite: ``real`` as a Q31 multiplier ``m`` in [2^30, 2^31) and an exponent ``shift``
+    (``real ~ m * 2^(shift - 31)``); None if ``real`` is not a positive finite number or its exponent is out
+    of :data:`SHIFT_RANGE`."""
+    if not (np.isfinite(real) and real > 0):
+        return None
+    fraction, shift = np.frexp(real)
+    m = round(float(fraction) * 2.0**31)
+    if m == 2**31:
+        m, shift = m // 2, shift + 1
+    if not SHIFT_RANGE[0] <= shift <= SHIFT_RANGE[1]:
+        return None
+    return m, int(shift)
+
+
+def requantize(acc: np.ndarray, m: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``acc * m * 2^(shift - 31)`` rounded as gemmlowp does (int64 arrays holding int32 values): a saturating
+    left shift for ``shift > 0``, SaturatingRoundingDoublingHighMul (C's division truncates) and
+    RoundingDivideByPOT for ``shift < 0``."""
+    left = np.maximum(shift, 0)
+    x = np.clip(acc << left, INT32_MIN, INT32_MAX)
+    ab = x * m
+    t = ab + np.where(ab >= 0, np.int64(1) << 30, 1 - (np.int64(1) << 30))
+    high = np.where(t >= 0, t >> 31, -((-t) >> 31))
+    right = np.maximum(-shift, 0)
+    mask = (np.int64(1) << right) - 1
+    threshold = (mask >> 1) + (high < 0)
+    return np.asarray((high >> right) + ((high & mask) > threshold), dtype=np.int64)
+
+
+def requantize_source(prefix: str) -> str:
+    """The C of :func:`requantize`, operation by operation (int32 in, int32 out)."""
+    return f"""/* acc * m * 2^(shift - 31), rounded as gemmlowp: saturating left shift, rounding doubling high
+ * multiply, rounding divide by a power of two (m is within [2^30, 2^31), shift within [-31, 30]). */
+static int32_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift)
+{{
+    int64_t x = acc;
+    if (shift > 0) {{
+        x = x * ((int64_t)1 << shift);
+        x = x > INT32_MAX ? INT32_MAX : (x < INT32_MIN ? INT32_MIN : x);
+    }}
+    const int64_t ab = x * (int64_t)m;
+    const int64_t nudge = ab >= 0 ? ((int64_t)1 << 30) : (1 - ((int64_t)1 << 30));
+    const int32_t high = (int32_t)((ab + nudge) / ((int64_t)1 << 31));
+    const int32_t right = shift > 0 ? 0 : -shift;
+    const int32_t mask = (int32_t)(((int64_t)1 << right) - 1);
+    const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
+    return (high >> right) + ((high & mask) > threshold ? 1 : 0);
+}}"""
+
+
+def word_source(prefix: str) -> str:
+    """DSP inner loop: four int8 values as one word (an unaligned load on the core; memcpy: no aliasing)."""
+    return f"""#if {prefix.upper()}_DSP
+static inline int32_t {prefix}_word(const int8_t *p)
+{{
+    int32_t w;
+    (void)memcpy(&w, p, sizeof w);
+    return w;
+}}
+#endif"""
+
+
+def odd_source(prefix: str) -> str:
+    """DSP inner loop: bytes 1 and 3 of a word sign-extended into two int16 (``__sxtb16`` of the word rotated
+    by 8; ACLE has no rotated form, so gcc gets SXTB16's ``ROR #8`` operand written out)."""
+    return f"""#if {prefix.upper()}_DSP
+static inline int32_t {prefix}_odd(int32_t w)
+{{
+#if defined(__GNUC__)
+    int32_t r;
+    __asm__("sxtb16 %0, %1, ror #8" : "=r"(r) : "r"(w));
+    return r;
+#else
+    const uint32_t u = (uint32_t)w;
+    return __sxtb16((int32_t)((u >> 8) | (u << 24)));
+#endif
+}}
+#endif"""
+
+
+def padded(k: int) -> int:
+    """``k`` rounded up to whole :data:`WORD` s."""
+    return -(-k // WORD) * WORD
+
+
+@dataclass(frozen=True)
+class Int8Layer:
+    """One Gemm or MatMul in full-integer int8 (planned by :func:`embedrl.export.full_integer.plan`): int8
+    inputs with a zero point, per-channel symmetric int8 weights, int32 sums from the bias, then a gemmlowp
+    requantisation and a clamp that holds the ReLU; the last layer turns its sums into float instead. Its
+    integer model (:meth:`reference`) and its C (:meth:`c_lines`) are the same arithmetic bit for bit."""
+
+    name: str
+    weights: np.ndarray
+    """int8 [N][K], output-major."""
+    bias: np.ndarray
+    """int64 [N] holding int32, in accumulator units (input scale x channel weight scale), with the input's
+    zero point folded in: ``round(b / (s_in s_w)) - zp_in * sum_k w[n][k]``."""
+    multiplier: np.ndarray
+    """int64 [N], Q31 multipliers in [2^30, 2^31) of ``s_in s_w[n] / s_out`` (hidden layers)."""
+    shift: np.ndarray
+    """int64 [N], their exponents (see :func:`requantize`)."""
+    out_zero: int
+    """Zero point of the int8 output (hidden layers)."""
+    relu: bool
+    out_scale: np.ndarray | None
+    """float32 [N] ``s_in s_w[n]`` for the last layer, whose output is float; None for hidden layers."""
+
+    def reference(self, q: np.ndarray) -> np.ndarray:
+        """The layer on a batch of int8 inputs (as int64): int8 outputs (as int64), or float32 if last."""
+        acc = q @ self.weights.astype(np.int64).T + self.bias
+        if self.out_scale is not None:
+            return np.asarray(acc.astype(F) * self.out_scale, dtype=F)
+        r = requantize(acc, self.multiplier, self.shift) + self.out_zero
+        return np.asarray(np.clip(r, self.out_zero if self.relu else INT8_MIN, INT8_MAX))
+
+    def c_lines(self, ctx: EmitContext, src: str, dst: str, xe: str, xo: str) -> list[str]:
+        """C reading the int8 array ``src`` (padded to whole words) and writing ``dst`` (int8, or the float
+        output if last); ``xe``/``xo`` are the DSP loop's buffers of the input's even and odd bytes as int16
+        pairs. Portable C: one dot product per output. DSP (Cortex-M4/M7): the input unpacked once, then two
+        outputs per pass, each word of weights two ``__sxtb16`` and two ``__smlad`` (four multiply-adds)."""
+        n_out, k_in = self.weights.shape
+        k_pad = padded(k_in)
+        rows = np.zeros((n_out, k_pad), np.int8)
+        rows[:, :k_in] = self.weights
+        w = ctx.const(
+            f"{self.name}#int8full",
+            rows,
+            f"{self.name} weights, int8, output-major [{n_out}][{k_pad}] (padded)",
+        )
+        b = ctx.const(
+            f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
+        )
+        word, odd = ctx.function("word", word_source), ctx.function("odd", odd_source)
+        dsp = f"#if {ctx.prefix.upper()}_DSP"
+        sums = f"{ctx.prefix}_acc"
+        groups = k_pad // WORD
+        pairs = n_out - n_out % 2
+        tail = [
+            "{ /* the last, odd output */",
+            f"    int32_t a0 = {b}[{n_out - 1}];",
+            f"    for (int g = 0; g < {groups}; ++g) {{",
+            f"        const int32_t v0 = {word}(&{w}[{n_out - 1}][{WORD} * g]);",
+            f"        a0 = __smlad({xe}[g], __sxtb16(v0), a0);",
+            f"        a0 = __smlad({xo}[g], {odd}(v0), a0);",
+            "    }",
+            f"    {sums}[{n_out - 1}] = a0;",
+            "}",
+        ]
+        lines = [
+            f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''}, int8 x int8 -> int32 */",
+            dsp,
+            f"for (int g = 0; g < {groups}; ++g) {{",
+            f"    const int32_t a = {word}(&{src}[{WORD} * g]);",
+            f"    {xe}[g] = __sxtb16(a);",
+            f"    {xo}[g] = {odd}(a);",
+            "}",
+            f"for (int n = 0; n < {pairs}; n += 2) {{",
+            f"    int32_t a0 = {b}[n];",
+            f"    int32_t a1 = {b}[n + 1];",
+            f"    for (int g = 0; g < {groups}; ++g) {{ /* 8 multiply-adds in 4 SMLAD */",
+            f"        const int32_t e = {xe}[g];",
+            f"        const int32_t o = {xo}[g];",
+            f"        const int32_t v0 = {word}(&{w}[n][{WORD} * g]);",
+            f"        const int32_t v1 = {word}(&{w}[n + 1][{WORD} * g]);",
+            "        a0 = __smlad(e, __sxtb16(v0), a0);",
+            "        a1 = __smlad(e, __sxtb16(v1), a1);",
+            f"        a0 = __smlad(o, {odd}(v0), a0);",
+            f"        a1 = __smlad(o, {odd}(v1), a1);",
+            "    }",
+            f"    {sums}[n] = a0;",
+            f"    {sums}[n + 1] = a1;",
+            "}",
+            *(tail if n_out % 2 else []),
+            "#endif",
+            f"for (int n = 0; n < {n_out}; ++n) {{",
+            dsp,
+            f"    const int32_t acc = {sums}[n];",
+            "#else",
+            f"    int32_t acc = {b}[n];",
+            f"    for (int k = 0; k < {k_in}; ++k) {{",
+            f"        acc += (int32_t){src}[k] * (int32_t){w}[n][k];",
+            "    }",
+            "#endif",
+        ]
+        if self.out_scale is not None:
+            s = ctx.const(f"{self.name}#int8scale", self.out_scale, f"{self.name} output scales [{n_out}]")
+            return [*lines, f"    {dst}[n] = (float)acc * {s}[n];", "}"]
+        requant = ctx.function("requantize", requantize_source)
+        m = ctx.const(f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers")
+        sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+        low, zero = self.out_zero if self.relu else INT8_MIN, self.out_zero
+        plus_zero = f" + {zero}" if zero > 0 else (f" - {-zero}" if zero < 0 else "")
+        return [
+            *lines,
+            f"    const int32_t r = {requant}(acc, {m}[n], {sh}[n]);",
+            f"    /* r{plus_zero} clamped to [{low}, {INT8_MAX}]{' (the ReLU)' if self.relu else ''} */",
+            f"    const int32_t q = r > {INT8_MAX - zero} ? {INT8_MAX} : "
+            f"(r < {low - zero} ? {low} : r{plus_zero});",
+            f"    {dst}[n] = (int8_t)q;",
+            "}",
+        ]

@@ -14,7 +14,7 @@ import pytest
 from onnx import helper
 
 from embedrl.cli import main
-from embedrl.export import build, fixed_point, nan_check, regenerate
+from embedrl.export import build, fixed_point, full_integer, nan_check, regenerate
 from embedrl.export.codegen import generate
 from embedrl.export.errors import VerificationError
 from embedrl.export.onnx_import import to_ir
@@ -180,3 +180,17 @@ def test_a_policy_nan_where_sampling_never_looks_gives_the_safe_action(
     assert action.tolist() == [0.25, 0.0]
     x[0] = 2.0**-19  # just away from zero: an ordinary action
     assert np.all(np.abs(policy(x)) <= 1.0) and policy.status == OK
+
+
+def test_an_int8_full_section_refuses_a_nan_before_converting_it(tmp_path: Path) -> None:
+    graph = to_ir(mlp_model([N, 8, 2]))
+    samples = np.random.default_rng(0).uniform(-1, 1, size=(500, N)).astype(F)
+    section = full_integer.plan(graph, samples)
+    files = generate(graph, quantize="int8-full", section=section, checks=False)
+    policy = _compiled(files, tmp_path, N, 2)
+    x = samples[0].copy()
+    policy(x)
+    assert policy.status == OK
+    x[3] = np.inf
+    action = policy(x)
+    assert policy.status == ACT_NOT_FINITE and np.all(action == 0.0)

@@ -12,12 +12,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from onnx import helper
 
-from embedrl.export import build, fixed_point, quantize, verify
+from embedrl.export import build, fixed_point, full_integer, quantize, verify
 from embedrl.export.codegen import generate
-from embedrl.export.errors import UnsupportedOpError
+from embedrl.export.errors import UnrepresentableRangeError, UnsupportedOpError
 from embedrl.export.onnx_import import to_ir
 from embedrl.export.ops.deterministic import exp_det, tanh_det
-from embedrl.export.ops.linear import quantize_columns
+from embedrl.export.ops.linear import SHIFT_RANGE, quantize_columns, quantize_multiplier, requantize
 from tests.export.helpers import make_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")
@@ -150,3 +150,114 @@ def test_q15_rejects_layers_joined_by_anything_but_relu() -> None:
     model = mlp_model([4, 8, 2], ["Sigmoid", "Tanh"], 0)
     with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* between layers is not supported with q15"):
         fixed_point.plan(to_ir(model), np.zeros((4, 4), np.float32))
+
+
+def _compile_int8_full(
+    model: onnx.ModelProto, calibration: np.ndarray, tmp: Path
+) -> tuple[build.CPolicy, full_integer.IntegerSection]:
+    graph = to_ir(model)
+    section = full_integer.plan(graph, calibration)
+    (tmp / "c").mkdir()
+    for filename, text in generate(graph, quantize="int8-full", section=section).items():
+        (tmp / "c" / filename).write_text(text)
+    build.make("lib", tmp / "c", tmp / "b")
+    policy = build.CPolicy(
+        tmp / "b" / "libpolicy.so", "policy", graph.size(graph.input), graph.size(graph.output)
+    )
+    return policy, section
+
+
+def _gemmlowp(acc: int, m: int, shift: int) -> int:
+    """gemmlowp's MultiplyByQuantizedMultiplier in Python integers, as TFLite writes it."""
+    left, right = max(shift, 0), max(-shift, 0)
+    x = max(-(2**31), min(2**31 - 1, acc * 2**left))
+    ab = x * m
+    nudge = 2**30 if ab >= 0 else 1 - 2**30
+    high = abs(ab + nudge) // 2**31 * (1 if ab + nudge >= 0 else -1)  # C's division truncates
+    mask = 2**right - 1
+    threshold = (mask >> 1) + (1 if high < 0 else 0)
+    return int((high >> right) + (1 if (high & mask) > threshold else 0))
+
+
+def test_requantisation_rounds_as_gemmlowp() -> None:
+    rng = np.random.default_rng(0)
+    acc = np.concatenate(
+        [rng.integers(-(2**31), 2**31, 4000), [0, 1, -1, 2**31 - 1, -(2**31), 2**30, -(2**30)]]
+    )
+    m = rng.integers(2**30, 2**31, acc.size)
+    shift = rng.integers(SHIFT_RANGE[0], SHIFT_RANGE[1] + 1, acc.size)
+    shift[:1000] = rng.integers(-12, 1, 1000)  # the usual range: most outputs not rounded to 0 or saturated
+    got = requantize(acc.astype(np.int64), m.astype(np.int64), shift.astype(np.int64))
+    want = [_gemmlowp(int(a), int(b), int(s)) for a, b, s in zip(acc, m, shift, strict=True)]
+    assert got.tolist() == want
+    # Halves as gemmlowp rounds them (nudge 1 - 2^30 below 0): 1.5 -> 2, 0.5 -> 1, -1.5 -> -1, -0.5 -> 0
+    assert quantize_multiplier(0.5) == (2**30, 0)
+    halves = requantize(np.array([3, 1, -3, -1]), np.full(4, 2**30), np.zeros(4, np.int64))
+    assert halves.tolist() == [2, 1, -1, 0]
+    assert quantize_multiplier(2.0**-33) is None and quantize_multiplier(2.0**31) is None
+    assert quantize_multiplier(0.0) is None and quantize_multiplier(float("nan")) is None
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    st.lists(st.integers(1, 40), min_size=2, max_size=5).flatmap(
+        lambda w: st.tuples(
+            st.just(w), st.sampled_from(["Tanh", "Identity", "Sigmoid"]), st.integers(0, 2**31 - 1)
+        )
+    )
+)
+def test_generated_int8_full_c_equals_the_integer_model_bit_for_bit(spec: tuple[list[int], str, int]) -> None:
+    widths, last, seed = spec
+    acts = ["Relu"] * (len(widths) - 2) + [last]
+    model = mlp_model(widths, acts, seed)
+    rng = np.random.default_rng(seed)
+    calibration = rng.normal(scale=2.0, size=(300, widths[0])).astype(np.float32)
+    x = rng.normal(scale=3.0, size=(2000, widths[0])).astype(np.float32)  # wider than calibrated: saturation
+    with tempfile.TemporaryDirectory() as tmp:
+        policy, section = _compile_int8_full(model, calibration, Path(tmp))
+        got, codes = policy.batch(x)
+        assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
+    assert not codes.any()
+    assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x, section)) == 0
+
+
+def test_int8_full_is_close_to_float_within_the_calibrated_range() -> None:
+    import onnxruntime as ort
+
+    model = mlp_model([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    x = np.random.default_rng(0).uniform(-2, 2, size=(2000, 6)).astype(np.float32)
+    section = full_integer.plan(to_ir(model), x)
+    float_out = ort.InferenceSession(model.SerializeToString()).run(None, {"x": x})[0]
+    error = np.abs(quantize.evaluate(to_ir(model), x, section) - float_out)
+    assert np.max(error) < 0.05 and np.mean(error) < 0.01
+    hidden = section.layers[0]
+    assert hidden.relu and hidden.out_zero == -128  # a ReLU output's range starts at 0: all 256 codes used
+
+
+@pytest.mark.parametrize(
+    ("bias", "why"),
+    [
+        (0.0, "requantisation scale .* cannot be represented"),
+        (0.1, "its bias .* do not fit an int32 accumulator"),
+    ],
+)
+def test_int8_full_refuses_a_scale_it_cannot_represent_naming_the_layer(bias: float, why: str) -> None:
+    model = mlp_model([4, 8, 2], ["Relu", "Tanh"], 0)
+    inits = {t.name: t for t in model.graph.initializer}
+    w, b = (onnx.numpy_helper.to_array(inits[name]).copy() for name in ("W0", "b0"))
+    w[3] *= np.float32(1e-20)  # output 3's weights 1e20 x smaller than the others' (Gemm, transB=1)
+    b[3] = bias
+    for name, array in (("W0", w), ("b0", b)):
+        inits[name].CopyFrom(onnx.numpy_helper.from_array(array, name))
+    graph = to_ir(model)
+    calibration = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
+    with pytest.raises(
+        UnrepresentableRangeError, match=rf"^int8-full: layer '{graph.nodes[0].name}' output 3: {why}"
+    ):
+        full_integer.plan(graph, calibration)
+
+
+def test_int8_full_rejects_layers_joined_by_anything_but_relu() -> None:
+    model = mlp_model([4, 8, 2], ["Sigmoid", "Tanh"], 0)
+    with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* not supported with int8-full"):
+        full_integer.plan(to_ir(model), np.zeros((4, 4), np.float32))

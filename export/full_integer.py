@@ -1,0 +1,236 @@
+"""``--quantize int8-full``: full-integer int8 for the MLP chain, and its exact Python model.
+
+The chain of Gemm/MatMul layers (with ReLU between them, see :func:`embedrl.export.fixed_point.chain`) runs
+in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
+
+- activations are int8 with a scale and a zero point per tensor, from the range the float64 graph reaches on
+  the calibration observations (the export's verification observations; 0 always inside the range);
+- weights are int8, symmetric per output channel (``s_w[n] = max|w[n]| / 127``);
+- each output sums ``q_x[k] * q_w[n][k]`` into an int32 that starts at the bias in accumulator units
+  (``s_x s_w[n]``) with the input's zero point folded in (``- zp_x * sum_k q_w[n][k]``, done at generation);
+- a hidden layer requantises by the fixed-point multiplier and shift of ``s_x s_w[n] / s_out``
+  (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT), adds the output zero point and
+  clamps to int8: the clamp's lower end is the ReLU;
+- the last layer's int32 sums become float (``(float)acc * s_x s_w[n]``) for the output non-linearity
+  (deterministic tanh, see :mod:`embedrl.export.quantize`) and the action post-processing, in float.
+
+Only the edges are float: the section's input is checked finite (else the safe action), scaled, offset by the
+zero point, clamped and rounded into int8 once. Integer sums are exact in any order, so the portable C (a dot
+product per output) and the Cortex-M4/M7 DSP loop (``__sxtb16`` + ``__smlad``, two multiply-adds per
+instruction) give the bits of the int64 NumPy model here. A layer whose scales the encoding cannot hold (a
+multiplier exponent outside [-31, 30], a bias or a sum beyond int32) is refused, naming the layer.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from embedrl.export import interpret
+from embedrl.export.errors import UnrepresentableRangeError, UnsupportedOpError
+from embedrl.export.fixed_point import chain
+from embedrl.export.ir import Graph
+from embedrl.export.ops import EMITTERS
+from embedrl.export.ops.base import EmitContext, c_float
+from embedrl.export.ops.linear import (
+    INT8_MAX,
+    INT8_MIN,
+    INT32_MAX,
+    SHIFT_RANGE,
+    WORD,
+    Int8Layer,
+    padded,
+    quantize_multiplier,
+)
+
+F = np.float32
+SCHEME = "int8-full"
+
+
+@dataclass(frozen=True)
+class Activation:
+    """An int8 tensor's quantisation: ``real = scale * (q - zero)``."""
+
+    scale: float
+    zero: int
+
+
+def activation_for(values: np.ndarray) -> Activation:
+    """Scale and zero point covering the calibrated values and 0 (so a zero and the ReLU are exact)."""
+    lo = min(0.0, float(np.min(values))) if values.size else 0.0
+    hi = max(0.0, float(np.max(values))) if values.size else 0.0
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi - lo <= 0:
+        return Activation(1.0, 0)
+    scale = (hi - lo) / (INT8_MAX - INT8_MIN)
+    zero = int(np.clip(round(INT8_MIN - lo / scale), INT8_MIN, INT8_MAX))
+    return Activation(scale, zero)
+
+
+@dataclass(frozen=True)
+class IntegerSection:
+    """The integer part of the graph: from ``input`` (float, quantised on entry) to ``output`` (float)."""
+
+    input: str
+    output: str
+    quant: Activation
+    """The input's quantisation."""
+    layers: tuple[Int8Layer, ...]
+    nodes: frozenset[str]
+    """Names of the IR nodes the section replaces."""
+    first_node: str
+
+    def run(self, x: np.ndarray) -> np.ndarray:
+        """The section on a batch of float32 inputs: int64 model, float32 output."""
+        q = quantize_input(x, self.quant)
+        for layer in self.layers[:-1]:
+            q = layer.reference(q)
+        return np.asarray(self.layers[-1].reference(q), dtype=F)
+
+    def widths(self) -> list[int]:
+        """The int8 input width of every layer."""
+        return [int(layer.weights.shape[1]) for layer in self.layers]
+
+    def outputs(self) -> int:
+        """The widest layer output (the DSP loop's sums)."""
+        return max(int(layer.weights.shape[0]) for layer in self.layers)
+
+    def buffer_sizes(self) -> list[int]:
+        """The ping-pong int8 buffers (whole words): even layers read the first, odd ones the second."""
+        widths = [padded(w) for w in self.widths()]
+        return [max(widths[0::2])] + ([max(widths[1::2])] if len(widths) > 1 else [])
+
+    def ram_bytes(self) -> int:
+        """RAM of the int8 buffers and, on DSP cores, of the input's int16 pairs and a layer's sums."""
+        pairs = max(padded(w) for w in self.widths()) // WORD
+        return sum(self.buffer_sizes()) + 2 * 4 * pairs + 4 * self.outputs()
+
+    def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
+        """The section's C and the declarations of its buffers (and of the DSP switch)."""
+        p, up = ctx.prefix, ctx.prefix.upper()
+        qbufs = [f"{p}_q0", f"{p}_q1"]
+        pairs = max(padded(w) for w in self.widths()) // WORD
+        decls = [
+            f"/* The DSP loop on cores with the ACLE SIMD32 intrinsics (Cortex-M4, M7); -D{up}_PORTABLE: the",
+            " * portable loop. Both give the same bits (integer sums). */",
+            f"#if defined(__ARM_FEATURE_DSP) && defined(__ARM_FEATURE_SIMD32) && !defined({up}_PORTABLE)",
+            "#include <arm_acle.h>",
+            f"#define {up}_DSP 1",
+            f"static int32_t {p}_xe[{pairs}]; /* even bytes of the layer input, as int16 pairs */",
+            f"static int32_t {p}_xo[{pairs}]; /* odd bytes */",
+            f"static int32_t {p}_acc[{self.outputs()}]; /* a layer's sums */",
+            "#else",
+            f"#define {up}_DSP 0",
+            "#endif",
+            *(f"static int8_t {buf}[{size}];" for buf, size in zip(qbufs, self.buffer_sizes(), strict=False)),
+        ]
+        src_ref, out_ref = ctx.ref(self.input), ctx.ref(self.output)
+        inverse, zero = c_float(float(F(1.0) / F(self.quant.scale))), c_float(float(self.quant.zero))
+        lines = [
+            f"/* full-integer int8: {len(self.layers)} layer(s); input scale {self.quant.scale:.9g}, "
+            f"zero point {self.quant.zero} */",
+            f"for (int i = 0; i < {self.widths()[0]}; ++i) {{",
+            f"    if (!{p}_finite({src_ref}[i])) {{",
+            f"        return {p}_safe(act, {up}_ERR_ACT_NOT_FINITE); /* never converted to an integer */",
+            "    }",
+            f"    float v = {src_ref}[i] * {inverse};",
+            f"    v = v + {zero};",
+            "    v = v > 127.0f ? 127.0f : (v < -128.0f ? -128.0f : v);",
+            "    v = v + 0.5f;",
+            "    int32_t q = (int32_t)v;",
+            "    if ((float)q > v) {",
+            "        q -= 1; /* floor: round half up */",
+            "    }",
+            f"    {qbufs[0]}[i] = (int8_t)q;",
+            "}",
+        ]
+        for j, layer in enumerate(self.layers):
+            last = j == len(self.layers) - 1
+            dst = out_ref if last else qbufs[(j + 1) % 2]
+            lines += layer.c_lines(ctx, qbufs[j % 2], dst, f"{p}_xe", f"{p}_xo")
+        return lines, decls
+
+
+def quantize_input(x: np.ndarray, quant: Activation) -> np.ndarray:
+    """float32 -> int8 as the C does it: times the inverse scale, plus the zero point, clamp, round half
+    up."""
+    inverse, zero = F(1.0) / F(quant.scale), F(quant.zero)
+    v = (np.asarray(x, F) * inverse).astype(F)
+    v = (v + zero).astype(F)
+    v = np.where(v > F(INT8_MAX), F(INT8_MAX), np.where(v < F(INT8_MIN), F(INT8_MIN), v)).astype(F)
+    return np.floor((v + F(0.5)).astype(F)).astype(np.int64)
+
+
+def plan(graph: Graph, calibration: np.ndarray) -> IntegerSection:
+    """Find the Gemm chain, calibrate its activations on ``calibration`` observations, quantise it; refuse a
+    layer whose scales do not fit the encoding (:class:`UnrepresentableRangeError`, naming it)."""
+    inner = chain(graph, SCHEME)
+    values = interpret.run(graph, calibration, "float64")
+    section_input = inner[0].inputs[0]
+    quant = activation_for(values[section_input])
+    in_quant = quant
+    nodes = [n for n in inner if n.op != "Relu"]
+    layers = []
+    for j, node in enumerate(nodes):
+        affine = EMITTERS[node.op].affine(node, graph.constants)
+        if affine.alpha != 1.0 or affine.beta != 1.0:
+            raise UnsupportedOpError(
+                f"Gemm node '{node.name}': alpha/beta != 1 are not supported with {SCHEME}"
+            )
+        w = affine.weights  # output-major [N][K]
+        peak = np.max(np.abs(w), axis=1)
+        w_scale = np.where(peak > 0, peak / INT8_MAX, 1.0)
+        w_q = np.clip(np.rint(w / w_scale[:, None]), -INT8_MAX, INT8_MAX).astype(np.int64)
+        acc_scale = in_quant.scale * w_scale
+        bias = np.zeros(w.shape[0]) if affine.bias is None else affine.bias
+        bias_acc = np.rint(bias / acc_scale)
+        _check_accumulator(node.name, bias_acc, w_q)
+        bias_q = bias_acc.astype(np.int64) - in_quant.zero * w_q.sum(axis=1)
+        consumers = [n for n in graph.nodes if node.outputs[0] in n.inputs]
+        last = j == len(nodes) - 1
+        relu = not last and consumers[0].op == "Relu"
+        if last:
+            none = np.zeros(0, np.int64)
+            layer = Int8Layer(
+                node.name, w_q.astype(np.int8), bias_q, none, none, 0, False, acc_scale.astype(F)
+            )
+        else:
+            out = activation_for(values[consumers[0].outputs[0] if relu else node.outputs[0]])
+            multiplier, shift = _multipliers(node.name, acc_scale / out.scale)
+            layer = Int8Layer(node.name, w_q.astype(np.int8), bias_q, multiplier, shift, out.zero, relu, None)
+            in_quant = out
+        layers.append(layer)
+    return IntegerSection(
+        section_input,
+        inner[-1].outputs[0],
+        quant,
+        tuple(layers),
+        frozenset(n.name for n in inner),
+        inner[0].name,
+    )
+
+
+def _check_accumulator(layer: str, bias_acc: np.ndarray, w_q: np.ndarray) -> None:
+    """The bias in accumulator units, and every sum from it, within int32 for any int8 input."""
+    worst = np.abs(bias_acc) + 128.0 * (np.abs(w_q).sum(axis=1) + np.abs(w_q.sum(axis=1)))
+    if not np.all(np.isfinite(bias_acc)) or np.any(worst > INT32_MAX):
+        n = int(np.argmax(np.where(np.isfinite(worst), worst, np.inf)))
+        raise UnrepresentableRangeError(
+            f"{SCHEME}: layer '{layer}' output {n}: its bias ({bias_acc[n]:.3g} in accumulator units) "
+            "and sums do not fit an int32 accumulator at the calibrated input scale"
+        )
+
+
+def _multipliers(layer: str, real: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each channel's requantisation scale as a Q31 multiplier and a shift, or the one-line refusal."""
+    encoded = []
+    for n, r in enumerate(real):
+        pair = quantize_multiplier(float(r))
+        if pair is None:
+            raise UnrepresentableRangeError(
+                f"{SCHEME}: layer '{layer}' output {n}: requantisation scale {float(r):.3g} cannot be "
+                f"represented (a Q31 multiplier with a shift in [{SHIFT_RANGE[0]}, {SHIFT_RANGE[1]}])"
+            )
+        encoded.append(pair)
+    return np.array([m for m, _ in encoded], np.int64), np.array([s for _, s in encoded], np.int64)
