@@ -9,6 +9,16 @@ made from; where a file records its parent's hash itself (the C's header names t
 metadata the model's, a shipped policy's record the model's, a HIL report the export's files), the check
 reads that too.
 
+The export folder is a bundle that travels: every path is relative to it. A file that lives outside it
+(the source model, its normalisation statistics, a HIL report written elsewhere) is a link by digest only:
+its bytes are not in the bundle, so its hash is not recomputed, but the files that record it (the C's
+header, the run record) are checked against it. The run configuration is copied into ``provenance/``.
+
+The manifest is an in-toto Statement (https://in-toto.io/Statement/v1): its ``subject`` is every file of
+the bundle with its SHA-256, its predicate the links and the steps that made them (each step's tool,
+command, inputs and outputs), so supply-chain tools read it as it is. :mod:`embedrl.export.signature`
+signs it.
+
 :func:`verify` recomputes every hash and names the first link that no longer matches.
 """
 
@@ -22,14 +32,22 @@ import re
 import secrets
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from embedrl.common import read_json, sha256
 from embedrl.export.errors import ExportError
 
 MANIFEST = "chain.json"
-FORMAT = 1
+STATEMENT_TYPE = "https://in-toto.io/Statement/v1"
+PREDICATE_TYPE = "https://embedrl.dev/traceability-chain/v2"
+"""What the predicate holds: ``links`` (this module's :class:`Link`) and ``steps`` (:class:`Step`)."""
+OLD_FORMAT = 1
+"""The manifest before it was an in-toto Statement: ``{"format": 1, "links": [...]}``, absolute paths for
+files outside the export; still read (those links become digest-only) and rewritten as a Statement by
+the next append."""
+PROVENANCE = "provenance"
+"""The bundle's folder for copies of what the export was made from (the run configuration)."""
 
 
 class ChainError(ExportError):
@@ -40,11 +58,26 @@ class ChainError(ExportError):
 class Link:
     name: str
     path: str
-    """Relative to the export folder when inside it, else absolute."""
+    """Relative to the export folder (``/``-separated); for a link outside it, the file's name only."""
     sha256: str
     made_from: list[str] = field(default_factory=list)
     facts: dict[str, Any] = field(default_factory=dict)
     """What the link states about itself (a run's seed, a report's verdict)."""
+    in_bundle: bool = True
+    """False for a file outside the export folder: its digest is recorded, its bytes are not there."""
+
+
+@dataclass(frozen=True)
+class Step:
+    """One command that made links: its tool, its command line, the links it read and the links it wrote."""
+
+    name: str
+    tool: str
+    command: list[str]
+    inputs: list[str]
+    """Link names."""
+    outputs: list[str]
+    """Link names."""
 
 
 @dataclass(frozen=True)
@@ -77,17 +110,45 @@ def seed_of(config: Path) -> int | None:
 
 
 def link(export_dir: Path, name: str, path: Path, made_from: list[str], **facts: Any) -> Link:
-    """A link to ``path`` as it is now."""
+    """A link to ``path`` as it is now: by its path in the bundle, or by digest only if it lies outside."""
     path = path.resolve()
     root = export_dir.resolve()
-    shown = str(path.relative_to(root)) if path.is_relative_to(root) else str(path)
-    return Link(name, shown, sha256(path), made_from, facts)
+    if path.is_relative_to(root):
+        return Link(name, path.relative_to(root).as_posix(), sha256(path), made_from, facts)
+    return Link(name, path.name, sha256(path), made_from, facts, in_bundle=False)
 
 
-def write(export_dir: Path, links: list[Link]) -> Path:
+def statement(links: list[Link], steps: list[Step]) -> dict[str, Any]:
+    """The manifest's content: an in-toto Statement whose subjects are the bundle's files."""
+    by_name = {k.name: k for k in links}
+
+    def descriptor(k: Link) -> dict[str, Any]:
+        return {"name": k.path, "digest": {"sha256": k.sha256}, "annotations": {"link": k.name}}
+
+    return {
+        "_type": STATEMENT_TYPE,
+        "subject": [{"name": k.path, "digest": {"sha256": k.sha256}} for k in links if k.in_bundle],
+        "predicateType": PREDICATE_TYPE,
+        "predicate": {
+            "links": [asdict(k) for k in links],
+            "steps": [
+                {
+                    "name": s.name,
+                    "tool": s.tool,
+                    "command": s.command,
+                    "inputs": [descriptor(by_name[n]) for n in s.inputs if n in by_name],
+                    "outputs": [descriptor(by_name[n]) for n in s.outputs if n in by_name],
+                }
+                for s in steps
+            ],
+        },
+    }
+
+
+def write(export_dir: Path, links: list[Link], steps: list[Step]) -> Path:
     """Write the manifest atomically: a reader sees the old one or the new one, never a part of either."""
     manifest = export_dir / MANIFEST
-    data = {"format": FORMAT, "links": [asdict(k) for k in links]}
+    data = statement(links, steps)
     partial = export_dir / f".{MANIFEST}.{secrets.token_hex(6)}.partial"  # one per writer
     try:
         fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the user's umask applies
@@ -99,7 +160,19 @@ def write(export_dir: Path, links: list[Link]) -> Path:
     return manifest
 
 
+@dataclass(frozen=True)
+class Manifest:
+    links: list[Link]
+    steps: list[Step]
+    declared: dict[str, set[str]]
+    """Every digest the Statement's subjects and steps give each link (by name): each must be the link's."""
+
+
 def read(export_dir: Path) -> list[Link]:
+    return read_manifest(export_dir).links
+
+
+def read_manifest(export_dir: Path) -> Manifest:
     manifest = export_dir / MANIFEST
     if not export_dir.is_dir():
         raise ChainError(f"{export_dir}: no such folder")
@@ -107,26 +180,88 @@ def read(export_dir: Path) -> list[Link]:
         raise ChainError(f"{export_dir}: no {MANIFEST} (export it again with `embedrl export`)")
     try:
         data = read_json(manifest)
-        if data.get("format") != FORMAT:
-            raise ValueError(f"format {data.get('format')!r}, expected {FORMAT}")
-        links = [_link_of(entry) for entry in data["links"]]
-        if not links:
+        if not isinstance(data, dict):
+            raise ValueError(f"a {type(data).__name__}, not an object")
+        if data.get("format") == OLD_FORMAT:
+            links = [_migrated(_link_of(entry, old=True)) for entry in data["links"]]
+            result = Manifest(links, [], {})
+        else:
+            result = _from_statement(data)
+        if not result.links:
             raise ValueError("no links")
-        return links
+        names = [k.name for k in result.links]
+        if len(set(names)) != len(names):
+            raise ValueError("two links of one name")
+        return result
     except (ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ChainError(f"{manifest}: not a chain manifest ({exc})") from None
+
+
+def _from_statement(data: dict[str, Any]) -> Manifest:
+    if data.get("_type") != STATEMENT_TYPE or data.get("predicateType") != PREDICATE_TYPE:
+        raise ValueError(
+            f"_type {data.get('_type')!r} and predicateType {data.get('predicateType')!r}, expected "
+            f"{STATEMENT_TYPE} and {PREDICATE_TYPE}"
+        )
+    predicate = data["predicate"]
+    links = [_link_of(entry) for entry in predicate["links"]]
+    if not links:
+        raise ValueError("no links")
+    by_path = {k.path: k.name for k in links if k.in_bundle}
+    declared: dict[str, set[str]] = {}
+    for subject in data["subject"]:
+        name = by_path.get(subject["name"])
+        if name is None:
+            raise ValueError(f"subject {subject['name']!r} is no link's file")
+        declared.setdefault(name, set()).add(_digest_of(subject))
+    steps = []
+    for entry in predicate["steps"]:
+        ends: dict[str, list[str]] = {"inputs": [], "outputs": []}
+        for end, names in ends.items():
+            for descriptor in entry[end]:
+                name = descriptor["annotations"]["link"]
+                declared.setdefault(name, set()).add(_digest_of(descriptor))
+                names.append(name)
+        step = Step(entry["name"], entry["tool"], entry["command"], ends["inputs"], ends["outputs"])
+        if not all(isinstance(v, str) for v in (step.name, step.tool, *step.command)):
+            raise ValueError(f"step {step.name!r}: its name, tool and command are not texts")
+        steps.append(step)
+    unknown = sorted(set(declared) - {k.name for k in links})
+    if unknown:
+        raise ValueError(f"a subject or step names {unknown[0]!r}, which is no link")
+    return Manifest(links, steps, declared)
+
+
+def _digest_of(descriptor: Any) -> str:
+    digest = descriptor["digest"]["sha256"]
+    if not isinstance(digest, str):
+        raise ValueError(f"{descriptor['name']!r}: digest {digest!r} is not a text")
+    return digest
+
+
+def _migrated(k: Link) -> Link:
+    """An old manifest's link: an absolute path (a file outside the export folder) becomes digest-only."""
+    if not Path(k.path).is_absolute():
+        return k
+    return Link(k.name, Path(k.path).name, k.sha256, k.made_from, k.facts, in_bundle=False)
 
 
 _DIGEST = re.compile(r"[0-9a-f]{64}")
 
 
-def _link_of(entry: Any) -> Link:
+def _link_of(entry: Any, old: bool = False) -> Link:
     """One entry of the manifest, each field of its type (the manifest is a file anyone can edit)."""
+    if not old and "in_bundle" not in entry:
+        raise TypeError("a link without in_bundle")
     k = Link(**entry)  # a field missing or unknown: TypeError
     if not isinstance(k.name, str) or not k.name:
         raise ValueError(f"a link's name is {k.name!r}, not a text")
     if not isinstance(k.path, str) or not k.path:
         raise ValueError(f"link {k.name!r}: path {k.path!r} is not a file's path")
+    if not isinstance(k.in_bundle, bool):
+        raise ValueError(f"link {k.name!r}: in_bundle {k.in_bundle!r} is not true or false")
+    if not old and not _inside(k.path):
+        raise ValueError(f"link {k.name!r}: path {k.path!r} is not a path inside the export folder")
     if not isinstance(k.sha256, str) or not _DIGEST.fullmatch(k.sha256):
         raise ValueError(f"link {k.name!r}: sha256 {k.sha256!r} is not a SHA-256 digest (64 hex digits)")
     if not isinstance(k.made_from, list) or not all(isinstance(m, str) for m in k.made_from):
@@ -136,13 +271,28 @@ def _link_of(entry: Any) -> Link:
     return k
 
 
-def append(export_dir: Path, new: Link) -> None:
-    """Add (or replace, by name) a link made on the export later, such as a HIL report. Appends from
-    several processes at once each keep their link: each reads, changes and replaces the manifest while
-    it holds the manifest's lock."""
+def _inside(path: str) -> bool:
+    """A relative ``/``-separated path that stays inside the folder it is relative to."""
+    parts = PurePosixPath(path).parts
+    return bool(parts) and not PurePosixPath(path).is_absolute() and ".." not in parts and "\\" not in path
+
+
+def append(export_dir: Path, new: Link, step: Step | None = None, replaces: tuple[str, ...] = ()) -> None:
+    """Add (or replace, by name) a link made on the export later, such as a HIL report, with the step that
+    made it; ``replaces`` names links the new one stands for (a digest-only link now in the bundle: the
+    steps that named it name the new one). Appends from several processes at once each keep their link:
+    each reads, changes and replaces the manifest while it holds the manifest's lock."""
     with _locked(export_dir):
-        links = [k for k in read(export_dir) if k.name != new.name]
-        write(export_dir, [*links, new])
+        manifest = read_manifest(export_dir)
+        gone = {new.name, *replaces}
+        links = [k for k in manifest.links if k.name not in gone]
+        steps = [
+            Step(s.name, s.tool, s.command, [new.name if n in gone else n for n in s.inputs],
+                 [new.name if n in gone else n for n in s.outputs])
+            for s in manifest.steps
+            if step is None or new.name not in s.outputs
+        ]  # fmt: skip
+        write(export_dir, [*links, new], [*steps, *([step] if step else [])])
 
 
 def check_appendable(export_dir: Path) -> None:
@@ -176,14 +326,25 @@ def _locked(export_dir: Path) -> Iterator[None]:
 
 
 def verify(export_dir: Path) -> list[Check]:
-    """Every link in order: its file's hash now against the manifest, then what it records of its parents."""
-    links = read(export_dir)
-    by_name = {k.name: k for k in links} | {f"file {k.path}": k for k in links}
-    return [_check(export_dir, k, by_name) for k in links]
+    """Every link in order: what the Statement's subjects and steps say of it, its file's hash now against
+    the manifest, then what it records of its parents."""
+    manifest = read_manifest(export_dir)
+    links = manifest.links
+    by_name = {k.name: k for k in links} | {f"file {k.path}": k for k in links if k.in_bundle}
+    return [_check(export_dir, k, by_name, manifest.declared.get(k.name, set())) for k in links]
 
 
-def _check(export_dir: Path, k: Link, by_name: dict[str, Link]) -> Check:
-    path = Path(k.path) if Path(k.path).is_absolute() else export_dir / k.path
+def _check(export_dir: Path, k: Link, by_name: dict[str, Link], declared: set[str]) -> Check:
+    other = sorted(declared - {k.sha256})
+    if other:
+        return Check(
+            k, False, f"{MANIFEST} gives {k.path} two digests: {other[0][:12]}... and {k.sha256[:12]}..."
+        )
+    if not k.in_bundle:
+        return Check(k, True, f"{k.path}: outside the bundle, digest only (sha256 {k.sha256[:12]}...)")
+    path = export_dir / k.path
+    if not path.resolve().is_relative_to(export_dir.resolve()):
+        return Check(k, False, f"{k.path} leads out of the export folder (a link to another file)")
     if not path.is_file():
         return Check(k, False, f"{k.path} is missing")
     now = sha256(path)

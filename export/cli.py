@@ -94,9 +94,11 @@ def _env_id(args: argparse.Namespace) -> str:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
+    from embedrl.export import chain, signature
     from embedrl.export.onnx_import import Limits
     from embedrl.export.pipeline import ExportOptions, run_export
 
+    key = signature.load_private_key(args.sign) if args.sign else None  # a bad key before any work
     opts = ExportOptions(
         source=args.source,
         out=args.out,
@@ -122,14 +124,21 @@ def cmd_export(args: argparse.Namespace) -> int:
     report = run_export(opts)
     _print_summary(report)
     kept = sorted(str(p.relative_to(args.out)) for p in (args.out / "bin").rglob("*") if p.is_file())
-    print(f"wrote {args.out}/ ({', '.join([*report['files'], *kept])}, export_report.json, chain.json)")
+    written = [*report["files"], *kept, "export_report.json", chain.MANIFEST]
+    if key is not None:
+        signature.sign(args.out, key)
+        written.append(signature.ENVELOPE)
+    print(f"wrote {args.out}/ ({', '.join(written)})")
     return 0
 
 
 def cmd_verify_chain(args: argparse.Namespace) -> int:
-    """Exit 0 when every link matches, 1 at the first that does not (named), 2 without a manifest."""
-    from embedrl.export import chain
+    """Exit 0 when every link matches and the signature is valid or absent (and no key was given), 1 at the
+    first link that does not match (named) or a signature that does not hold, 2 without a manifest or with a
+    bad key file."""
+    from embedrl.export import chain, signature
 
+    public_key = signature.load_public_key(args.key) if args.key else None
     checks = chain.verify(args.export_dir)
     for number, check in enumerate(checks, 1):
         if args.verbose or not check.ok:
@@ -137,8 +146,14 @@ def cmd_verify_chain(args: argparse.Namespace) -> int:
             print(f"{state} link {number}/{len(checks)} {check.link.name}: {check.detail}")
         if not check.ok:
             return 1
-    print(f"chain intact: {len(checks)} links, from {checks[0].link.name} to {checks[-1].link.name}")
-    return 0
+    outside = sum(not c.link.in_bundle for c in checks)
+    print(
+        f"chain intact: {len(checks)} links, from {checks[0].link.name} to {checks[-1].link.name}"
+        + (f" ({outside} outside the bundle, digest only)" if outside else "")
+    )
+    signed = signature.check(args.export_dir, public_key)
+    print(f"{'FAIL ' if not signed.passed else ''}signature: {signed.detail}")
+    return 0 if signed.passed else 1
 
 
 def _print_summary(report: dict[str, Any]) -> None:
@@ -292,6 +307,11 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
     p.add_argument(
+        "--sign", type=Path, metavar="PRIVATE.pem",
+        help="sign the traceability chain with this Ed25519 private key (PEM, `openssl genpkey -algorithm "
+        "ed25519`): chain.dsse.json",
+    )  # fmt: skip
+    p.add_argument(
         "--tolerance",
         type=_tolerance,
         default=1e-5,
@@ -329,6 +349,10 @@ def register(sub: Any) -> None:
     )
     add_export_dir_argument(p, "an `embedrl export` folder (with chain.json)")
     p.add_argument("--verbose", action="store_true", help="one line per link")
+    p.add_argument(
+        "--key", type=Path, metavar="PUBLIC.pem",
+        help="check the chain's signature with this Ed25519 public key (PEM); an unsigned export then fails",
+    )  # fmt: skip
     p.set_defaults(func=cmd_verify_chain)
 
     _register_benchmarks(sub)

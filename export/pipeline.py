@@ -326,7 +326,8 @@ def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None])
         verified = _verify(loaded, lowered, generated, built, staging, opts, log)
         _keep_binaries(built.build_dir, staging, opts.targets)
     report = _write_report(loaded, lowered, built, verified, staging, opts)
-    chain.write(staging, _chain_links(staging, loaded, opts))
+    links = _chain_links(staging, loaded, opts)
+    chain.write(staging, links, [_export_step(links)])
     return report
 
 
@@ -347,8 +348,11 @@ def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[cha
     """The export's traceability chain (:mod:`embedrl.export.chain`), from the run to the report."""
     links = []
     config = chain.run_config_of(opts.source) if opts.source.suffix.lower() == ".zip" else None
-    if config is not None:
-        links.append(chain.link(staging, "run config", config, [], seed=chain.seed_of(config)))
+    if config is not None:  # small and part of the evidence (the seed): copied into the bundle
+        copy = staging / chain.PROVENANCE / config.name
+        copy.parent.mkdir()
+        shutil.copyfile(config, copy)
+        links.append(chain.link(staging, "run config", copy, [], seed=chain.seed_of(copy)))
     links.append(chain.link(staging, "model", opts.source, ["run config"] if config else []))
     if loaded.vecnormalize is not None:
         links.append(chain.link(staging, "normalisation statistics", loaded.vecnormalize, ["run config"]))
@@ -368,6 +372,13 @@ def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[cha
     binaries = [k.name for k in links if k.name.startswith(("binary", "test data"))]
     links.append(chain.link(staging, "verification report", staging / "export_report.json", binaries))
     return links
+
+
+def _export_step(links: list[chain.Link]) -> chain.Step:
+    """The export as a step of the chain: what it read (the run's files) and what it wrote."""
+    inputs = [k.name for k in links if k.name in ("run config", "model", "normalisation statistics")]
+    outputs = [k.name for k in links if k.name not in inputs]
+    return chain.Step("export", f"embedrl {tool_version()}", list(provenance()["command"]), inputs, outputs)
 
 
 def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loaded:

@@ -21,7 +21,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from embedrl.common import table, write_json
     from embedrl.export import chain
     from embedrl.hil.options import RunOptions
-    from embedrl.hil.run import add_to_chain, run
+    from embedrl.hil.run import add_to_chain, in_bundle, run
     from embedrl.hil.verdict import summary_rows
 
     if args.json and (args.export_dir / chain.MANIFEST).is_file():
@@ -33,7 +33,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.json:
         write_json(data, args.json)
         if add_to_chain(args.export_dir, args.json, data):
-            written.append(f"{args.export_dir / 'chain.json'} (the report's link)")
+            kept = in_bundle(args.export_dir, args.json)
+            copy = f"{kept} (its copy in the bundle) and " if kept != args.json else ""
+            written.append(f"{copy}{args.export_dir / 'chain.json'} (the report's link)")
     if written:
         print(f"wrote {', '.join(written)}")
     return 0 if data["verdict"]["passed"] else 1
@@ -42,7 +44,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     from embedrl.hil import signoff
 
-    data = signoff.write(args.export_dir, args.hil, args.also, args.out)
+    data = signoff.write(args.export_dir, args.hil, args.also, args.out, args.sign, args.key)
     unexplained = len(data["coding_standard"]["unexplained"])
     intact = all(link["ok"] for link in data["chain"])
     print(
@@ -203,13 +205,23 @@ def _register_report(sub: Any) -> None:
     add_export_dir_argument(p, "an `embedrl export` folder")
     p.add_argument(
         "--hil", type=Path, action="append", default=[], metavar="REPORT.json",
-        help="a report of `embedrl hil run --json` on this export (repeatable: host node, firmware node)",
+        help="a report of `embedrl hil run --json` on this export (repeatable: host node, firmware node); "
+        "one outside the export folder is copied into its hil/ and joins the chain there",
     )  # fmt: skip
     p.add_argument(
         "--also", type=Path, action="append", default=[], metavar="EXPORT_DIR",
         help="another export of the same policy in another precision, for the error histograms (repeatable)",
     )  # fmt: skip
     p.add_argument("--out", type=Path, required=True, help="the HTML file to write")
+    p.add_argument(
+        "--sign", type=Path, metavar="PRIVATE.pem",
+        help="sign the export's chain (with the HIL reports gathered into it) with this Ed25519 private key "
+        "(PEM); only an intact chain is signed",
+    )  # fmt: skip
+    p.add_argument(
+        "--key", type=Path, metavar="PUBLIC.pem",
+        help="check the chain's signature with this Ed25519 public key (PEM) (default: --sign's)",
+    )  # fmt: skip
     p.set_defaults(func=cmd_report)
 
 

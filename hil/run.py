@@ -136,19 +136,57 @@ def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
 CHAINED_FILES = ("policy.onnx", "interface.json", "c/policy.c")
 
 
+HIL_FOLDER = "hil"
+"""Where a HIL report written outside the export folder is kept in it, so the bundle holds its evidence."""
+
+
+def in_bundle(export_dir: Path, report: Path) -> Path:
+    """The report's place in the bundle: itself if inside the export folder, else ``hil/<its name>``."""
+    inside = report.resolve().is_relative_to(export_dir.resolve())
+    return report if inside else export_dir / HIL_FOLDER / report.name
+
+
 def add_to_chain(export_dir: Path, report: Path, data: dict[str, Any]) -> bool:
-    """Append the written report to the export's traceability chain; False for an export without one."""
+    """Append the written report to the export's traceability chain, with the run as the step that made it;
+    a report written outside the export folder is copied into its ``hil/`` first (the bundle holds what
+    its chain names). False for an export without a chain."""
     from embedrl.export import chain
 
     if not (export_dir / chain.MANIFEST).is_file():
         return False
+    place = in_bundle(export_dir, report)
+    if place != report:
+        place.parent.mkdir(exist_ok=True)
+        partial = place.with_name(f".{place.name}.partial")
+        shutil.copyfile(report, partial)
+        os.replace(partial, place)
+    link_report(export_dir, place, data, made_by="hil run")
+    return True
+
+
+def link_report(export_dir: Path, report: Path, data: dict[str, Any], made_by: str | None = None) -> None:
+    """Put the chain's link of a HIL report in the bundle (named by its path there), with the step
+    ``made_by`` (this process's command) that made it; the link stands for a link of the same bytes by
+    digest only (an older manifest's report outside the folder)."""
+    from embedrl.common import provenance
+    from embedrl.export import chain
+    from embedrl.export.pipeline import tool_version
+
     facts = {"passed": data["verdict"]["passed"], "node": data["node"], "target": data["target"],
              "episodes": data["episodes"], "node_binary_sha256": data.get("node_binary_sha256")}  # fmt: skip
     made_from = ["interface", "C source policy.c", "C source policy.h"]
-    chain.append(
-        export_dir, chain.link(export_dir, f"HIL report {report.resolve()}", report, made_from, **facts)
+    found = chain.link(export_dir, "HIL report", report, made_from, **facts)
+    new = replace(found, name=f"HIL report {found.path}")
+    replaces = tuple(
+        k.name
+        for k in chain.read(export_dir)
+        if k.name.startswith("HIL report") and not k.in_bundle and k.sha256 == new.sha256
     )
-    return True
+    step = None
+    if made_by is not None:
+        step = chain.Step(made_by, f"embedrl {tool_version()}", list(provenance()["command"]), made_from,
+                          [new.name])  # fmt: skip
+    chain.append(export_dir, new, step, replaces)
 
 
 def onnx_of(export_dir: Path) -> Path:

@@ -414,7 +414,11 @@ def _damaged_hil(tmp: Path, export: Path, edit: Callable[[dict[str, Any]], objec
 
 
 def _link(field: str, value: object) -> Callable[[Any], object]:
-    return lambda data: data["links"][2].update({field: value})
+    return lambda data: data["predicate"]["links"][2].update({field: value})
+
+
+def _no_links(data: Any) -> None:
+    data["predicate"]["links"] = []
 
 
 def _chain_row(edit: Callable[[Any], object]) -> Callable[[Path, Path], list[str]]:
@@ -454,7 +458,7 @@ def also_another_policy(tmp: Path, export: Path) -> list[str]:
 
 
 EXPORT_ROWS: dict[str, tuple[Callable[[Path, Path], list[str]], str]] = {
-    "verify-chain of a chain without links": (_chain_row(lambda d: d.update(links=[])), "(no links)"),
+    "verify-chain of a chain without links": (_chain_row(_no_links), "(no links)"),
     "verify-chain of a number for a digest": (_chain_row(_link("sha256", 5)), "sha256 5 is not a SHA-256"),
     "verify-chain of a number for a path": (_chain_row(_link("path", 5)), "path 5 is not a file's path"),
     "report of an export whose node.elf is no ELF": (non_elf_node, "node.elf: not an ELF image"),

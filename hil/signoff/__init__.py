@@ -10,9 +10,12 @@ from typing import Any
 from embedrl.hil.errors import HilError
 
 
-def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[str, Any]:
-    """Every fact the page shows (its JSON form); bad inputs are refused before any work."""
-    from embedrl.export import chain
+def gather(
+    export_dir: Path, hil_reports: list[Path], also: list[Path], public_key: Any = None
+) -> dict[str, Any]:
+    """Every fact the page shows (its JSON form); bad inputs are refused before any work. The signature is
+    checked against ``public_key`` if given."""
+    from embedrl.export import chain, signature
     from embedrl.hil import misra
     from embedrl.hil.signoff import checks, facts
 
@@ -20,7 +23,7 @@ def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[
     others = [(d, facts.load_export(d)) for d in also]
     for folder in also:
         facts.check_same_policy(export_dir, folder)
-    hils = [(p.name, facts.load_hil(p, export_dir)) for p in hil_reports]
+    hils = [(_shown(p, export_dir), facts.load_hil(p, export_dir)) for p in hil_reports]
     try:
         links = chain.verify(export_dir)
     except chain.ChainError as exc:
@@ -38,6 +41,7 @@ def gather(export_dir: Path, hil_reports: list[Path], also: list[Path]) -> dict[
         "coding_standard": misra.check(export_dir).to_json(),
         "warnings": export["compiler"]["command"],
         "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
+        "signature": signature.check(export_dir, public_key).to_json(),
     }
     gathered["verdict"] = checks.verdict(gathered, hils)
     return gathered
@@ -74,11 +78,40 @@ def render(data: dict[str, Any]) -> str:
     return page.page(title, intro, body, sections.verdict(data))
 
 
-def write(export_dir: Path, hil_reports: list[Path], also: list[Path], out: Path) -> dict[str, Any]:
-    """Gather, render and write the page atomically; the facts, for the caller's summary."""
-    from embedrl.common import atomic_write
+def _shown(report: Path, export_dir: Path) -> str:
+    """A HIL report's name on the page: its path in the bundle (else its file name)."""
+    resolved, root = report.resolve(), export_dir.resolve()
+    return resolved.relative_to(root).as_posix() if resolved.is_relative_to(root) else report.name
 
-    data = gather(export_dir, hil_reports, also)
+
+def write(
+    export_dir: Path,
+    hil_reports: list[Path],
+    also: list[Path],
+    out: Path,
+    sign: Path | None = None,
+    key: Path | None = None,
+) -> dict[str, Any]:
+    """Gather the HIL reports into the bundle, sign its chain with the private key ``sign`` if given (when
+    the chain is intact), gather, render and write the page atomically; the facts, for the caller's summary.
+    The signature is checked against the public key ``key`` (else ``sign``'s)."""
+    from embedrl.common import atomic_write
+    from embedrl.export import chain, signature
+    from embedrl.hil.signoff import bundle, facts
+
+    private = signature.load_private_key(sign) if sign else None  # bad keys before any work
+    public = signature.load_public_key(key) if key else private.public_key() if private else None
+    for report in hil_reports:
+        facts.load_hil(report, export_dir)
+    hil_reports = bundle.gather(export_dir, hil_reports)
+    if private is not None:
+        try:
+            intact = all(c.ok for c in chain.verify(export_dir))
+        except chain.ChainError as exc:
+            raise HilError(str(exc)) from None
+        if intact:
+            signature.sign(export_dir, private)
+    data = gather(export_dir, hil_reports, also, public)
     html = render(data)
     atomic_write(out, lambda tmp: tmp.write_text(html))
     return data

@@ -15,15 +15,18 @@ def verdict(data: dict[str, Any], hils: list[tuple[str, dict[str, Any]]]) -> dic
     unexplained = len(data["coding_standard"]["unexplained"])
     checks.append(_row("MISRA C:2012", unexplained == 0, f"{unexplained} finding(s) without a deviation"))
     broken = [c for c in data["chain"] if not c["ok"]]
+    outside = [c["name"] for c in data["chain"] if not c["in_bundle"]]
     checks.append(
         _row(
             "traceability chain",
             not broken,
             f"{len(data['chain'])} links intact"
+            + (f" ({', '.join(outside)}: outside the bundle, digest only)" if outside else "")
             if not broken
             else f"{len(broken)} link(s) broken, first: {broken[0]['name']}: {broken[0]['detail']}",
         )
     )
+    checks.append(_row("signature", data["signature"]["passed"], data["signature"]["detail"]))
     return {"passed": all(c["passed"] for c in checks), "checks": checks}
 
 

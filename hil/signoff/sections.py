@@ -202,10 +202,14 @@ def _rule_order(rule: str) -> tuple[int, ...]:
     return tuple(int(p) for p in parts) if all(p.isdigit() for p in parts) else (999,)
 
 
+OUTSIDE = " (outside the bundle, digest only)"
+
+
 def traceability(facts: dict[str, Any]) -> str:
     rows = [
-        [cell(n), cell(c["name"]), cell(c["path"]), cell(c["sha256"][:16] + "..."),
-         cell(", ".join(c["made_from"]) or "-"), cell(c["ok"], f"chain-link-{n}")]
+        [cell(n), cell(c["name"]), cell(c["path"] + ("" if c["in_bundle"] else OUTSIDE)),
+         cell(c["sha256"][:16] + "..."), cell(", ".join(c["made_from"]) or "-"),
+         cell(c["ok"], f"chain-link-{n}")]
         for n, c in enumerate(facts["chain"], 1)
     ]  # fmt: skip
     intact = all(c["ok"] for c in facts["chain"])
@@ -213,6 +217,8 @@ def traceability(facts: dict[str, Any]) -> str:
         f"<p>Every link hashed (SHA-256), from the run to each report; <code>embedrl verify-chain "
         f"{escape(facts['export_dir'])}</code> recomputes them. Chain "
         f'<span class="{"ok" if intact else "fail"}" data-key="chain-intact">'
-        f"{'intact' if intact else 'BROKEN'}</span>.</p>"
+        f"{'intact' if intact else 'BROKEN'}</span>; signature: "
+        f'<span class="{"ok" if facts["signature"]["passed"] else "fail"}" data-key="signature">'
+        f"{escape(facts['signature']['detail'])}</span>.</p>"
         + table(["#", "link", "file", "sha256", "made from", "matches"], rows)
     )

@@ -7,6 +7,7 @@ import json
 import multiprocessing
 import shutil
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -16,11 +17,13 @@ from embedrl.cli import main
 from embedrl.common import sha256
 from embedrl.export import chain
 from embedrl.hil.run import add_to_chain
+from tests.conftest import marks_its_users
 
 SHIPPED = Path(__file__).resolve().parents[2] / "policies" / "static"
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("qemu")  # the export runs the M4 firmware on QEMU
 def traced(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A shipped policy (model and record) copied into a folder of its own, exported for the M4."""
     root = tmp_path_factory.mktemp("chain")
@@ -34,11 +37,9 @@ def traced(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _copy(traced: Path, tmp_path: Path) -> Path:
-    """The policy folder and the export, with the manifest's absolute paths moved along."""
-    shutil.copytree(traced, tmp_path / "t")
-    manifest = tmp_path / "t" / "export" / chain.MANIFEST
-    manifest.write_text(manifest.read_text().replace(str(traced), str(tmp_path / "t")))
-    return tmp_path / "t" / "export"
+    """A copy of the export folder alone: the bundle travels without the policy it was made from."""
+    shutil.copytree(traced / "export", tmp_path / "export")
+    return tmp_path / "export"
 
 
 def _flip_one_byte(path: Path) -> None:
@@ -61,8 +62,83 @@ def test_the_export_records_every_link_from_the_run_to_the_report(
     assert links[1].sha256 == json.loads((traced / "policy" / "td3.json").read_text())["sha256"]
     assert main(["verify-chain", str(traced / "export"), "--verbose"]) == 0
     out = capsys.readouterr().out.splitlines()
-    assert len(out) == len(links) + 1 and all(line.startswith("ok ") for line in out[:-1])
-    assert out[-1] == f"chain intact: {len(links)} links, from run config to verification report"
+    assert len(out) == len(links) + 2 and all(line.startswith("ok ") for line in out[:-2])
+    assert out[-2] == (
+        f"chain intact: {len(links)} links, from run config to verification report (1 outside the bundle, "
+        "digest only)"
+    )
+    assert out[-1] == "signature: unsigned (no chain.dsse.json)"
+
+
+def test_every_path_is_in_the_bundle_and_the_manifest_is_an_in_toto_statement(traced: Path) -> None:
+    """The run configuration is copied into provenance/; the model is named by its digest only."""
+    export = traced / "export"
+    text = (export / chain.MANIFEST).read_text()
+    assert str(traced) not in text
+    data = json.loads(text)
+    assert data["_type"] == "https://in-toto.io/Statement/v1"
+    assert data["predicateType"] == chain.PREDICATE_TYPE
+    links = {k.name: k for k in chain.read(export)}
+    assert links["run config"].path == "provenance/td3.json"
+    assert (export / "provenance" / "td3.json").read_bytes() == (traced / "policy" / "td3.json").read_bytes()
+    assert links["model"].path == "td3.zip" and not links["model"].in_bundle
+    subjects = {s["name"]: s["digest"]["sha256"] for s in data["subject"]}
+    assert subjects == {k.path: k.sha256 for k in links.values() if k.in_bundle}
+    [step] = data["predicate"]["steps"]
+    assert step["name"] == "export" and step["tool"].startswith("embedrl ")
+    assert isinstance(step["command"], list)
+    assert [i["name"] for i in step["inputs"]] == ["provenance/td3.json", "td3.zip"]
+    assert {o["name"]: o["digest"]["sha256"] for o in step["outputs"]} == {
+        k: v for k, v in subjects.items() if k != "provenance/td3.json"
+    }
+
+
+def test_a_moved_bundle_verifies(traced: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    export = _copy(traced, tmp_path / "first place")
+    moved = tmp_path / "elsewhere" / "bundle"
+    moved.parent.mkdir()
+    shutil.move(export, moved)
+    assert main(["verify-chain", str(moved)]) == 0
+    assert capsys.readouterr().out.startswith("chain intact: ")
+
+
+def test_a_subject_that_disagrees_with_its_link_is_named(
+    traced: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A tool reading the Statement's subjects sees the digests verify-chain checks, or verify-chain fails."""
+    export = _copy(traced, tmp_path)
+    manifest = export / chain.MANIFEST
+    data = json.loads(manifest.read_text())
+    data["subject"][1]["digest"]["sha256"] = "0" * 64
+    manifest.write_text(json.dumps(data))
+    assert main(["verify-chain", str(export)]) == 1
+    assert "chain.json gives policy.onnx two digests: 000000000000..." in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("path", ["/etc/hostname", "../export/policy.onnx", "c/../../x"])
+def test_a_path_out_of_the_bundle_is_refused(traced: Path, tmp_path: Path, path: str) -> None:
+    export = _copy(traced, tmp_path)
+    manifest = export / chain.MANIFEST
+    data = json.loads(manifest.read_text())
+    data["predicate"]["links"][2]["path"] = path
+    manifest.write_text(json.dumps(data))
+    with pytest.raises(chain.ChainError, match="is not a path inside the export folder"):
+        chain.verify(export)
+
+
+def test_a_manifest_of_the_old_format_is_read_with_its_outside_files_by_digest_only(
+    traced: Path, tmp_path: Path
+) -> None:
+    export = _copy(traced, tmp_path)
+    links = chain.read(export)
+    old = [
+        {k: v for k, v in asdict(link).items() if k != "in_bundle"}
+        | ({"path": str(traced / "policy" / link.path)} if not link.in_bundle else {})
+        for link in links
+    ]
+    (export / chain.MANIFEST).write_text(json.dumps({"format": 1, "links": old}))
+    assert chain.read(export) == links
+    assert all(c.ok for c in chain.verify(export))
 
 
 def test_a_one_byte_change_in_any_link_is_named(
@@ -70,9 +146,10 @@ def test_a_one_byte_change_in_any_link_is_named(
 ) -> None:
     links = chain.read(traced / "export")
     for number, k in enumerate(links, 1):
+        if not k.in_bundle:
+            continue  # the model: not in the bundle, its digest checked against the files that record it
         export = _copy(traced, tmp_path / str(number))
-        target = Path(k.path.replace(str(traced), str(tmp_path / str(number) / "t")))
-        _flip_one_byte(target if target.is_absolute() else export / k.path)
+        _flip_one_byte(export / k.path)
         assert main(["verify-chain", str(export)]) == 1, k.name
         said = capsys.readouterr().out
         assert said.startswith(f"FAIL link {number}/{len(links)} {k.name}: "), said
@@ -122,7 +199,10 @@ def test_a_hil_report_joins_the_chain_and_is_checked_against_the_export(traced: 
     report.write_text(json.dumps(data))
     assert add_to_chain(export, report, data)
     last = chain.read(export)[-1]
-    assert last.name == f"HIL report {report.resolve()}" and last.facts["passed"] is True
+    assert last.name == "HIL report hil/hil report.json" and last.facts["passed"] is True
+    assert (export / "hil" / "hil report.json").read_bytes() == report.read_bytes()  # kept in the bundle
+    step = chain.read_manifest(export).steps[-1]
+    assert step.name == "hil run" and step.outputs == [last.name] and "interface" in step.inputs
     assert all(c.ok for c in chain.verify(export))
     data["export_files"]["c/policy.c"] = "0" * 64  # a report made on other C, re-hashed into the chain
     report.write_text(json.dumps(data))
@@ -155,7 +235,7 @@ def test_concurrent_appends_keep_every_link_and_every_reader_sees_a_whole_manife
     # Several `hil run --json` on one export append at once: each writer reads, changes and replaces
     # the manifest under its lock, so no link is lost and a reader never sees a half-written file.
     (tmp_path / "interface.json").write_text("{}")
-    chain.write(tmp_path, [chain.link(tmp_path, "interface", tmp_path / "interface.json", [])])
+    chain.write(tmp_path, [chain.link(tmp_path, "interface", tmp_path / "interface.json", [])], [])
     writers, each = 6, 15
     context = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(max_workers=writers, mp_context=context) as pool:
@@ -170,3 +250,127 @@ def test_concurrent_appends_keep_every_link_and_every_reader_sees_a_whole_manife
     assert names == {"interface", *(f"HIL report {i}" for i in range(writers * each))}
     assert reads > 0
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no partial file left
+
+
+# The signature: an Ed25519 signature over chain.json, in a DSSE envelope (chain.dsse.json).
+
+
+@pytest.fixture(scope="module")
+def keys(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """PEM files: a signing key and its public key, another key pair, and files that are no such key."""
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ec, ed25519
+
+    root = tmp_path_factory.mktemp("keys")
+    pem, pkcs8 = serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8
+    private_format = (pem, pkcs8, serialization.NoEncryption())
+    public_format = (pem, serialization.PublicFormat.SubjectPublicKeyInfo)
+    ours, theirs = ed25519.Ed25519PrivateKey.generate(), ed25519.Ed25519PrivateKey.generate()
+    files = {
+        "private": ours.private_bytes(*private_format),
+        "public": ours.public_key().public_bytes(*public_format),
+        "other private": theirs.private_bytes(*private_format),
+        "other public": theirs.public_key().public_bytes(*public_format),
+        "ec public": ec.generate_private_key(ec.SECP256R1()).public_key().public_bytes(*public_format),
+        "garbage": b"-----BEGIN PUBLIC KEY-----\nnot base64\n-----END PUBLIC KEY-----\n",
+    }
+    paths = {name: root / f"{name.replace(' ', '_')}.pem" for name in files}
+    for name, data in files.items():
+        paths[name].write_bytes(data)
+    return paths
+
+
+def _signed(traced: Path, tmp_path: Path, keys: dict[str, Path], key: str = "private") -> Path:
+    from embedrl.export import signature
+
+    export = _copy(traced, tmp_path)
+    signature.sign(export, signature.load_private_key(keys[key]))
+    return export
+
+
+def test_a_signed_export_verifies_with_its_public_key(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    export = _signed(traced, tmp_path, keys)
+    envelope = json.loads((export / "chain.dsse.json").read_text())
+    assert envelope["payloadType"] == "application/vnd.in-toto+json"
+    assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[-1].startswith("signature: signed by key ") and out[-1].endswith("and valid")
+    assert main(["verify-chain", str(export)]) == 0  # no key: the signature is named, not checked
+    assert capsys.readouterr().out.splitlines()[-1].endswith("not checked: give the public key (--key)")
+
+
+def test_a_consistent_rewrite_of_every_manifest_fails_the_signature(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """One weight changed, its hash rewritten into export_report.json, chain.json and the envelope's payload:
+    every digest agrees, only the signature does not."""
+    import base64
+
+    export = _signed(traced, tmp_path, keys)
+    source, report = export / "c" / "policy.c", export / "export_report.json"
+    old_c, old_report = sha256(source), sha256(report)
+    text = source.read_text()
+    start = text.index("static const float")
+    weight = text[start:].split("{", 1)[1].split(",", 1)[0].strip()
+    source.write_text(text[:start] + text[start:].replace(weight, "0.5f", 1))
+    report.write_text(report.read_text().replace(old_c, sha256(source)))
+    manifest = export / chain.MANIFEST
+    rewritten = manifest.read_text().replace(old_c, sha256(source)).replace(old_report, sha256(report))
+    manifest.write_text(rewritten)
+    envelope_file = export / "chain.dsse.json"
+    envelope = json.loads(envelope_file.read_text())
+    envelope["payload"] = base64.b64encode(manifest.read_bytes()).decode()
+    envelope_file.write_text(json.dumps(envelope))
+    assert all(c.ok for c in chain.verify(export))  # the rewrite is consistent
+    assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL signature: the signature does not match chain.json: rewritten since it was signed" in out
+
+
+def test_a_signature_by_another_key_fails(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    export = _signed(traced, tmp_path, keys, key="other private")  # re-signed by whoever rewrote it
+    assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 1
+    assert "not by the key given" in capsys.readouterr().out
+
+
+def test_a_link_appended_after_signing_breaks_the_signature_even_without_a_key(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    export = _signed(traced, tmp_path, keys)
+    _append_reports(export, 0, 1)
+    assert main(["verify-chain", str(export)]) == 1
+    assert "FAIL signature: chain.json changed since it was signed" in capsys.readouterr().out
+
+
+def test_unsigned_says_so_and_fails_when_a_key_was_given(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    export = _copy(traced, tmp_path)
+    assert main(["verify-chain", str(export)]) == 0
+    assert capsys.readouterr().out.splitlines()[-1] == "signature: unsigned (no chain.dsse.json)"
+    assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 1
+    assert "FAIL signature: unsigned (no chain.dsse.json), but a key was given" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("bad", ["private", "ec public", "garbage", "missing", "/dev/zero", "folder"])
+def test_a_bad_key_file_is_refused_in_one_line(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str], bad: str
+) -> None:
+    """Key files are untrusted input: one line, exit 2, for verify-chain --key and export --sign (before any
+    work: no export folder is made)."""
+    key = {"missing": tmp_path / "nothing.pem", "/dev/zero": Path("/dev/zero"), "folder": tmp_path}.get(bad)
+    key = key or keys[bad]
+    assert main(["verify-chain", str(traced / "export"), "--key", str(key)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"error: --key {key}: ") or err.startswith(f"error: {key}: "), err
+    assert len(err.splitlines()) == 1
+    out = tmp_path / "not made"
+    sign = keys["public"] if bad == "private" else key  # a public key where the private one is wanted
+    argv = ["export", str(traced / "policy" / "td3.zip"), "--out", str(out), "--sign", str(sign)]
+    assert main(argv) == 2 and not out.exists()
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and len(err.splitlines()) == 1

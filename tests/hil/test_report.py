@@ -198,3 +198,74 @@ def test_a_weight_edit_rewritten_into_every_manifest_fails_the_report(
     assert main(["report", str(copy), "--out", str(tmp_path / "page.html")]) == 1
     out = capsys.readouterr().out
     assert "FAIL  numerics, float32: not recomputed" in out and "verdict: FAIL" in out
+
+
+def test_the_hil_report_is_kept_in_the_bundle_so_a_moved_copy_verifies_and_names_an_edit(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The HIL report was written outside the export folder: the bundle keeps a copy in hil/, links that,
+    and the page says the chain is unsigned."""
+    from embedrl.export import chain
+
+    export, page, _ = reported
+    kept = export / "hil" / "hil run.json"
+    assert kept.read_bytes() == (export.parent / "hil run.json").read_bytes()
+    link = chain.read(export)[-1]
+    assert (link.name, link.path, link.in_bundle) == ("HIL report hil/hil run.json", "hil/hil run.json", True)
+    assert 'data-key="signature">unsigned (no chain.dsse.json)</span>' in page.read_text()
+    moved = tmp_path / "moved" / "bundle"
+    shutil.copytree(export, tmp_path / "copy")
+    moved.parent.mkdir()
+    shutil.move(tmp_path / "copy", moved)
+    assert main(["verify-chain", str(moved)]) == 0
+    copied_report = moved / "hil" / "hil run.json"
+    copied_report.write_text(copied_report.read_text().replace('"episodes": 2', '"episodes": 3'))
+    capsys.readouterr()
+    assert main(["verify-chain", str(moved)]) == 1
+    said = capsys.readouterr().out
+    assert "HIL report hil/hil run.json: hil/hil run.json changed: sha256" in said
+
+
+def test_a_hil_report_from_elsewhere_whose_name_is_taken_in_the_bundle_is_refused(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export, _, _ = reported
+    other = tmp_path / "hil run.json"
+    other.write_text((export / "hil" / "hil run.json").read_text().replace('"episodes": 2', '"episodes": 4'))
+    out = tmp_path / "r.html"
+    assert main(["report", str(export), "--hil", str(other), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "holds another file (rename one of them)" in err
+    assert not out.exists()
+
+
+def _key_pair(folder: Path, name: str) -> tuple[Path, Path]:
+    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives.asymmetric import ed25519
+
+    key = ed25519.Ed25519PrivateKey.generate()
+    private, public = folder / f"{name}.pem", folder / f"{name}.pub.pem"
+    pem = serialization.Encoding.PEM
+    pkcs8 = serialization.PrivateFormat.PKCS8
+    private.write_bytes(key.private_bytes(pem, pkcs8, serialization.NoEncryption()))
+    public.write_bytes(key.public_key().public_bytes(pem, serialization.PublicFormat.SubjectPublicKeyInfo))
+    return private, public
+
+
+def test_the_report_signs_the_chain_and_its_verdict_checks_the_signature(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export, _, _ = reported
+    copy = tmp_path / "signed export"
+    shutil.copytree(export, copy)
+    ours, _ = _key_pair(tmp_path, "ours")
+    _, theirs = _key_pair(tmp_path, "theirs")
+    capsys.readouterr()
+    hil = ["--hil", str(copy / "hil" / "hil run.json")]
+    assert main(["report", str(copy), *hil, "--out", str(tmp_path / "a.html"), "--sign", str(ours)]) == 0
+    out = capsys.readouterr().out
+    assert re.search(r"PASS  signature: signed by key [0-9a-f]{16}\.\.\. and valid", out), out
+    assert main(["report", str(copy), *hil, "--out", str(tmp_path / "b.html"), "--key", str(theirs)]) == 1
+    out = capsys.readouterr().out
+    assert "FAIL  signature: signed by key" in out and "not by the key given" in out
+    assert out.rstrip().endswith("verdict: FAIL")
