@@ -90,7 +90,7 @@ class Injector(ABC):
     name: ClassVar[str]
     description: ClassVar[str]
     expected: ClassVar[str]
-    """The node's required reaction, in words (the README's catalogue)."""
+    """The node's required reaction, in words (the catalogue in docs/safety.md)."""
     ends_episode: ClassVar[bool] = False
     detects: ClassVar[str | None]
     answered: ClassVar[bool] = True

@@ -31,7 +31,7 @@ class WarehouseRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     (2.2 m x 0.3 m) stands 0.6 m above them; walls close the 3.6 m x 1.45 m arena except
     under the gap. The robot (0.25 m x 0.2 m, 10 kg) starts to the left or the right of the shelves
     and must pass down through the gap without touching a shelf or a wall. The map is in
-    :mod:`train.layout`. This adapts the warehouse-robot task of the reference study (the README says
+    :mod:`train.layout`. This adapts the warehouse-robot task of the reference study (docs/environment.md says
     where and why its dimensions differ).
 
     ## Action Space

@@ -143,7 +143,7 @@ def test_c_unit_tests_pass(target: str, tmp_path: Path) -> None:
 
 
 FUZZ_SECONDS = 15
-"""A bounded libFuzzer run in the suite; the README quotes a longer one."""
+"""A bounded libFuzzer run in the suite; docs/safety.md quotes a longer one."""
 
 
 @pytest.mark.slow
