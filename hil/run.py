@@ -223,6 +223,15 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
     nodes for the two-robot scenario)."""
     options = replace(options, export_dir=options.export_dir.resolve())
     interface = _export_interface(options.export_dir)
+    if NODE_KINDS[options.node].builds_c and not options.trust_c:
+        from embedrl.export.regenerate import mismatch
+
+        problem = mismatch(options.export_dir)
+        if problem is not None:
+            raise HilError(
+                f"{problem}: the {options.node} node would build and run it, so only the generator's C runs "
+                "(--trust-c runs C you trust)"
+            )
     if options.nodes > 1 and interface.env_id == NO_ENV:
         raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
     if interface.env_id == TWO_ROBOTS.env_id:  # one node per robot
@@ -237,15 +246,6 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
                 "(--kill-node takes a node down)"
             )
     for s in schedule:
-    if NODE_KINDS[options.node].builds_c and not options.trust_c:
-        from embedrl.export.regenerate import mismatch
-
-        problem = mismatch(options.export_dir)
-        if problem is not None:
-            raise HilError(
-                f"{problem}: the {options.node} node would build and run it, so only the generator's C runs "
-                "(--trust-c runs C you trust)"
-            )
         if s.step > interface.max_steps:
             raise HilError(
                 f"--inject {s.injector.name}@{s.episode}:{s.step}: episodes of {interface.name!r} end by "
