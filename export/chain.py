@@ -260,7 +260,7 @@ def _link_of(entry: Any, old: bool = False) -> Link:
         raise ValueError(f"link {k.name!r}: path {k.path!r} is not a file's path")
     if not isinstance(k.in_bundle, bool):
         raise ValueError(f"link {k.name!r}: in_bundle {k.in_bundle!r} is not true or false")
-    if not old and not _inside(k.path):
+    if not old and not inside(k.path):
         raise ValueError(f"link {k.name!r}: path {k.path!r} is not a path inside the export folder")
     if not isinstance(k.sha256, str) or not _DIGEST.fullmatch(k.sha256):
         raise ValueError(f"link {k.name!r}: sha256 {k.sha256!r} is not a SHA-256 digest (64 hex digits)")
@@ -271,7 +271,7 @@ def _link_of(entry: Any, old: bool = False) -> Link:
     return k
 
 
-def _inside(path: str) -> bool:
+def inside(path: str) -> bool:
     """A relative ``/``-separated path that stays inside the folder it is relative to."""
     parts = PurePosixPath(path).parts
     return bool(parts) and not PurePosixPath(path).is_absolute() and ".." not in parts and "\\" not in path
@@ -384,5 +384,23 @@ def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
         files = (data.get(key) or {}) if isinstance(data, dict) else None
         if not isinstance(files, dict) or not all(isinstance(h, str) for h in files.values()):
             raise ValueError(f"its {key} is not an object of file names and hashes")
-        return {f"file {f}": h for f, h in files.items()}
+        records = {f"file {f}": h for f, h in files.items()}
+        log = recorded_log(data) if k.name != "verification report" else None
+        if log is not None:  # the frame log the run wrote
+            records[f"file {log[0]}"] = log[1]
+        return records
     return {}
+
+
+def recorded_log(data: Any) -> tuple[str, str] | None:
+    """The frame log a HIL report records, ``(its path in the bundle, its sha256)``; None if it records none.
+    ValueError for a record of another form (a report is a file anyone can edit)."""
+    log = data.get("log") if isinstance(data, dict) else None
+    if log is None:
+        return None
+    file, digest = (log.get("file"), log.get("sha256")) if isinstance(log, dict) else (None, None)
+    if not isinstance(file, str) or not isinstance(digest, str):
+        raise ValueError(f"its log {log!r} is not an object of a file and its sha256")
+    if not inside(file):
+        raise ValueError(f"its log {file!r} is not a path inside the export folder")
+    return file, digest

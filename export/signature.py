@@ -166,9 +166,10 @@ def _key_bytes(path: Path) -> bytes:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
     except OSError as exc:
         raise SignatureError(f"{path}: cannot read the key ({exc.strerror})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):  # before fdopen, which refuses a folder with another error
+        os.close(fd)
+        raise SignatureError(f"{path}: not a key file (not a regular file)")
     with os.fdopen(fd, "rb") as f:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise SignatureError(f"{path}: not a key file (not a regular file)")
         data = f.read(MAX_KEY_BYTES + 1)
     if len(data) > MAX_KEY_BYTES:
         raise SignatureError(f"{path}: more than {MAX_KEY_BYTES:,} bytes, not a key file")

@@ -18,10 +18,10 @@ from embedrl.train.arguments import add_export_dir_argument
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from embedrl.common import table, write_json
+    from embedrl.common import sha256, table, write_json
     from embedrl.export import chain
     from embedrl.hil.options import RunOptions
-    from embedrl.hil.run import add_to_chain, in_bundle, run
+    from embedrl.hil.run import add_to_chain, bundle_path, in_bundle, run
     from embedrl.hil.verdict import summary_rows
 
     if args.json and (args.export_dir / chain.MANIFEST).is_file():
@@ -30,12 +30,16 @@ def cmd_run(args: argparse.Namespace) -> int:
     print(table(summary_rows(data)))
     pictures = sorted(args.plot.glob("hil_*.png")) if args.plot else []
     written = [str(p) for p in (args.json, args.log, *pictures) if p]
+    chained = args.json and (args.export_dir / chain.MANIFEST).is_file()
+    if chained and args.log and args.log.is_file():  # the bundle keeps the frames beside the report
+        data["log"] = {"file": bundle_path(args.export_dir, args.log), "sha256": sha256(args.log)}
     if args.json:
         write_json(data, args.json)
-        if add_to_chain(args.export_dir, args.json, data):
-            kept = in_bundle(args.export_dir, args.json)
-            copy = f"{kept} (its copy in the bundle) and " if kept != args.json else ""
-            written.append(f"{copy}{args.export_dir / 'chain.json'} (the report's link)")
+        if add_to_chain(args.export_dir, args.json, data, args.log):
+            files = [args.json, *([args.log] if "log" in data else [])]
+            copies = [str(in_bundle(args.export_dir, p)) for p in files if in_bundle(args.export_dir, p) != p]
+            also = f"{', '.join(copies)} (copies in the bundle) and " if copies else ""
+            written.append(f"{also}{args.export_dir / 'chain.json'} (the report's link)")
     if written:
         print(f"wrote {', '.join(written)}")
     return 0 if data["verdict"]["passed"] else 1

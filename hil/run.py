@@ -141,33 +141,45 @@ HIL_FOLDER = "hil"
 
 
 def in_bundle(export_dir: Path, report: Path) -> Path:
-    """The report's place in the bundle: itself if inside the export folder, else ``hil/<its name>``."""
+    """A HIL file's place in the bundle: itself if inside the export folder, else ``hil/<its name>``."""
     inside = report.resolve().is_relative_to(export_dir.resolve())
     return report if inside else export_dir / HIL_FOLDER / report.name
 
 
-def add_to_chain(export_dir: Path, report: Path, data: dict[str, Any]) -> bool:
-    """Append the written report to the export's traceability chain, with the run as the step that made it;
-    a report written outside the export folder is copied into its ``hil/`` first (the bundle holds what
-    its chain names). False for an export without a chain."""
+def bundle_path(export_dir: Path, file: Path) -> str:
+    """A HIL file's path in the bundle, relative to the export folder (as the chain names it)."""
+    return in_bundle(export_dir, file).resolve().relative_to(export_dir.resolve()).as_posix()
+
+
+def keep_in_bundle(export_dir: Path, file: Path) -> Path:
+    """Copy a file from outside the export folder to its place in ``hil/`` (atomically); its place."""
+    place = in_bundle(export_dir, file)
+    if place != file:
+        place.parent.mkdir(exist_ok=True)
+        partial = place.with_name(f".{place.name}.partial")
+        shutil.copyfile(file, partial)
+        os.replace(partial, place)
+    return place
+
+
+def add_to_chain(export_dir: Path, report: Path, data: dict[str, Any], log: Path | None = None) -> bool:
+    """Append the written report (and the frame log it records) to the export's traceability chain, with
+    the run as the step that made them; files written outside the export folder are copied into its
+    ``hil/`` first (the bundle holds what its chain names). False for an export without a chain."""
     from embedrl.export import chain
 
     if not (export_dir / chain.MANIFEST).is_file():
         return False
-    place = in_bundle(export_dir, report)
-    if place != report:
-        place.parent.mkdir(exist_ok=True)
-        partial = place.with_name(f".{place.name}.partial")
-        shutil.copyfile(report, partial)
-        os.replace(partial, place)
-    link_report(export_dir, place, data, made_by="hil run")
+    if log is not None and data.get("log"):
+        keep_in_bundle(export_dir, log)
+    link_report(export_dir, keep_in_bundle(export_dir, report), data, made_by="hil run")
     return True
 
 
 def link_report(export_dir: Path, report: Path, data: dict[str, Any], made_by: str | None = None) -> None:
-    """Put the chain's link of a HIL report in the bundle (named by its path there), with the step
-    ``made_by`` (this process's command) that made it; the link stands for a link of the same bytes by
-    digest only (an older manifest's report outside the folder)."""
+    """Put the chain's links of a HIL report in the bundle and of the frame log it records (named by their
+    paths there), with the step ``made_by`` (this process's command) that made them; the report's link
+    stands for a link of the same bytes by digest only (an older manifest's report outside the folder)."""
     from embedrl.common import provenance
     from embedrl.export import chain
     from embedrl.export.pipeline import tool_version
@@ -178,6 +190,10 @@ def link_report(export_dir: Path, report: Path, data: dict[str, Any], made_by: s
     found = chain.link(export_dir, "HIL report", report, made_from, **facts)
     new = replace(found, name=f"HIL report {found.path}")
     replaces = tuple(
+    log = chain.recorded_log(data)
+    if log is not None and (export_dir / log[0]).is_file():
+        log_link = chain.link(export_dir, f"HIL log {log[0]}", export_dir / log[0], made_from)
+        chain.append(export_dir, log_link)
         k.name
         for k in chain.read(export_dir)
         if k.name.startswith("HIL report") and not k.in_bundle and k.sha256 == new.sha256
@@ -185,7 +201,8 @@ def link_report(export_dir: Path, report: Path, data: dict[str, Any], made_by: s
     step = None
     if made_by is not None:
         step = chain.Step(made_by, f"embedrl {tool_version()}", list(provenance()["command"]), made_from,
-                          [new.name])  # fmt: skip
+        outputs = [new.name, *([f"HIL log {log[0]}"] if log else [])]
+                          outputs)  # fmt: skip
     chain.append(export_dir, new, step, replaces)
 
 

@@ -212,6 +212,57 @@ def test_a_hil_report_joins_the_chain_and_is_checked_against_the_export(traced: 
     assert not add_to_chain(tmp_path, report, data)  # a folder without a manifest: nothing to add to
 
 
+def _hil_report(export: Path, folder: Path, log: bool) -> tuple[Path, dict[str, Any]]:
+    """A HIL report on ``export`` written in ``folder``, with a frame log beside it if ``log``."""
+    files = {name: sha256(export / name) for name in ("policy.onnx", "interface.json", "c/policy.c")}
+    data: dict[str, Any] = {
+        "verdict": {"passed": True}, "node": "c", "target": None, "episodes": 2, "export_files": files,
+    }  # fmt: skip
+    folder.mkdir(exist_ok=True)
+    if log:
+        (folder / "frames.log").write_text("(0.000000) vcan0 100#0011223344556677\n")
+        data["log"] = {"file": "hil/frames.log", "sha256": sha256(folder / "frames.log")}
+    (folder / "host.json").write_text(json.dumps(data))
+    return folder / "host.json", data
+
+
+def test_a_hil_run_s_frame_log_is_kept_in_the_bundle_and_checked(traced: Path, tmp_path: Path) -> None:
+    export = _copy(traced, tmp_path)
+    report, data = _hil_report(export, tmp_path / "elsewhere", log=True)
+    assert add_to_chain(export, report, data, tmp_path / "elsewhere" / "frames.log")
+    names = [k.name for k in chain.read(export)]
+    assert names[-2:] == ["HIL log hil/frames.log", "HIL report hil/host.json"]
+    assert chain.read_manifest(export).steps[-1].outputs == names[-1:] + names[-2:-1]
+    assert all(c.ok for c in chain.verify(export))
+    (export / "hil" / "frames.log").write_text("(0.000000) vcan0 100#FF11223344556677\n")
+    [failed] = [c for c in chain.verify(export) if not c.ok]
+    assert failed.link.name == "HIL log hil/frames.log" and "changed: sha256" in failed.detail
+
+
+def test_the_report_gathers_a_hil_report_and_its_log_from_elsewhere_into_the_bundle(
+    traced: Path, tmp_path: Path
+) -> None:
+    from embedrl.hil.errors import HilError
+    from embedrl.hil.signoff import bundle
+
+    export = _copy(traced, tmp_path)
+    report, _ = _hil_report(export, tmp_path / "elsewhere", log=True)
+    assert bundle.gather(export, [report]) == [export / "hil" / "host.json"]
+    kept = export / "hil" / "frames.log"
+    assert kept.read_bytes() == (tmp_path / "elsewhere" / "frames.log").read_bytes()
+    links = {k.name: k for k in chain.read(export)}
+    assert {"HIL report hil/host.json", "HIL log hil/frames.log"} <= set(links)
+    assert all(c.ok for c in chain.verify(export))
+    assert bundle.gather(export, [report]) == [export / "hil" / "host.json"]  # again: nothing changes
+    assert len(chain.read(export)) == len(links)
+    lonely, _ = _hil_report(export, tmp_path / "no log here", log=True)
+    (tmp_path / "no log here" / "frames.log").unlink()
+    (export / "hil" / "frames.log").unlink()
+    said = r"the frame log it records, frames.log \(sha256 [0-9a-f]{12}\.\.\.\), is not beside it"
+    with pytest.raises(HilError, match=said):
+        bundle.gather(export, [lonely])
+
+
 @pytest.mark.parametrize("content", [None, "{not json", '{"format": 99, "links": []}', '{"format": 1}'])
 def test_a_folder_without_a_readable_manifest_is_refused_in_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], content: str | None
