@@ -189,19 +189,19 @@ def link_report(export_dir: Path, report: Path, data: dict[str, Any], made_by: s
     made_from = ["interface", "C source policy.c", "C source policy.h"]
     found = chain.link(export_dir, "HIL report", report, made_from, **facts)
     new = replace(found, name=f"HIL report {found.path}")
-    replaces = tuple(
     log = chain.recorded_log(data)
     if log is not None and (export_dir / log[0]).is_file():
         log_link = chain.link(export_dir, f"HIL log {log[0]}", export_dir / log[0], made_from)
         chain.append(export_dir, log_link)
+    replaces = tuple(
         k.name
         for k in chain.read(export_dir)
         if k.name.startswith("HIL report") and not k.in_bundle and k.sha256 == new.sha256
     )
     step = None
     if made_by is not None:
-        step = chain.Step(made_by, f"embedrl {tool_version()}", list(provenance()["command"]), made_from,
         outputs = [new.name, *([f"HIL log {log[0]}"] if log else [])]
+        step = chain.Step(made_by, f"embedrl {tool_version()}", list(provenance()["command"]), made_from,
                           outputs)  # fmt: skip
     chain.append(export_dir, new, step, replaces)
 
