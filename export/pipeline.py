@@ -576,13 +576,13 @@ def _verify(
             lowered.interface.sample_time_s if lowered.interface else None,
         )  # fmt: skip
     checks["non_finite_observation"] = _safe_on_nan(built.compiled, lowered.graph.size(lowered.graph.input))
-    return Verified(checks, targets, _closed_loop(lowered, built, opts, log))
     log("[4/5] NaN propagation: each op with a NaN at each input position, C vs ONNX")
     opset = {o.domain: o.version for o in loaded.model.opset_import}.get("", 0)
     section = generated.section.nodes if generated.section is not None else frozenset()
     checks["nan_propagation"] = nan_check.check(
         lowered.graph, opts.quantize, opset, section, opts.tolerance, opts.seed
     )
+    return Verified(checks, targets, _closed_loop(lowered, built, opts, log))
 
 
 def _numerical_checks(
