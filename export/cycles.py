@@ -12,7 +12,8 @@ instruction (``-singlestep -d exec``), each executed instruction is classed from
 and each class costs what the core's technical reference manual lists (:data:`CYCLE_MODELS`, with a taken
 branch told from the next traced address). The estimate's cycles per instruction times the measured
 instructions is the cycle estimate. Wait states of a real part's flash are not modelled (a part running from
-zero-wait-state memory, or with its flash accelerator hitting, matches the model best).
+zero-wait-state memory, or with its flash accelerator hitting, matches the model best); :data:`ASSUMPTIONS`
+states what the estimate takes for granted, for the report.
 """
 
 from __future__ import annotations
@@ -51,6 +52,20 @@ CONDITIONS = {
     "le",
     "al",
 }
+
+
+ASSUMPTIONS = (
+    ("clock", "the modelled part's core clock (below); the time is the estimated cycles over it"),
+    ("flash wait states", "not in the model: every fetch and constant load costs what the technical "
+     "reference manual lists for zero-wait-state memory; a part whose flash needs wait states at this clock "
+     "is slower unless its prefetch buffer or flash accelerator hits"),
+    ("caches, dual issue, bus contention", "not in the model (the Cortex-M7 takes the Cortex-M4 table, an "
+     "upper bound for its dual issue)"),
+    ("instructions", "counted on QEMU (-icount), not estimated: the model only prices them, from one traced "
+     "inference's mix of instruction classes"),
+    ("interrupts", "none during the inference (the firmware node's worst step is measured separately)"),
+)  # fmt: skip
+"""What the cycle estimate assumes, as (topic, statement) rows."""
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,18 @@ class Deviation:
     rule: str
     files: tuple[str, ...]
     why: str
+    """Opens with the rule's category in MISRA C:2012, ``(A)`` advisory, ``(R)`` required or ``(M)``
+    mandatory; a cppcheck check of its own has none."""
     count: int | None
+
+    @property
+    def category(self) -> str | None:
+        return next((name for mark, name in CATEGORIES.items() if self.why.startswith(mark)), None)
+
+
+CATEGORIES = {"(A)": "advisory", "(R)": "required", "(M)": "mandatory"}
+"""MISRA C:2012's guideline categories as the deviation log marks them: advisory rules may be deviated
+with a recorded reason, required ones only with a formal deviation, mandatory ones never."""
 
 
 @dataclass(frozen=True)
@@ -73,8 +84,16 @@ class Result:
             "by_rule_and_file": [
                 {"rule": rule, "file": file, "count": n} for (rule, file), n in sorted(per_rule.items())
             ],
+            "at": [{"rule": f.rule, "file": f.file, "line": f.line} for f in self.findings],
+            "categories": {d.rule: d.category for d in self.deviations if d.category},
             "deviations": [
-                {"rule": d.rule, "files": list(d.files), "why": d.why, "count": d.count}
+                {
+                    "rule": d.rule,
+                    "files": list(d.files),
+                    "why": d.why,
+                    "count": d.count,
+                    "category": d.category,
+                }
                 for d in self.deviations
             ],
             "unexplained": self.unexplained,

@@ -67,6 +67,7 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
     extra["two_robots"] = pairs
     extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
     extra["node"] = options.node
+    extra["sample_time_s"] = interface.sample_time_s  # the round trip's yardstick in the summary
     firmware = results.get("firmware")
     extra["target"] = options.firmware_target if firmware else None
     extra["instructions_per_step"] = firmware["instructions_per_step"] if firmware else None

@@ -59,6 +59,25 @@ def verdict(data: dict[str, Any], allow_faults: bool) -> dict[str, Any]:
     return {"passed": not failures, "failures": failures, "faults_allowed": allow_faults}
 
 
+MS_PER_S = 1000.0
+
+
+def link_health(data: dict[str, Any], sample_time_s: float | None) -> list[tuple[str, str]]:
+    """The link's health in a run (none of it fails the run: timing in a sandbox is noisy, and a retried
+    or stale step was still answered correctly): the harness's retries, the nodes' stale steps and send
+    failures (NodeDiag's), and the round trip's 99th percentile against the sample time."""
+    p99_ms = (data.get("latency_us") or {}).get("p99", 0.0) / MS_PER_S
+    above = sample_time_s is not None and p99_ms > sample_time_s * MS_PER_S
+    where = "above" if above else "within"
+    against = "" if sample_time_s is None else f" ({where} the {sample_time_s:g} s sample time)"
+    return [
+        ("retries", str(data.get("retries") or 0)),
+        ("stale steps", str(node_count(data, "stale_steps"))),
+        ("send failures", str(node_count(data, "send_failures"))),
+        ("round trip p99", f"{p99_ms:.3g} ms{against}"),
+    ]
+
+
 def summary_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
     """The report ``data`` as (what, value) rows: the sandbox, the outcomes beside the simulation's, the
     node's counters, the round trip, each fault class and the verdict."""
@@ -106,6 +125,10 @@ def summary_rows(data: dict[str, Any]) -> list[tuple[str, str]]:
         ("node action faults (refused policy outputs)", str(node_count(data, "action_faults"))),
         ("steps the node left unanswered", str(data["rx_timeouts"])),
         ("round trip p50 / p99 / max [us]", f"{lat['p50']:.0f} / {lat['p99']:.0f} / {lat['max']:.0f}"),
+        (
+            "link: " + " / ".join(k for k, _ in link_health(data, data.get("sample_time_s"))),
+            " / ".join(v for _, v in link_health(data, data.get("sample_time_s"))),
+        ),
     ]
     if data["jitter_us"]:
         jitter = data["jitter_us"]

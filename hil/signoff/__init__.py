@@ -17,7 +17,7 @@ def gather(
     checked against ``public_key`` if given."""
     from embedrl.export import chain, signature
     from embedrl.hil import misra
-    from embedrl.hil.signoff import checks, facts
+    from embedrl.hil.signoff import checks, conditions, facts, layers
 
     export = facts.load_export(export_dir)
     others = [(d, facts.load_export(d)) for d in also]
@@ -39,10 +39,14 @@ def gather(
         "hil_reports": [name for name, _ in hils],
         "targets": facts.target_facts(export, export_dir, [h for _, h in hils]),
         "coding_standard": misra.check(export_dir).to_json(),
+        "layers": layers.layer_table(export_dir, export),
+        "entry_points": conditions.entry_points(export_dir, export["name"]),
         "warnings": export["compiler"]["command"],
         "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
         "signature": signature.check(export_dir, public_key).to_json(),
     }
+    tool = gathered["coding_standard"]["tool"]
+    gathered["conditions"] = conditions.measurement_conditions(export, hils, tool)
     gathered["verdict"] = checks.verdict(gathered, hils)
     return gathered
 
@@ -67,7 +71,10 @@ def render(data: dict[str, Any]) -> str:
         f"{export['observation_dim']} observations -> {export['action_dim']} actions."
     )
     body = {
+        "conditions": sections.conditions(data),
         "interface": sections.interface(data),
+        "entry-points": sections.entry_points(data),
+        "layers": sections.layers(data),
         "verification": sections.verification(data),
         "closed-loop": sections.closed_loop(data),
         "resources": sections.resources(data),

@@ -5,13 +5,21 @@ from __future__ import annotations
 
 from typing import Any
 
-MS_PER_S = 1000.0
+from embedrl.export.target import TARGETS
+from embedrl.hil.verdict import link_health
+
+FLASH_SECTIONS = (".isr_vector", ".text", ".ARM.exidx", ".data")
+"""What an image puts in flash (.data's initial values included)."""
+RAM_SECTIONS = (".data", ".bss", ".heap", ".stack")
+KIB = 1024
 
 
 def verdict(data: dict[str, Any], hils: list[tuple[str, dict[str, Any]]]) -> dict[str, Any]:
     """``{"passed": bool, "checks": [{"check", "passed", "detail"}, ...]}`` for the gathered facts."""
     checks = [_numerics(v, data["tolerance"]) for v in data["verification"]]
     checks += [_hil(name, h, data["interface"]["sample_time_s"]) for name, h in hils]
+    for t in data["targets"]:
+        checks += [_resources(t), _stack(t)]
     unexplained = len(data["coding_standard"]["unexplained"])
     checks.append(_row("MISRA C:2012", unexplained == 0, f"{unexplained} finding(s) without a deviation"))
     broken = [c for c in data["chain"] if not c["ok"]]
@@ -53,15 +61,56 @@ def _hil(name: str, h: dict[str, Any], sample_time_s: float) -> dict[str, Any]:
     """A HIL report's own verdict, with the link's health beside it (not a verdict of its own: timing in a
     sandbox is noisy), so a passing run that needed retries says so."""
     where = f"HIL, {h['node']} node" + (f" on {h['target']}" if h.get("target") else "") + f" ({name})"
-    status, diag = h.get("node_status") or {}, h.get("node_diag") or {}
-    p99_ms = (h.get("latency_us") or {}).get("p99", 0.0) / MS_PER_S
-    health = [
-        f"retries {h.get('retries', 0)}",
-        f"stale steps {status.get('stale_steps', 0)}",
-        f"send failures {diag.get('send_failures', 0)}",
-        f"round trip p99 {p99_ms:.3g} ms"
-        + (" (above the sample time)" if p99_ms > sample_time_s * MS_PER_S else ""),
-    ]
+    health = ", ".join(f"{k} {v}" for k, v in link_health(h, sample_time_s))
     failures = h["verdict"].get("failures") or []
     verdict = "passed" if h["verdict"]["passed"] else "failed: " + "; ".join(str(f) for f in failures)
-    return _row(where, h["verdict"]["passed"], f"{verdict}; {', '.join(health)}")
+    return _row(where, h["verdict"]["passed"], f"{verdict}; {health}")
+
+
+def _resources(t: dict[str, Any]) -> dict[str, Any]:
+    """Each linked image's flash and RAM (its sections, read from the ELF files) within the modelled part's
+    memory (runtime_c/cortex_m/targets.mk)."""
+    name = f"resources within the part, {t['target']}"
+    part = TARGETS.get(t["target"])
+    if part is None:
+        return _row(name, False, f"{t['target']} is not a target of runtime_c/cortex_m/targets.mk")
+    if not t["images"]:
+        return _row(name, False, f"no linked image in bin/{t['target']}/ to measure (export it again)")
+    over, parts = [], []
+    for image, memory in t["images"].items():
+        sections = memory["sections"]
+        flash = sum(sections.get(s, 0) for s in FLASH_SECTIONS)
+        ram = sum(sections.get(s, 0) for s in RAM_SECTIONS)
+        parts.append(f"{image} flash {flash:,} B, RAM {ram:,} B")
+        if flash > part.flash_kib * KIB:
+            over.append(f"{image}'s flash {flash:,} B")
+        if ram > part.ram_kib * KIB:
+            over.append(f"{image}'s RAM {ram:,} B")
+    limits = f"the part's {part.flash_kib} KiB flash and {part.ram_kib} KiB RAM ({part.part})"
+    if over:
+        return _row(name, False, f"{', '.join(over)} exceed {limits}")
+    return _row(name, True, f"{'; '.join(parts)}, within {limits}")
+
+
+def _stack(t: dict[str, Any]) -> dict[str, Any]:
+    """The static stack bounds hold what was painted (policy_step in the test image; the firmware node in a
+    HIL run), and the node's bound fits the stack its image reserves."""
+    name = f"stack bound, {t['target']}"
+    m = t["measured"]
+    bound, painted = m["stack_bound"]["bytes"], m["stack_bytes"]
+    node_bound, node_painted = m["node_firmware"]["stack_bound"]["bytes"], t["node_stack_peak_bytes"]
+    reserved = (t["images"].get("node.elf") or {}).get("sections", {}).get(".stack")
+    problems = []
+    if painted > bound:
+        problems.append(f"policy_step painted {painted} B above its bound {bound} B")
+    if node_painted is not None and node_painted > node_bound:
+        problems.append(f"the node painted {node_painted} B above its bound {node_bound} B")
+    if reserved is None:
+        problems.append("no node.elf to read the reserved stack from")
+    elif node_bound > reserved:
+        problems.append(f"the node's bound {node_bound} B exceeds the {reserved} B its image reserves")
+    if problems:
+        return _row(name, False, "; ".join(problems))
+    node = f"node bound {node_bound} B" + ("" if node_painted is None else f" (painted {node_painted} B)")
+    detail = f"policy_step painted {painted} B <= bound {bound} B; {node} <= {reserved} B reserved"
+    return _row(name, True, detail)

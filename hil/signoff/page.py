@@ -18,11 +18,15 @@ th { background: #f0f0f0; } td.num { text-align: right; font-variant-numeric: ta
 .note { color: #555; font-size: 0.9em; } code { font-size: 0.9em; }
 nav a { margin-right: 1em; } svg { max-width: 100%; height: auto; }
 .pair { display: flex; gap: 2em; align-items: flex-start; }
+details { margin: 0.2em 0; } summary { cursor: pointer; } ul.places { columns: 3; font-size: 0.85em; }
 """
 SECTIONS = (
+    ("conditions", "Measurement conditions"),
     ("interface", "Interface"),
+    ("entry-points", "Entry points and call order"),
     ("verification", "Numerical verification"),
     ("closed-loop", "Closed loop"),
+    ("layers", "Layer by layer"),
     ("resources", "Target resources"),
     ("coding-standard", "Coding standard"),
     ("traceability", "Traceability chain"),

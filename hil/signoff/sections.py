@@ -114,6 +114,7 @@ def resources(facts: dict[str, Any]) -> str:
             "(the node on QEMU, closing the loop over CAN); without one, they are left out.</p>"
         )
     parts.append(facts["figures"]["stack_and_memory"])
+    parts.append(cycle_model(facts))
     for t in facts["targets"]:
         parts.append(_memory_tables(t))
     return "".join(parts)
@@ -173,7 +174,9 @@ def coding_standard(facts: dict[str, Any]) -> str:
     per_rule: dict[str, list[str]] = {}
     for r in c["by_rule_and_file"]:
         per_rule.setdefault(r["rule"], []).append(f"{r['file']} ({r['count']})")
-    rows = [[cell(rule), cell(sum(int(f.rsplit("(", 1)[1][:-1]) for f in files)), cell(", ".join(files))]
+    category = c.get("categories", {})
+    rows = [[cell(rule), cell(_category(category.get(rule))),
+             cell(sum(int(f.rsplit("(", 1)[1][:-1]) for f in files)), cell(", ".join(files))]
             for rule, files in sorted(per_rule.items(), key=lambda item: _rule_order(item[0]))]  # fmt: skip
     log = [
         [cell(d["rule"]), cell(", ".join(d["files"])),
@@ -191,9 +194,40 @@ def coding_standard(facts: dict[str, Any]) -> str:
         "distributed) over the firmware node as deployed: "
         f"<span data-key=\"misra-findings\">{c['findings']}</span> findings, {state}. Compiler "
         f"warnings: <code>{escape(facts['warnings'])}</code> with <code>-Werror</code>: none.</p>"
-        "<h3>Findings by rule</h3>" + table(["rule", "findings", "files (findings)"], rows)
+        "<h3>Findings by rule</h3>" + CATEGORY_NOTE
+        + table(["rule", "category", "findings", "files (findings)"], rows)
+        + "<h3>Findings by file and line</h3>" + _findings_at(c)
         + "<h3>Deviation log</h3>" + table(["rule", "files", "findings allowed", "why"], log)
     )  # fmt: skip
+
+
+CATEGORY_NOTE = (
+    '<p class="note">Category of each rule in MISRA C:2012 (the deviation log\'s <b>(A)</b> and <b>(R)</b>): '
+    "<b>(A) advisory</b>, a recommendation that may be deviated with a recorded reason; <b>(R) required</b>, "
+    "to be followed unless a formal deviation (the log's entry, with its justification) is recorded; "
+    "<b>(M) mandatory</b>, never deviated. A cppcheck check of its own has no category.</p>"
+)
+
+
+def _category(category: str | None) -> str:
+    return f"({category[0].upper()}) {category}" if category else "- (cppcheck)"
+
+
+def _findings_at(c: dict[str, Any]) -> str:
+    """Every finding as file:line, one collapsible block per rule (HTML ``details``: no script)."""
+    per_rule: dict[str, list[str]] = {}
+    for f in c.get("at", []):
+        per_rule.setdefault(f["rule"], []).append(f"{f['file']}:{f['line']}")
+    blocks = []
+    for rule, places in sorted(per_rule.items(), key=lambda item: _rule_order(item[0])):
+        category = _category(c.get("categories", {}).get(rule))
+        items = "".join(f"<li><code>{escape(p)}</code></li>" for p in places)
+        blocks.append(
+            f'<details data-rule="{escape(rule)}"><summary>rule {escape(rule)}, {escape(category)}: '
+            f'<span data-key="misra-at-{escape(rule)}">{len(places)}</span> finding(s)</summary>'
+            f'<ul class="places">{items}</ul></details>'
+        )
+    return "".join(blocks)
 
 
 def _rule_order(rule: str) -> tuple[int, ...]:
@@ -221,4 +255,110 @@ def traceability(facts: dict[str, Any]) -> str:
         f'<span class="{"ok" if facts["signature"]["passed"] else "fail"}" data-key="signature">'
         f"{escape(facts['signature']['detail'])}</span>.</p>"
         + table(["#", "link", "file", "sha256", "made from", "matches"], rows)
+    )
+
+
+def conditions(facts: dict[str, Any]) -> str:
+    """The compilers and flags per target, the tools, and the command, date and commit of each artefact."""
+    c = facts["conditions"]
+    compilers = [
+        [cell(r["target"]), cell(r["version"] or "not recorded (export again)", f"compiler-{r['target']}"),
+         cell(r["command"] or "-")]
+        for r in c["compilers"]
+    ]  # fmt: skip
+    made = [
+        [cell(r["artefact"]), cell(r["command"] or "not recorded"), cell(r["date"] or "not recorded"),
+         cell(r["commit"] or "not recorded", f"commit-{n}")]
+        for n, r in enumerate(c["made"])
+    ]  # fmt: skip
+    return (
+        f'<p>Made with <b data-key="embedrl-version">{escape(c["tool"])}</b>; MISRA checked with '
+        f"{escape(c['coding_tool'])}. Every figure below was measured with the compilers and flags of this "
+        "table (the host library for the numerical verification, each Cortex-M image for the target "
+        "figures).</p>"
+        + table(["target", "compiler", "flags"], compilers)
+        + "<h3>What made each artefact</h3><p class=\"note\">The commit is embedrl's source; \"modified "
+        "files\": the checkout differed from it.</p>"
+        + table(["artefact", "command", "date (UTC)", "embedrl commit"], made)
+    )  # fmt: skip
+
+
+def entry_points(facts: dict[str, Any]) -> str:
+    """The deployed program's functions in the order they are called."""
+    rows = [
+        [cell(r["order"]), cell(r["prototype"], f"entry-{r['function']}"), cell(r["header"]),
+         cell(r["when"] or "not described"), cell(r["what"] or "-")]
+        for r in facts["entry_points"]
+    ]  # fmt: skip
+    name = facts["export"]["name"]
+    return (
+        f"<p>The firmware node (<code>runtime_c/cortex_m/node_main.c</code>) calls the node's functions, and "
+        f"the node calls the policy's. Integrating <code>{escape(name)}</code> without the node: "
+        f"<code>{escape(name)}_reset()</code> at start-up and at each episode start, then "
+        f"<code>{escape(name)}_step()</code> once per sample period "
+        f"({facts['interface']['sample_time_s']} s, <code>{escape(name.upper())}_SAMPLE_TIME_S</code>), one "
+        "call at a time (file-scope buffers: not reentrant).</p>"
+        + table(["order", "function", "declared in", "called", "does"], rows)
+    )  # fmt: skip
+
+
+def layers(facts: dict[str, Any]) -> str:
+    """The policy layer by layer, as ST Edge AI's analyze lists it."""
+    t = facts["layers"]
+    targets = [x["target"] for x in facts["targets"]]
+    rows = [
+        [cell(r["op"]), cell(r["name"]), cell("x".join(map(str, r["input_shape"]))),
+         cell("x".join(map(str, r["output_shape"]))), cell(r["macs"]), cell(r["weight_bytes"]),
+         cell(r["activation_bytes"]), *(cell(r["cycles"][x]) for x in targets)]
+        for r in t["rows"]
+    ]  # fmt: skip
+    total = [
+        cell("total"), cell(""), cell(""), cell(""),
+        cell(sum(r["macs"] for r in t["rows"]), "layers-macs"),
+        cell(t["weight_bytes"], "layers-weight-bytes"),
+        cell(sum(r["activation_bytes"] for r in t["rows"])),
+        *(cell(next(x["measured"]["estimated_cycles_per_inference"] for x in facts["targets"]
+                    if x["target"] == name)) for name in targets),
+    ]  # fmt: skip
+    header = t["header_weight_bytes"]
+    agrees = header == t["weight_bytes"]
+    check = (
+        f'<span class="{"ok" if agrees else "fail"}" data-key="layers-header-agrees">'
+        f"{'agrees' if agrees else 'differs'}</span> with the generated header's own count ({header} bytes)"
+    )
+    named = t["unattributed_bytes"]
+    unattributed = f"; {named} bytes of constants are named after no layer" if named else ""
+    return (
+        "<p>Each node of the export's ONNX as the generator sees it (<code>policy.onnx</code> through "
+        "<code>to_ir</code>). MACs: multiply-accumulates per inference. Weight bytes: the <code>static "
+        "const</code> arrays of the generated C, each counted under the layer it is named after; their sum "
+        f"{check}{unattributed}. Activation RAM: the layer's float32 output (an alias such as Identity has "
+        "none); the generated C reuses buffers, so the policy's RAM is less than the column's sum (the "
+        "target table below). Estimated cycles: each target's estimate for the whole inference "
+        "apportioned by MACs (an element-wise op: one per output element); library calls such as "
+        "<code>tanhf</code> cost more than that, so read the column as the weight of each layer, not a "
+        "per-layer measurement.</p>"
+        + table(["op", "layer", "input", "output", "MACs", "weight bytes", "activation RAM [B]",
+                 *(f"est. cycles {x}" for x in targets)], [*rows, total])
+    )  # fmt: skip
+
+
+def cycle_model(facts: dict[str, Any]) -> str:
+    """What the cycle estimate assumes, and each target's clock and instruction timings."""
+    from embedrl.export.cycles import ASSUMPTIONS
+
+    assumptions = [
+        [cell(topic), cell(text, f"cycle-model-{topic.replace(' ', '-')}")] for topic, text in ASSUMPTIONS
+    ]
+    models = [
+        [cell(t["target"]), cell(t["measured"]["clock"]["part"]),
+         cell(t["measured"]["clock"]["hz"] / 1e6, f"clock-mhz-{t['target']}"),
+         cell(t["measured"]["cycle_model"]["cycles_per_instruction"]),
+         cell(t["measured"]["cycle_model"]["source"])]
+        for t in facts["targets"]
+    ]  # fmt: skip
+    return (
+        "<h3>Cycle model: what the estimate assumes</h3>"
+        + table(["", "assumed"], assumptions)
+        + table(["target", "part", "clock [MHz]", "cycles per instruction (traced)", "timings from"], models)
     )

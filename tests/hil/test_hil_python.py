@@ -174,6 +174,22 @@ def test_the_summary_prints_the_nodes_own_counters(
         f"{status['crc_errors']} / {status['sequence_errors']} / {status['timeouts']}"
     )
     assert rows["steps the node left unanswered"].strip() == str(report["rx_timeouts"])
+    p99_ms, diag = report["latency_us"]["p99"] / 1000, report["node_diag"]
+    assert rows["link: retries / stale steps / send failures / round trip p99"].strip() == (
+        f"{report['retries']} / {diag['stale_steps']} / {diag['send_failures']} / "
+        f"{p99_ms:.3g} ms (within the 0.3 s sample time)"
+    )
+
+
+def test_the_links_health_names_a_round_trip_above_the_sample_time() -> None:
+    from embedrl.hil.verdict import link_health
+
+    run = {"retries": 3, "node_status": {"timeouts": 0}, "node_diag": {"stale_steps": 3, "send_failures": 2},
+           "latency_us": {"p99": 378_000.0}, "sample_time_s": 0.3}  # fmt: skip
+    assert dict(link_health(run, 0.3)) == {
+        "retries": "3", "stale steps": "3", "send failures": "2",
+        "round trip p99": "378 ms (above the 0.3 s sample time)",
+    }  # fmt: skip
 
 
 def test_a_delay_is_held_until_a_node_with_a_slow_clock_times_out(

@@ -70,3 +70,17 @@ def test_the_log_names_real_rules_with_reasons() -> None:
         assert d.rule.replace(".", "").isdigit() or d.rule.isidentifier(), d.rule
         generated = all(p.startswith(misra.GENERATED_PREFIXES) for p in d.files)
         assert (d.count is None) == generated, f"{d.rule} {d.files}: only generated files go uncounted"
+
+
+def test_every_misra_deviation_names_its_rules_category_and_one_rule_has_one() -> None:
+    """(A) advisory or (R) required opens each entry of a MISRA rule (the page's category column reads it);
+    cppcheck's own checks have none."""
+    categories: dict[str, set[str | None]] = {}
+    for d in misra.load_deviations():
+        categories.setdefault(d.rule, set()).add(d.category)
+    for rule, found in categories.items():
+        if rule[0].isdigit():
+            assert len(found) == 1 and None not in found, (rule, found)
+        else:
+            assert found == {None}, rule
+    assert categories["8.9"] == {"advisory"} and categories["21.15"] == {"required"}

@@ -15,7 +15,8 @@ import pytest
 from embedrl.cli import main
 from tests.hil.conftest import SHIPPED_TD3
 
-SECTIONS = ("interface", "verification", "closed-loop", "resources", "coding-standard", "traceability")
+SECTIONS = ("conditions", "interface", "entry-points", "verification", "closed-loop", "layers", "resources",
+            "coding-standard", "traceability")  # fmt: skip
 CHROMIUM = ("chromium", "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
             "--disable-background-networking", "--disable-component-update",
             "--host-resolver-rules=MAP * ~NOTFOUND")  # fmt: skip
@@ -110,9 +111,110 @@ def test_the_page_opens_offline_with_every_section_and_key_figure(
     assert dom.keys["misra-unexplained"] == "0" and int(dom.keys["misra-findings"]) > 0
     assert dom.keys["chain-intact"] == "intact"
     assert float(dom.keys["max-error-float32"]) <= 1e-5
+    _assert_sign_off_figures(dom.keys, page.parent.parent / "export dir", export)
     assert page_requests(page, tmp_path / "net.json") == []
-    _chromium(page, f"--screenshot={SCREENSHOT}", "--window-size=1280,5000", "--hide-scrollbars")
+    _chromium(page, f"--screenshot={SCREENSHOT}", "--window-size=1280,12000", "--hide-scrollbars")
     assert SCREENSHOT.stat().st_size > 100_000  # a page of tables and figures, not a blank one
+
+
+def _assert_sign_off_figures(keys: dict[str, str], export_dir: Path, export: dict[str, object]) -> None:
+    """Measurement conditions, the layer table, the entry points, MISRA by line and the verdict's resource
+    and stack lines, each against its own oracle."""
+    import onnx
+    from onnx import numpy_helper
+
+    m4 = export["targets"]["cortex-m4"]  # type: ignore[index]
+    assert keys["compiler-host"] == export["compiler"]["version"]  # type: ignore[index]
+    assert (
+        keys["compiler-cortex-m4"] == m4["compiler"]["version"]
+        and "arm-none-eabi-gcc" in m4["compiler"]["command"]
+    )
+    assert keys["embedrl-version"] == export["tool"]
+    from embedrl.common import source_commit
+
+    commit = r"[0-9a-f]{40}( \+ modified files)?" if source_commit() else "not recorded"  # a git checkout?
+    assert re.fullmatch(commit, keys["commit-0"])  # the export's
+    model = onnx.load(export_dir / "policy.onnx")
+    weights = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    gemm_macs = sum(weights[n.input[1]].size for n in model.graph.node if n.op_type == "Gemm")
+    assert keys["layers-macs"] == f"{gemm_macs:,}"
+    header = re.search(r"weights: (\d+) bytes", (export_dir / "c" / "policy.h").read_text())
+    assert header and keys["layers-weight-bytes"] == f"{int(header.group(1)):,}"
+    assert keys["layers-header-agrees"] == "agrees"
+    assert keys["entry-policy_step"].startswith("int policy_step(const float obs[POLICY_OBS_DIM]")
+    assert keys["entry-node_init"].startswith("void node_init(")
+    per_rule = [int(v) for k, v in keys.items() if k.startswith("misra-at-")]
+    assert len(per_rule) > 5 and sum(per_rule) == int(keys["misra-findings"])
+    assert keys["cycle-model-flash-wait-states"].startswith("not in the model")
+    assert keys["clock-mhz-cortex-m4"] == f"{m4['clock']['hz'] / 1e6:.4g}"
+    assert keys["check-resources within the part, cortex-m4"] == "yes"
+    assert keys["check-stack bound, cortex-m4"] == "yes"
+
+
+def test_the_entry_points_are_every_public_function_in_call_order(
+    reported: tuple[Path, Path, dict[str, object]],
+) -> None:
+    from embedrl.hil.signoff.conditions import entry_points
+
+    export, _, _ = reported
+    rows = entry_points(export, "policy")
+    assert [r["function"] for r in rows if r["when"] is None] == []  # each one described
+    order = [r["function"] for r in rows]
+    assert order.index("node_init") < order.index("node_poll") < order.index("node_on_frame")
+    assert order.index("policy_reset") < order.index("policy_step")
+    assert {"policy_step_batch", "node_link_lost", "node_receive_ids"} <= set(order)
+
+
+def test_an_image_larger_than_the_part_fails_the_report(
+    reported: tuple[Path, Path, dict[str, object]],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The part's memory comes from the target table: an image that no longer fits it is a FAIL line."""
+    import dataclasses
+
+    from embedrl.export.target import TARGETS
+    from embedrl.hil.signoff import checks
+
+    export, _, _ = reported
+    small = dataclasses.replace(TARGETS["cortex-m4"], flash_kib=32, ram_kib=8)
+    monkeypatch.setattr(checks, "TARGETS", {**TARGETS, "cortex-m4": small})
+    capsys.readouterr()
+    assert main(["report", str(export), "--out", str(tmp_path / "page.html")]) == 1
+    out = capsys.readouterr().out
+    line = next(x for x in out.splitlines() if "resources within the part, cortex-m4" in x)
+    assert (
+        line.startswith("  FAIL") and "node.elf's flash" in line and "exceed the part's 32 KiB flash" in line
+    )
+    assert "  PASS  stack bound, cortex-m4" in out and out.rstrip().endswith("verdict: FAIL")
+
+
+def test_a_painted_stack_above_its_static_bound_fails_the_report(
+    reported: tuple[Path, Path, dict[str, object]], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A bound below what was measured is no bound: the report says FAIL and exits 1 (the edit re-hashed
+    into the chain, so only the stack line fails)."""
+    from embedrl.common import sha256
+
+    export, _, data = reported
+    copy = tmp_path / "copy"
+    shutil.copytree(export, copy)
+    bound = data["targets"]["cortex-m4"]["stack_bound"]["bytes"]  # type: ignore[index]
+    report = copy / "export_report.json"
+    old = sha256(report)
+    edited = json.loads(report.read_text())
+    edited["targets"]["cortex-m4"]["stack_bytes"] = bound + 1
+    report.write_text(json.dumps(edited, indent=2) + "\n")
+    manifest = copy / "chain.json"
+    manifest.write_text(manifest.read_text().replace(old, sha256(report)))
+    capsys.readouterr()
+    assert main(["report", str(copy), "--out", str(tmp_path / "page.html")]) == 1
+    out = capsys.readouterr().out
+    assert (
+        f"  FAIL  stack bound, cortex-m4: policy_step painted {bound + 1} B above its bound {bound} B" in out
+    )
+    assert "  PASS  traceability chain" in out and out.rstrip().endswith("verdict: FAIL")
 
 
 def test_the_fetch_check_sees_a_page_that_fetches(tmp_path: Path) -> None:
