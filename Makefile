@@ -78,11 +78,14 @@ policies: $(STAMP) ## train the shipped policies again (hours), each shipped onl
 	        --max-steps 300000 && $(PY) -m embedrl.train.ship $(OUT)/ship/$$s-td3 td3 || exit 1; \
 	done
 
-test: deps $(STAMP) ## the whole test suite
-	$(PY) -m pytest
+# The suite in tiers (markers in pyproject.toml, set by the fixtures a test uses: tests/conftest.py). pytest is
+# exec'd, so that make's SIGTERM (timeout, CI cancelling) reaches it and the session stops, guests closed.
+FAST_TIER := not slow and not sandbox and not qemu and not training
+test: deps $(STAMP) ## the whole test suite, then its 25 slowest tests
+	exec $(PY) -m pytest --durations=25
 
-test-fast: $(STAMP) ## the tests not marked slow
-	$(PY) -m pytest -m "not slow"
+test-fast: $(STAMP) ## the tests that are not slow, boot no sandbox, run no QEMU and train nothing (minutes)
+	exec $(PY) -m pytest -m "$(FAST_TIER)"
 
 lint: $(STAMP) ## ruff check and ruff format --check
 	$(VENV)/bin/ruff check .

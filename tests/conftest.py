@@ -1,14 +1,52 @@
-"""Shared fixtures: a fresh registered environment per test."""
+"""Shared fixtures and the suite's tiers.
+
+- ``env``: a fresh registered environment per test.
+- ``exported``: ``embedrl export`` run once per session for each (source content, flags), shared by every test
+  that reads the same export; a test that changes an export copies it first (``shutil.copytree``).
+- Tiers: markers set by the fixtures a test uses (``@marks_its_users``): ``sandbox`` (a CAN sandbox guest),
+  ``qemu`` (a QEMU machine: the x86 sandbox guest or Cortex-M firmware), ``training`` (trains a policy); a
+  test that does such a thing itself carries the marker. ``make test-fast`` deselects them and ``slow``;
+  ``make test`` runs everything.
+- SIGTERM stops the session as Ctrl-C does (fixtures torn down, guests closed), also when it arrives while
+  a test runs ``embedrl.cli.main`` in-process, whose own handler would otherwise turn it into one failed
+  test and let the session run on.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import signal
+from collections.abc import Callable, Generator, Iterator
+from pathlib import Path
+from types import FrameType
+from typing import TypeVar
 
 import gymnasium as gym
 import numpy as np
 import pytest
 
+import embedrl.cli
 from embedrl import train
+from embedrl.cli import main
+from embedrl.common import sha256
+
+TIERS = ("sandbox", "qemu", "training")
+"""The markers a fixture may set on the tests that use it (registered in pyproject.toml)."""
+Fixture = TypeVar("Fixture", bound=Callable[..., object])
+
+
+def marks_its_users(*markers: str) -> Callable[[Fixture], Fixture]:
+    """Marks every test that uses the decorated fixture, directly or through other fixtures, with
+    ``markers`` (among ``TIERS``). Goes below ``@pytest.fixture``."""
+    assert set(markers) <= set(TIERS), markers
+
+    def mark(fixture: Fixture) -> Fixture:
+        fixture.tier_markers = markers  # type: ignore[attr-defined]
+        return fixture
+
+    return mark
+
+
+Exported = Callable[..., Path]
 
 
 @pytest.fixture
@@ -18,9 +56,76 @@ def env() -> Iterator[gym.Env[np.ndarray, np.ndarray]]:
     e.close()
 
 
+@pytest.fixture(scope="session")
+def exported(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Exported]:
+    """``exported(source, *flags)``: the folder of ``embedrl export source --out FOLDER *flags``, run once per
+    session for each source content (its SHA-256) and flags. Read it; copy it before changing anything."""
+    folders: dict[tuple[str, tuple[str, ...]], Path] = {}
+    contents: dict[Path, dict[str, str]] = {}
+
+    def export(source: Path, *flags: str) -> Path:
+        key = (sha256(source), flags)
+        if key not in folders:
+            out = tmp_path_factory.mktemp("exported") / "export"
+            assert main(["export", str(source), "--out", str(out), *flags]) == 0, (source, flags)
+            folders[key], contents[out] = out, _digests(out)
+        return folders[key]
+
+    yield export
+    changed = [str(out) for out, before in contents.items() if _digests(out) != before]
+    assert not changed, f"a test changed a shared export instead of a copy of it: {changed}"
+
+
+def _digests(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` -> its SHA-256."""
+    return {str(p.relative_to(folder)): sha256(p) for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     parser.addoption(
         "--regen-golden",
         action="store_true",
         help="rewrite the generated-code golden files instead of comparing with them",
     )
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if not isinstance(item, pytest.Function):
+            continue
+        for definitions in item._fixtureinfo.name2fixturedefs.values():  # the fixtures it uses, transitively
+            for definition in definitions:
+                for marker in getattr(definition.func, "tier_markers", ()):
+                    item.add_marker(marker)
+
+
+class _Stopped:
+    """The stop signal that arrived while a test ran ``embedrl.cli.main`` in-process, if any."""
+
+    signum: int | None = None
+
+
+def _raise_stop(signum: int, frame: FrameType | None) -> None:
+    raise embedrl.cli.Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+
+
+def _recording_stop(command_stop: Callable[[int, FrameType | None], None]) -> Callable[..., None]:
+    def stop(signum: int, frame: FrameType | None) -> None:
+        _Stopped.signum = signum
+        command_stop(signum, frame)
+
+    return stop
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    signal.signal(signal.SIGTERM, _raise_stop)  # teardown runs (guests closed) instead of a hard exit
+    embedrl.cli._stop = _recording_stop(embedrl.cli._stop)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, object, object]:
+    result = yield
+    if _Stopped.signum is not None:  # the command under test swallowed it: stop here as pytest would
+        signum, _Stopped.signum = _Stopped.signum, None
+        _raise_stop(signum, None)
+    return result

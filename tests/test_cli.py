@@ -214,6 +214,7 @@ def test_python_dash_m_runs_the_command() -> None:
     assert result.returncode == 0 and result.stdout.startswith("embedrl ")
 
 
+@pytest.mark.training
 @pytest.mark.parametrize("terminal", [True, False])
 def test_progress_bars_only_on_a_terminal(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, terminal: bool

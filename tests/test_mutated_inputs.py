@@ -21,6 +21,7 @@ from embedrl.export.onnx_import import load_onnx, to_ir
 from embedrl.hil.candb import load_interface
 from embedrl.train.models import load_normalization, load_sb3
 from embedrl.train.scenarios import STATIC
+from tests.conftest import Exported
 
 ROOT = Path(__file__).resolve().parents[1]
 TD3 = ROOT / "policies" / "static" / "td3.zip"
@@ -66,14 +67,6 @@ def _rezip(source: Path, target: Path, replace: dict[str, bytes]) -> None:
             dst.writestr(info, replace.get(info.filename, src.read(info.filename)))
 
 
-def _onnx_bytes(tmp: Path) -> bytes:
-    from embedrl.cli import main
-
-    out = tmp / "seed-export"
-    assert main(["export", str(TD3), "--out", str(out), "--episodes", "0"]) == 0
-    return (out / "policy.onnx").read_bytes()
-
-
 def _loads_or_refuses(load: Callable[[], object]) -> str:
     """``ok``, or the refusal's class name: anything but a handled error fails the test."""
     try:
@@ -85,8 +78,8 @@ def _loads_or_refuses(load: Callable[[], object]) -> str:
 
 
 @pytest.fixture(scope="module")
-def onnx_bytes(tmp_path_factory: pytest.TempPathFactory) -> bytes:
-    return _onnx_bytes(tmp_path_factory.mktemp("onnx"))
+def onnx_bytes(exported: Exported) -> bytes:
+    return (exported(TD3, "--episodes", "0") / "policy.onnx").read_bytes()
 
 
 def test_mutated_onnx_files(onnx_bytes: bytes, tmp_path: Path) -> None:

@@ -3,9 +3,10 @@ commands document (fewer steps, episodes and seeds; :data:`SHORTER`).
 
 ``embedrl`` and ``make -C runtime_c`` commands run in a temporary copy of the checkout's ``policies/`` and
 ``runtime_c/`` (their outputs go to its ``out/``). The top-level ``make`` targets run in the checkout with
-``OUT`` in a temporary folder, except those that are this suite or rewrite files: ``make test`` and ``make
-test-fast`` (the suite itself), ``make demo`` (run by CI, ``.ci/run``), ``make format`` and ``pytest
---regen-golden`` (they rewrite the sources; ``make lint`` checks the same).
+``OUT`` in a temporary folder, except those that are this suite, rewrite files or run beside it in CI:
+``make test`` and ``make test-fast`` (the suite itself), ``make demo``, ``make lint`` and ``make type`` (run
+by CI, ``.ci/run``, as written), ``make format`` and ``pytest --regen-golden`` (they rewrite the sources;
+``make lint`` checks the same).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 NOT_RUN = {
     "make demo": "run by CI (.ci/run)",
+    "make lint": "run by CI (.ci/run) before make test",
+    "make type": "run by CI (.ci/run) before make test",
     "make test": "the suite itself",
     "make test-fast": "the suite itself",
     "make format": "rewrites the sources (make lint checks the same)",

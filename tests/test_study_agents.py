@@ -39,6 +39,7 @@ def test_the_thesis_preset_is_the_studys_setup() -> None:
     assert not preset("ppo", "tuned").softplus_std  # type: ignore[union-attr]
 
 
+@pytest.mark.training
 def test_two_branch_critic_adds_an_observation_and_an_action_branch() -> None:
     model = _model("td3")
     critic = model.critic
@@ -70,6 +71,7 @@ def test_sac_standard_deviation_is_softplus_of_a_linear_head() -> None:
     assert th.allclose(actor(obs, deterministic=True), th.tanh(mean))
 
 
+@pytest.mark.training
 def test_ppo_standard_deviation_is_softplus_of_a_state_dependent_head() -> None:
     model = _model("ppo", log_std_init=np.log(0.5))
     policy = model.policy
@@ -87,6 +89,7 @@ def test_ppo_standard_deviation_is_softplus_of_a_state_dependent_head() -> None:
     assert std.std(dim=0).max() > 0  # differs between states
 
 
+@pytest.mark.training
 def test_ddpg_actor_and_critic_learn_at_their_own_rates(tmp_path: Path) -> None:
     model = _model("ddpg")
     model.learn(200)
@@ -101,6 +104,7 @@ def test_ddpg_actor_and_critic_learn_at_their_own_rates(tmp_path: Path) -> None:
     assert [g["lr"] for g in loaded.critic.optimizer.param_groups] == [1e-3]  # type: ignore[attr-defined]
 
 
+@pytest.mark.training
 @pytest.mark.parametrize("algo", ["ddpg", "td3", "sac", "ppo"])
 def test_thesis_models_load_safely_and_export_to_the_same_actions(algo: str, tmp_path: Path) -> None:
     """The safe loader accepts embedrl's classes by name; the ONNX actor gives predict()'s actions."""

@@ -14,6 +14,7 @@ from embedrl.train.errors import TrainError
 from embedrl.train.sweep import run_all
 
 
+@pytest.mark.training
 def test_a_tiny_bench_on_local_ray_reports_a_failed_run_and_keeps_the_others(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -52,6 +53,7 @@ def test_the_pool_keeps_order_and_reports_each_failure(workers: int) -> None:
     assert [(f.job, f.error) for f in failures] == [(3, "ValueError: three is not allowed")]
 
 
+@pytest.mark.training
 def test_a_sweep_where_every_run_failed_says_so_in_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -178,6 +178,7 @@ def test_only_an_off_policy_budget_within_its_warm_up_trains_nothing() -> None:
     assert untrained_budget(preset("ppo", "tuned"), 1) is None  # PPO updates after its first rollout
 
 
+@pytest.mark.training
 @pytest.mark.parametrize("learning_starts", [10_000, 100])
 def test_a_budget_within_the_warm_up_warns_and_the_run_says_it_is_untrained(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], learning_starts: int
@@ -211,6 +212,7 @@ def _short_run(run: Path) -> None:
                  "--checkpoint-every", "200", "--eval-every", "100000"]) == 0  # fmt: skip
 
 
+@pytest.mark.training
 def test_resume_refuses_flags_that_contradict_the_run(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -233,6 +235,7 @@ def test_resume_refuses_flags_that_contradict_the_run(
     assert main(["train", "--resume", str(run), "--max-steps", "400", "--algo", "td3"]) == 0
 
 
+@pytest.mark.training
 def test_a_resumed_run_trains_on_past_its_budget_and_records_it(tmp_path: Path) -> None:
     run = tmp_path / "run"
     _short_run(run)
@@ -251,6 +254,7 @@ def test_a_resumed_run_trains_on_past_its_budget_and_records_it(tmp_path: Path) 
     assert json.loads((run / "summary.json").read_text())["total_steps"] == 700
 
 
+@pytest.mark.training
 def test_resuming_a_run_that_stopped_at_its_stop_rule_needs_keep_training(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -273,6 +277,7 @@ def test_resuming_a_run_that_stopped_at_its_stop_rule_needs_keep_training(
     assert extension == {"from_max_steps": 400, "to_max_steps": 700, "from_stop": rule, "to_stop": "budget"}
 
 
+@pytest.mark.training
 def test_checkpoints_are_swapped_atomically_and_a_bad_one_is_a_clear_error(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -494,6 +499,7 @@ def test_set_overrides_a_presets_hyperparameters_by_type() -> None:
     assert with_overrides(base, ["gamma=1", "noise_sigma=0"]).gamma == 1.0  # the closed ends are allowed
 
 
+@pytest.mark.training
 def test_set_is_recorded_in_the_runs_config_and_bad_names_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

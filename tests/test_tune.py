@@ -16,6 +16,7 @@ from embedrl.train.scenarios import DEFAULT_SCENARIO
 from embedrl.train.tune import RUNGS, SPACE, Search, _only_search, run_tune, sample
 
 
+@pytest.mark.training
 def test_a_tiny_search_resumes_and_its_best_preset_trains(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -61,6 +62,7 @@ def test_a_bad_preset_file_is_refused_in_one_line(
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.training
 def test_a_tiny_search_on_ray_tune_shares_its_study_with_the_local_search(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:

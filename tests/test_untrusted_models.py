@@ -22,6 +22,7 @@ from embedrl.cli import main
 from embedrl.train.errors import InvalidModelFileError
 from embedrl.train.models import load_normalization, load_sb3, save_normalization
 from embedrl.train.sb3_archive import class_reference
+from tests.conftest import Exported
 
 POLICIES = Path(__file__).resolve().parents[1] / "policies" / "static"
 
@@ -110,8 +111,10 @@ def test_a_pickle_in_the_network_parameters_is_refused(
     assert not marker.exists()
 
 
-def test_exporting_an_onnx_file_unpickles_nothing(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    assert main(["export", str(POLICIES / "td3.zip"), "--out", str(tmp_path / "a"), "--episodes", "0"]) == 0
+def test_exporting_an_onnx_file_unpickles_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, exported: Exported
+) -> None:
+    onnx = exported(POLICIES / "td3.zip", "--episodes", "0") / "policy.onnx"
 
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("something was unpickled")
@@ -119,10 +122,7 @@ def test_exporting_an_onnx_file_unpickles_nothing(tmp_path: Path, monkeypatch: p
     monkeypatch.setattr(pickle, "load", refuse)
     monkeypatch.setattr(pickle, "loads", refuse)
     monkeypatch.setattr(pickle, "Unpickler", refuse)
-    assert (
-        main(["export", str(tmp_path / "a" / "policy.onnx"), "--out", str(tmp_path / "b"), "--episodes", "0"])
-        == 0
-    )
+    assert main(["export", str(onnx), "--out", str(tmp_path / "b"), "--episodes", "0"]) == 0
     # ... and neither does an SB3 zip without --trust-pickle.
     assert main(["export", str(POLICIES / "ppo.zip"), "--out", str(tmp_path / "c"), "--episodes", "0"]) == 0
 

@@ -20,6 +20,7 @@ from embedrl.export.verify import MAX_DIFFERING_OUTCOMES, MIN_SAMPLES, TOLERANCE
 from embedrl.train.interface import Interface
 from embedrl.train.models import save_normalization
 from embedrl.train.scenarios import STATIC
+from tests.conftest import marks_its_users
 
 pytestmark = pytest.mark.slow
 ALGOS: dict[str, type[BaseAlgorithm]] = {"ddpg": DDPG, "td3": TD3, "sac": SAC, "ppo": PPO}
@@ -38,6 +39,7 @@ def _train(algo: str, env_id: str, steps: int = 300) -> BaseAlgorithm:
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("training")
 def models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     root = tmp_path_factory.mktemp("models")
     paths = {}

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from embedrl.cli import main
+from tests.conftest import Exported
 
 SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
 DRIVER = Path(__file__).with_name("c") / "extreme_driver.c"
@@ -44,11 +44,12 @@ def extreme_observations(seed: int = 0) -> np.ndarray:
 
 
 @pytest.fixture(scope="module", params=["float32", "int8", "q15"])
-def sanitized_policy(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp(request.param) / "export"
+def sanitized_policy(
+    request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory, exported: Exported
+) -> Path:
     quantize = [] if request.param == "float32" else ["--quantize", request.param]
-    assert main(["export", str(SHIPPED_TD3), "--out", str(out), "--episodes", "0", *quantize]) == 0
-    binary = out / "extreme"
+    out = exported(SHIPPED_TD3, "--episodes", "0", *quantize)
+    binary = tmp_path_factory.mktemp(request.param) / "extreme"
     subprocess.run(
         ["cc", "-std=c99", "-O1", "-g", "-fsanitize=undefined,address", "-fno-sanitize-recover=all",
          "-I", str(out / "c"), "-o", str(binary), str(DRIVER), str(out / "c" / "policy.c"), "-lm"],

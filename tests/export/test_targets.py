@@ -16,6 +16,7 @@ import pytest
 
 from embedrl.cli import main
 from embedrl.export.build import RUNTIME_C
+from tests.conftest import marks_its_users
 from tests.export.helpers import mlp_model
 
 pytestmark = pytest.mark.slow
@@ -29,6 +30,7 @@ def _export(tmp_path: Path, widths: list[int], *extra: str) -> tuple[int, Path]:
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("qemu")
 def study_export(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     code, out = _export(
         tmp_path_factory.mktemp("study"), [6, 100, 100, 2], "--target", "cortex-m4", "--target", "cortex-m3"

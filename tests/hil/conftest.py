@@ -14,32 +14,26 @@ from pathlib import Path
 import pytest
 
 import embedrl.hil.sandbox as sandbox
-from embedrl.cli import main
 from embedrl.hil.sandbox import Guest
+from tests.conftest import Exported, marks_its_users
 
 SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
 
 
 @pytest.fixture(scope="session")
-def export_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def export_dir(exported: Exported) -> Path:
     """The shipped TD3 policy (199/200 successes on unseen seeds), exported without the closed loop."""
-    out = tmp_path_factory.mktemp("hil") / "export"
-    assert main(["export", str(SHIPPED_TD3), "--out", str(out), "--episodes", "0"]) == 0
-    return out
+    return exported(SHIPPED_TD3, "--episodes", "0")
 
 
 @pytest.fixture(scope="session")
-def safe_export_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def safe_export_dir(exported: Exported) -> Path:
     """The same policy exported with ``--safe-action 0.1,0``."""
-    out = tmp_path_factory.mktemp("hil") / "safe-export"
-    assert (
-        main(["export", str(SHIPPED_TD3), "--out", str(out), "--episodes", "0", "--safe-action", "0.1,0"])
-        == 0
-    )
-    return out
+    return exported(SHIPPED_TD3, "--episodes", "0", "--safe-action", "0.1,0")
 
 
 @pytest.fixture(scope="session")
+@marks_its_users("sandbox")
 def guest(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Guest]:
     """What ``--sandbox auto`` (or ``EMBEDRL_TEST_SANDBOX``) picks on this machine, booted once."""
     mode = os.environ.get("EMBEDRL_TEST_SANDBOX", "auto")

@@ -18,6 +18,7 @@ from stable_baselines3 import TD3
 from embedrl.cli import main
 from embedrl.hil.sandbox import Guest
 from embedrl.hil.session import OPEN_LOOP_STEPS
+from tests.conftest import marks_its_users
 from tests.export.helpers import mlp_model
 from tests.hil.helpers import hil
 
@@ -26,6 +27,7 @@ PENDULUM_STEPS = 200
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("training")
 def pendulum_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
     work = tmp_path_factory.mktemp("pendulum")
     model = TD3("MlpPolicy", "Pendulum-v1", seed=0, learning_starts=200, device="cpu",

@@ -26,6 +26,7 @@ from embedrl.hil.candb import load_interface
 from embedrl.hil.codec import Action, Codec
 from embedrl.hil.firmware import INSTRUCTIONS_PER_TICK, FirmwareNode, instruction_summary
 from embedrl.hil.sandbox import Guest
+from tests.conftest import Exported
 from tests.hil.conftest import SHIPPED_TD3
 from tests.hil.helpers import hil
 
@@ -137,14 +138,8 @@ def _step_lines(diag: Path) -> int:
 
 
 @pytest.fixture(scope="module")
-def quantized_exports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    exports = {}
-    for precision in ("int8", "q15"):
-        out = tmp_path_factory.mktemp("pil") / precision
-        argv = ["export", str(SHIPPED_TD3), "--out", str(out), "--episodes", "0", "--quantize", precision]
-        assert main(argv) == 0
-        exports[precision] = out
-    return exports
+def quantized_exports(exported: Exported) -> dict[str, Path]:
+    return {p: exported(SHIPPED_TD3, "--episodes", "0", "--quantize", p) for p in ("int8", "q15")}
 
 
 @pytest.mark.slow

@@ -8,20 +8,18 @@ from pathlib import Path
 
 import pytest
 
-from embedrl.cli import main
 from embedrl.hil import misra
 from embedrl.hil.misra import Deviation, Finding
+from tests.conftest import Exported
 from tests.hil.conftest import SHIPPED_TD3
 
 
 @pytest.fixture(scope="module")
-def exports(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+def exports(exported: Exported) -> dict[str, Path]:
     out = {}
     for precision in ("float32", "int8", "q15"):
-        folder = tmp_path_factory.mktemp("misra") / precision
         quantize = [] if precision == "float32" else ["--quantize", precision]
-        assert main(["export", str(SHIPPED_TD3), "--out", str(folder), "--episodes", "0", *quantize]) == 0
-        out[precision] = folder
+        out[precision] = exported(SHIPPED_TD3, "--episodes", "0", *quantize)
     return out
 
 

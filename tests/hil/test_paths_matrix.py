@@ -25,6 +25,7 @@ import pytest
 import embedrl.hil.sandbox as sandbox
 from embedrl.cli import main
 from embedrl.hil.sandbox import Guest
+from tests.conftest import marks_its_users
 from tests.hil.helpers import REQUIRED, hil
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -124,6 +125,7 @@ def test_every_source_and_precision_through_the_python_node(
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("sandbox", "qemu")
 def qemu_guest(tmp_path_factory: pytest.TempPathFactory) -> Any:
     from embedrl.hil.sandbox.qemu import QemuProvider
 

@@ -17,12 +17,14 @@ from embedrl.hil.codec import Codec
 from embedrl.hil.sandbox import Guest
 from embedrl.train.interface import Interface
 from embedrl.train.scenarios import MOVING_SHELF_PARTIAL
+from tests.conftest import marks_its_users
 from tests.hil.helpers import hil, hil_report
 
 SCENARIO = MOVING_SHELF_PARTIAL.name
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("training")
 def recurrent_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """recurrent-ppo, preset tuned, 1,500 steps (its warm start clones the teacher over whole episodes)."""
     root = tmp_path_factory.mktemp("recurrent")

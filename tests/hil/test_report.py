@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from embedrl.cli import main
+from tests.conftest import marks_its_users
 from tests.hil.conftest import SHIPPED_TD3
 
 SECTIONS = ("conditions", "interface", "entry-points", "verification", "closed-loop", "layers", "resources",
@@ -25,6 +26,7 @@ SCREENSHOT = Path("/tmp/embedrl-report-screenshot.png")
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("qemu")  # the export runs the M4 firmware on QEMU
 def reported(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict[str, object]]:
     """The shipped TD3 exported for the M4, a HIL run on the Python node, and the report of both, in
     folders with spaces."""

@@ -14,6 +14,7 @@ import pytest
 
 import embedrl.hil.sandbox as sandbox
 from embedrl.hil.sandbox import Guest, Provider
+from tests.conftest import marks_its_users
 from tests.hil.helpers import boot_or_skip, hil
 
 pytestmark = pytest.mark.slow
@@ -21,6 +22,7 @@ CANDIDATES = sandbox.providers("auto")
 
 
 @pytest.fixture(scope="module", params=CANDIDATES, ids=[p.slug for p in CANDIDATES])
+@marks_its_users("sandbox")
 def provider_guest(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[Guest]:
