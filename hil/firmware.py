@@ -14,21 +14,35 @@ firmware reads counts instructions (:data:`INSTRUCTIONS_PER_TICK` per tick at th
 firmware writes one line per answered step on its diagnostics UART (UART1, a file here):
 ``S <step> <ticks>`` from the last observation frame in to the action frame out, and after each status
 frame ``X <overflows> <bad lines> <peak stack bytes>``.
+
+Where QEMU runs (:class:`Emulator`): beside the bridge (:class:`LocalQemu`, UART0 on a pseudo-terminal), or,
+when the sandbox is a User-Mode Linux guest, on the host (:class:`HostQemu`, served by :func:`serve_qemu`
+in the ``hil run`` process): inside UML every QEMU system call is a ptrace round trip, so the emulator ran
+its frames 50-100x slower and its idle clock, which follows the host's, made a busy host look like a
+silent bus. On the host, UART0 is the host end of the guest's serial line (:attr:`Guest.link`,
+``/dev/ttyS1`` in the guest) and the session asks for starts, kills and stops through request files in a
+folder both see (``<n>.start`` holding the diagnostics path, ``<n>.kill``, ``<n>.stop``; answered with
+``<n>.started`` and ``<n>.exit`` holding QEMU's exit status).
 """
 
 from __future__ import annotations
 
 import contextlib
+import os
 import re
+import select
+import socket
 import subprocess
 import threading
 import time
-from collections.abc import Callable
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import can
 import numpy as np
+from can.interfaces.slcan import slcanBus
 
 from embedrl.hil.errors import HilError
 from embedrl.hil.nodes import Node
@@ -44,21 +58,268 @@ DIAG_QUIET_S = 0.2
 """The diagnostics file is complete once it has not grown for this long (the firmware writes a step's line
 just after that step's action frame, so the last line can trail the last answer)."""
 BRIDGE_POLL_S = 0.01
+REQUEST_POLL_S = 0.005
+"""How often the host's QEMU server looks for the session's requests (and the session for the answers)."""
 _PTY = re.compile(r"char device redirected to (/dev/pts/\d+)")
 _STEP = re.compile(r"^S (\d+) (\d+)$")
 _STATUS = re.compile(r"^X (\d+) (\d+) (\d+)$")
+
+
+def qemu_argv(machine: str, elf: str, uart0: str, diag: Path) -> list[str]:
+    """QEMU's command line: the image on ``machine``, UART0 on the character device ``uart0`` (``pty``,
+    ``chardev:ID``), UART1 into the file ``diag``."""
+    return ["qemu-system-arm", "-M", machine, "-nographic", "-monitor", "none", "-semihosting",
+            "-icount", f"shift={ICOUNT_SHIFT}", "-serial", uart0, "-serial", f"file:{diag}",
+            "-kernel", elf]  # fmt: skip
+
+
+def _let_diagnostics_settle(path: Path, alive: Callable[[], bool]) -> None:
+    """Wait (at most :data:`STOP_TIMEOUT_S`) until a running firmware's diagnostics file has been quiet for
+    :data:`DIAG_QUIET_S` (the firmware writes a step's line just after that step's action frame)."""
+    deadline = time.monotonic() + STOP_TIMEOUT_S
+    size, quiet_since = -1, time.monotonic()
+    while time.monotonic() < deadline and alive():
+        now_size = path.stat().st_size if path.is_file() else 0
+        if now_size != size:
+            size, quiet_since = now_size, time.monotonic()
+        elif time.monotonic() - quiet_since >= DIAG_QUIET_S:
+            return
+        time.sleep(DIAG_QUIET_S / 4)
+
+
+def _end(process: subprocess.Popen[str], diag: Path | None) -> None:
+    """End QEMU: in order once ``diag`` is complete, or at once (None)."""
+    if process.poll() is None and diag is not None:
+        _let_diagnostics_settle(diag, lambda: process.poll() is None)
+        process.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=STOP_TIMEOUT_S)
+    if process.poll() is None:
+        process.kill()
+    process.wait()
+
+
+class Emulator(ABC):
+    """Where the firmware's QEMU runs, and the serial device through which the bridge reaches its UART0."""
+
+    @abstractmethod
+    def start(self, diag: Path) -> str:
+        """Start the image (UART1 into ``diag``); the serial device the bridge opens."""
+
+    @abstractmethod
+    def alive(self) -> bool: ...
+
+    @abstractmethod
+    def exit_status(self) -> int | None: ...
+
+    @abstractmethod
+    def kill(self) -> None:
+        """End QEMU at once (a crash)."""
+
+    @abstractmethod
+    def stop(self, diag: Path) -> None:
+        """End QEMU in order, once its diagnostics file ``diag`` is complete."""
+
+
+class LocalQemu(Emulator):
+    """QEMU as a child of this process, UART0 on a pseudo-terminal."""
+
+    def __init__(self, elf: str, machine: str) -> None:
+        self.elf, self.machine = elf, machine
+        self.process: subprocess.Popen[str] | None = None
+
+    def start(self, diag: Path) -> str:
+        self.process = subprocess.Popen(
+            qemu_argv(self.machine, self.elf, "pty", diag),
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )  # fmt: skip
+        assert self.process.stdout is not None
+        first = self.process.stdout.readline()
+        found = _PTY.search(first)
+        if found is None:
+            self.kill()
+            raise HilError(f"qemu-system-arm gave the firmware's UART no pseudo-terminal: {first.strip()}")
+        return found.group(1)
+
+    def alive(self) -> bool:
+        return self.process is not None and self.process.poll() is None
+
+    def exit_status(self) -> int | None:
+        return None if self.process is None else self.process.returncode
+
+    def kill(self) -> None:
+        if self.process is not None:
+            _end(self.process, None)
+
+    def stop(self, diag: Path) -> None:
+        if self.process is not None:
+            _end(self.process, diag)
+
+
+class HostQemu(Emulator):
+    """QEMU on the host, started, killed and stopped by :func:`serve_qemu` at this session's request (files
+    in ``control``); UART0 is the guest's serial line ``device``."""
+
+    def __init__(self, control: Path, device: str) -> None:
+        self.control, self.device = control, device
+        self.n = -1
+
+    def _request(self, kind: str, text: str = "") -> None:
+        partial = self.control / f".{self.n}.{kind}"
+        partial.write_text(text)
+        partial.rename(self.control / f"{self.n}.{kind}")  # the server only sees complete requests
+
+    def _await(self, kind: str, timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while not (self.control / f"{self.n}.{kind}").is_file():
+            if time.monotonic() > deadline:
+                raise HilError(f"the host's QEMU server gave no {kind!r} within {timeout_s:.0f} s")
+            time.sleep(REQUEST_POLL_S)
+
+    def start(self, diag: Path) -> str:
+        self.n += 1
+        self._request("start", str(diag))
+        self._await("started", PTY_TIMEOUT_S)
+        return self.device
+
+    def alive(self) -> bool:
+        return self.n >= 0 and not (self.control / f"{self.n}.exit").is_file()
+
+    def exit_status(self) -> int | None:
+        found = self.control / f"{self.n}.exit"
+        return int(found.read_text() or "-1") if found.is_file() else None
+
+    def kill(self) -> None:
+        if self.alive():
+            self._request("kill")
+            self._await("exit", STOP_TIMEOUT_S)
+
+    def stop(self, diag: Path) -> None:
+        if self.alive():
+            self._request("stop")
+            self._await("exit", 3 * STOP_TIMEOUT_S)
+
+
+@contextlib.contextmanager
+def serve_qemu(elf: str, machine: str, link: socket.socket, control: Path) -> Iterator[None]:
+    """Run the firmware's QEMU on this machine for a session in a guest: a thread answers the
+    :class:`HostQemu` requests in ``control`` (one QEMU at a time, its UART0 on ``link``, the host end of the
+    guest's serial line) until the block ends; a QEMU still running then is killed."""
+    control.mkdir(parents=True, exist_ok=True)
+    done = threading.Event()
+    thread = threading.Thread(target=_serve, args=(elf, machine, link, control, done), daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
+def _drain(link: socket.socket) -> None:
+    """Drop what the guest wrote while no QEMU listened (a closing bridge's lines)."""
+    link.setblocking(False)
+    try:
+        while link.recv(4096):
+            pass
+    except BlockingIOError:
+        pass
+    finally:
+        link.setblocking(True)
+
+
+def _answer(control: Path, name: str, text: str = "") -> None:
+    partial = control / f".{name}"
+    partial.write_text(text)
+    partial.rename(control / name)
+
+
+def _serve(elf: str, machine: str, link: socket.socket, control: Path, done: threading.Event) -> None:
+    """The server's loop: request ``n`` starts QEMU number ``n`` (any earlier one killed first)."""
+    n, diag = -1, Path()
+    process: subprocess.Popen[str] | None = None
+
+    def finish(settled: Path | None) -> None:
+        nonlocal process
+        assert process is not None
+        _end(process, settled)
+        _answer(control, f"{n}.exit", str(process.returncode))
+        process = None
+
+    try:
+        while not done.is_set():
+            if (control / f"{n + 1}.start").is_file():
+                if process is not None:
+                    finish(None)
+                n += 1
+                diag = Path((control / f"{n}.start").read_text())
+                _drain(link)
+                argv = qemu_argv(machine, elf, "chardev:link", diag)
+                argv[1:1] = ["-chardev", f"socket,id=link,fd={link.fileno()}"]
+                process = subprocess.Popen(
+                    argv, pass_fds=(link.fileno(),), stdout=subprocess.DEVNULL, text=True
+                )
+                _answer(control, f"{n}.started")
+            elif process is not None and (control / f"{n}.kill").is_file():
+                finish(None)
+            elif process is not None and (control / f"{n}.stop").is_file():
+                finish(diag)
+            elif process is not None and process.poll() is not None:
+                finish(None)  # QEMU ended by itself: the session sees the exit
+            else:
+                time.sleep(REQUEST_POLL_S)
+    finally:
+        if process is not None:
+            _end(process, None)
+
+
+class SerialLine(slcanBus):
+    """python-can's ``slcan`` interface (python-can 4.6) reading its serial device in blocks: one ``select``
+    and one ``read`` per burst of lines, where python-can polls and reads byte by byte (in a User-Mode
+    Linux guest each system call is a ptrace round trip: ~60 per frame made the bridge the slowest part of
+    the loop), and writing a line without waiting for the device to drain it."""
+
+    TERMINATORS = (slcanBus._OK[0], slcanBus._ERROR[0])
+
+    def _read(self, timeout: float | None) -> str | None:
+        fd = self.serialPortOrig.fileno()
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            end = next((i for i, byte in enumerate(self._buffer) if byte in self.TERMINATORS), None)
+            if end is not None:
+                line = self._buffer[: end + 1].decode(errors="replace")
+                del self._buffer[: end + 1]
+                return line
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not select.select([fd], [], [], left)[0]:
+                return None
+            chunk = os.read(fd, 4096)
+            if not chunk:
+                return None
+            self._buffer.extend(chunk)
+
+    def _write(self, string: str) -> None:
+        self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
 
 
 class FirmwareNode(Node):
     """The firmware image on QEMU, bridged to ``iface`` (python-can interface ``bus``)."""
 
     def __init__(
-        self, elf: str, machine: str, open_bus: Callable[[], can.BusABC], diag: Path, receive_ids: list[int]
+        self,
+        elf: str,
+        machine: str,
+        open_bus: Callable[[], can.BusABC],
+        diag: Path,
+        receive_ids: list[int],
+        emulator: Emulator | None = None,
     ) -> None:
         """``open_bus``: a new socket on the harness's bus (the bridge's side of it); ``receive_ids``: the
-        node's observation IDs, the only frames the bridge carries to the firmware."""
+        node's observation IDs, the only frames the bridge carries to the firmware; ``emulator``: where
+        QEMU runs (None: :class:`LocalQemu`, beside the bridge)."""
         self.elf, self.machine, self.open_bus, self.diag = elf, machine, open_bus, diag
         self.receive_ids = receive_ids
+        self.emulator = emulator or LocalQemu(elf, machine)
         self.starts = 0
         self._start()
 
@@ -68,19 +329,8 @@ class FirmwareNode(Node):
     def _start(self) -> None:
         diag = self._diag_path(self.starts)
         self.starts += 1
-        self.process = subprocess.Popen(
-            ["qemu-system-arm", "-M", self.machine, "-nographic", "-monitor", "none", "-semihosting",
-             "-icount", f"shift={ICOUNT_SHIFT}", "-serial", "pty", "-serial", f"file:{diag}",
-             "-kernel", self.elf],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        )  # fmt: skip
-        assert self.process.stdout is not None
-        first = self.process.stdout.readline()
-        found = _PTY.search(first)
-        if found is None:
-            self.process.kill()
-            raise HilError(f"qemu-system-arm gave the firmware's UART no pseudo-terminal: {first.strip()}")
-        self.serial = can.Bus(interface="slcan", channel=found.group(1), sleep_after_open=0)
+        device = self.emulator.start(diag)
+        self.serial = SerialLine(channel=device, sleep_after_open=0)
         self.bus = self.open_bus()
         self.bus.set_filters([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in self.receive_ids])
         self.running = True
@@ -112,39 +362,17 @@ class FirmwareNode(Node):
                 end.shutdown()
 
     def alive(self) -> bool:
-        return self.process.poll() is None
+        return self.emulator.alive()
 
     def exit_reason(self) -> str:
-        return f"the firmware's QEMU exited with status {self.process.returncode}"
+        return f"the firmware's QEMU exited with status {self.emulator.exit_status()}"
 
     def kill(self) -> None:
-        self.process.kill()
-        self.process.wait()
+        self.emulator.kill()
         self._end_bridge()
 
-    def _let_diagnostics_settle(self) -> None:
-        """Wait (at most :data:`STOP_TIMEOUT_S`) until the running firmware's diagnostics file has been quiet
-        for :data:`DIAG_QUIET_S`."""
-        path = self._diag_path(self.starts - 1)
-        deadline = time.monotonic() + STOP_TIMEOUT_S
-        size, quiet_since = -1, time.monotonic()
-        while time.monotonic() < deadline and self.alive():
-            now_size = path.stat().st_size if path.is_file() else 0
-            if now_size != size:
-                size, quiet_since = now_size, time.monotonic()
-            elif time.monotonic() - quiet_since >= DIAG_QUIET_S:
-                return
-            time.sleep(DIAG_QUIET_S / 4)
-
     def stop(self) -> None:
-        if self.process.poll() is None:
-            self._let_diagnostics_settle()
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=STOP_TIMEOUT_S)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-                self.process.wait()
+        self.emulator.stop(self._diag_path(self.starts - 1))
         self._end_bridge()
 
     def restart(self) -> None:

@@ -11,8 +11,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import tempfile
-from contextlib import nullcontext
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -400,11 +401,15 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
             progress=str(scratch / "progress"),
         )  # fmt: skip
+        emulator: AbstractContextManager[None] = nullcontext()
         if options.node == "firmware":  # its watchdog is fixed in the image: built for this sandbox
             cfg = _with_firmware(options, cfg, work)
+            if where.link is not None:  # QEMU on this machine, its UART0 on the guest's serial line
+                cfg = replace(cfg, firmware_link=where.link.device, firmware_control=str(scratch / "qemu"))
+                emulator = _qemu_on_host(cfg, where.link.host)
         config_file = scratch / "session.json"
         config_file.write_text(json.dumps(asdict(cfg)))
-        with episode_bar(scratch / "progress", options.episodes):
+        with emulator, episode_bar(scratch / "progress", options.episodes):
             argv = [where.python, "-m", "embedrl.hil.session", str(config_file)]
             job = where.run(argv, REPO, timeout_s=SESSION_TIMEOUT_S)
         if job.status != 0 or not Path(cfg.results).is_file():
@@ -430,6 +435,14 @@ def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> Sessi
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
     elf = make_node(options, work, extra)
     return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.firmware_target].qemu_machine)
+
+
+def _qemu_on_host(cfg: SessionConfig, link: socket.socket) -> AbstractContextManager[None]:
+    """The firmware's QEMU served on this machine for the session (:func:`.firmware.serve_qemu`)."""
+    from embedrl.hil.firmware import serve_qemu
+
+    assert cfg.node_binary is not None and cfg.qemu_machine is not None and cfg.firmware_control is not None
+    return serve_qemu(cfg.node_binary, cfg.qemu_machine, link, Path(cfg.firmware_control))
 
 
 def _firmware_stack_bound(options: RunOptions, elf: Path) -> dict[str, Any]:

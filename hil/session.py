@@ -35,7 +35,7 @@ from embedrl.export.reference import OnnxPolicy, reference_policy
 from embedrl.hil import candb
 from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
-from embedrl.hil.firmware import FirmwareNode, instruction_summary
+from embedrl.hil.firmware import FirmwareNode, HostQemu, instruction_summary
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
@@ -70,6 +70,11 @@ class SessionConfig:
     or ``python`` (the reference node, a thread)."""
     qemu_machine: str | None = None
     """The board that runs the firmware image (``node="firmware"``), e.g. ``mps2-an386``."""
+    firmware_link: str | None = None
+    """The firmware node's QEMU runs on the host (:class:`embedrl.hil.firmware.HostQemu`): the guest's
+    serial line to its UART0, e.g. ``/dev/ttyS1``; None: QEMU runs beside the session."""
+    firmware_control: str | None = None
+    """With ``firmware_link``: the folder of the requests to the host's QEMU server."""
     bus: str = "socketcan"
     """python-can interface: ``socketcan`` or ``virtual``."""
     iface: str = "vcan0"
@@ -446,12 +451,16 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
         if cfg.qemu_machine is None:
             raise ValueError("the firmware node needs qemu_machine")
         plan = candb.layout(interface, node_id, cfg.fd)
+        on_host = None
+        if cfg.firmware_link is not None and cfg.firmware_control is not None:
+            on_host = HostQemu(Path(cfg.firmware_control), cfg.firmware_link)
         return FirmwareNode(
             cfg.node_binary, cfg.qemu_machine,
             lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
             Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
             [frame_id for _, frame_id, _ in plan.observation]
             + ([candb.episode_start_id(node_id)] if interface.state_size else []),
+            on_host,
         )  # fmt: skip
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
 

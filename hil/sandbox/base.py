@@ -12,6 +12,7 @@ import contextlib
 import os
 import shlex
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -60,6 +61,16 @@ class JobResult:
         return " | ".join(lines[-n:]) or "no output"
 
 
+@dataclass(frozen=True)
+class SerialLink:
+    """A serial line from this machine into the guest: ``host`` is this machine's end (a connected stream
+    socket), ``device`` the guest's terminal for it. A program on this machine (the firmware's emulator)
+    then talks to a program in the guest without running under the guest's kernel."""
+
+    host: socket.socket
+    device: str
+
+
 class Guest(ABC):
     """A place where ``vcan0`` is up and commands run with the host's files visible."""
 
@@ -73,6 +84,9 @@ class Guest(ABC):
     slowdown: float = 1.0
     """How many times slower than the host a Python program runs in the guest: the node's default
     watchdog and the simulator's wait for an answer are stretched by it (pure emulation: ~10)."""
+    link: SerialLink | None = None
+    """A serial line from this machine into the guest (None: the guest has none; the firmware's emulator
+    then runs inside it)."""
 
     @abstractmethod
     def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:
@@ -135,7 +149,9 @@ class VmGuest(Guest):
         shutdown: str,
         boot_timeout_s: float,
         env: dict[str, str] | None = None,
+        pass_fds: tuple[int, ...] = (),
     ) -> None:
+        """``pass_fds``: this process's descriptors the machine inherits (its serial lines' host ends)."""
         self.provider = provider
         self.description = description
         self.workdir = workdir
@@ -160,6 +176,7 @@ class VmGuest(Guest):
                 stderr=subprocess.STDOUT,
                 start_new_session=True,  # UML forks helpers: stop the whole group
                 env=env,
+                pass_fds=pass_fds,
             )
         ready = self.queue / "ready"
         while not ready.is_file():
@@ -229,6 +246,8 @@ class VmGuest(Guest):
                     self.process.wait(timeout=STOP_TIMEOUT_S)
         finally:
             self._kill()  # always, even when a second signal interrupts the wait: helpers UML left behind
+            if self.link is not None:
+                self.link.host.close()
 
     def _died(self, what: str) -> Diagnosis:
         found = diagnose(self._log())

@@ -14,11 +14,12 @@ import json
 import os
 import shlex
 import shutil
+import socket
 import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
-from embedrl.hil.sandbox.base import VCAN_UP, Guest, Provider, VmGuest
+from embedrl.hil.sandbox.base import VCAN_UP, Guest, Provider, SerialLink, VmGuest
 
 PACKAGED_BINARY = "linux.uml"
 PACKAGED_MODULES = Path("/usr/lib/uml/modules")
@@ -32,6 +33,9 @@ CAN_MODULES = (
 )
 """Loaded in this order inside the guest (vcan needs can-dev)."""
 MANIFEST = "manifest.json"
+LINK_LINE = 1
+"""The guest's serial line ``ttyS1`` carries :attr:`Guest.link`: its host end is one end of a socket pair
+this process keeps (UML's ``ssl1=fd:N``), so the firmware's emulator runs on the host at full speed."""
 
 
 def cache_root() -> Path:
@@ -87,15 +91,25 @@ for m in {modules}; do insmod "$m" || echo "embedrl: insmod $m failed"; done
             "con=null",
             "con0=fd:0,fd:1",
         ]
-        guest = VmGuest(
-            "uml",
-            f"uml: User-Mode Linux ({self.kernel.origin})",
-            command,
-            workdir,
-            setup,
-            "poweroff -f",
-            BOOT_TIMEOUT_S,
-        )
+        host_end, guest_end = socket.socketpair()
+        command += ["ssl=null", f"ssl{LINK_LINE}=fd:{guest_end.fileno()}"]
+        try:
+            guest = VmGuest(
+                "uml",
+                f"uml: User-Mode Linux ({self.kernel.origin})",
+                command,
+                workdir,
+                setup,
+                "poweroff -f",
+                BOOT_TIMEOUT_S,
+                pass_fds=(guest_end.fileno(),),
+            )
+        except BaseException:
+            host_end.close()
+            raise
+        finally:
+            guest_end.close()  # the guest holds its end now
+        guest.link = SerialLink(host_end, f"/dev/ttyS{LINK_LINE}")
         guest.description = f"uml: User-Mode Linux {guest.kernel} ({self.kernel.origin})"
         return guest
 

@@ -9,6 +9,7 @@ interface alone (no kernel CAN), then lock-step episodes through ``vcan0`` in th
 from __future__ import annotations
 
 import re
+import socket
 import subprocess
 import sys
 import time
@@ -24,7 +25,13 @@ from embedrl.export.build import RUNTIME_C
 from embedrl.export.reference import reference_policy
 from embedrl.hil.candb import load_interface
 from embedrl.hil.codec import Action, Codec
-from embedrl.hil.firmware import INSTRUCTIONS_PER_TICK, FirmwareNode, instruction_summary
+from embedrl.hil.firmware import (
+    INSTRUCTIONS_PER_TICK,
+    FirmwareNode,
+    HostQemu,
+    instruction_summary,
+    serve_qemu,
+)
 from embedrl.hil.sandbox import Guest
 from tests.conftest import Exported
 from tests.hil.conftest import SHIPPED_TD3
@@ -131,6 +138,56 @@ def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
         qemu.wait()
     lines = (tmp_path / "uart1.txt").read_text().splitlines()
     assert lines[0] == "READY" and _step_lines(tmp_path / "uart1.txt") == 20
+
+
+@pytest.mark.slow
+def test_the_host_runs_the_firmware_at_the_guests_request(export_dir: Path, tmp_path: Path) -> None:
+    """The QEMU server a UML session uses, with a socket pair standing in for the guest's serial line:
+    each start request boots a fresh image on this machine that answers an observation; a kill ends it
+    at once, a stop in order once its diagnostics are written, and each exit is reported."""
+    elf = _firmware(export_dir, "cortex-m4", tmp_path)
+    link, guest_end = socket.socketpair()
+    guest_end.settimeout(10.0)
+    interface = load_interface(export_dir / "interface.json")
+    codec = Codec(interface)
+    obs = np.array([(f.low + f.high) / 2 for f in interface.observation], np.float32)
+    emulator = HostQemu(tmp_path / "control", "/dev/ttyS1")
+    with serve_qemu(str(elf), "mps2-an386", link, tmp_path / "control"):
+        for start, in_order in enumerate((False, True)):
+            guest_end.sendall(b"C\r" * 3)  # a closing bridge's lines, dropped before the next start
+            assert emulator.start(tmp_path / f"uart1-{start}.txt") == "/dev/ttyS1" and emulator.alive()
+            frames, _ = codec.encode_observation(obs, 1)
+            guest_end.sendall(b"O\r" + b"".join(_slcan(frame) for frame in frames))
+            assert _answered_step(guest_end, codec) == 1
+            if in_order:
+                emulator.stop(tmp_path / f"uart1-{start}.txt")
+            else:
+                emulator.kill()
+            assert not emulator.alive() and emulator.exit_status() == (0 if in_order else -9)
+    assert _step_lines(tmp_path / "uart1-1.txt") == 1  # stopped in order: its last step's line written
+    link.close()
+    guest_end.close()
+
+
+def _slcan(frame: can.Message) -> bytes:
+    return f"t{frame.arbitration_id:03X}{frame.dlc}{bytes(frame.data).hex().upper()}\r".encode()
+
+
+def _answered_step(end: socket.socket, codec: Codec) -> int | None:
+    """The step of the first action frame the firmware sends back on ``end``."""
+    buffer = b""
+    while True:
+        buffer += end.recv(4096)
+        *lines, buffer = buffer.split(b"\r")
+        for line in lines:
+            if line[:1] != b"t":
+                continue
+            frame = can.Message(
+                arbitration_id=int(line[1:4], 16), data=bytes.fromhex(line[5:].decode()), is_extended_id=False
+            )
+            decoded = codec.decode(frame)
+            if isinstance(decoded, Action):
+                return decoded.step
 
 
 def _step_lines(diag: Path) -> int:
