@@ -72,7 +72,11 @@ def exported(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Exported]:
         return folders[key]
 
     yield export
-    changed = [str(out) for out, before in contents.items() if _digests(out) != before]
+    changed = {
+        str(out): sorted(name for name in {*before, *now} if before.get(name) != now.get(name))
+        for out, before in contents.items()
+        if (now := _digests(out)) != before
+    }
     assert not changed, f"a test changed a shared export instead of a copy of it: {changed}"
 
 

@@ -8,6 +8,7 @@ the whole HIL suite under QEMU.
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,16 +21,23 @@ from tests.conftest import Exported, marks_its_users
 SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
 
 
-@pytest.fixture(scope="session")
-def export_dir(exported: Exported) -> Path:
-    """The shipped TD3 policy (199/200 successes on unseen seeds), exported without the closed loop."""
-    return exported(SHIPPED_TD3, "--episodes", "0")
+@pytest.fixture
+def export_dir(exported: Exported, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped TD3 policy (199/200 successes on unseen seeds), exported without the closed loop: the
+    session's export, copied for each test (``hil run --json`` adds its report to the export's chain)."""
+    return _copy(exported(SHIPPED_TD3, "--episodes", "0"), tmp_path_factory)
 
 
-@pytest.fixture(scope="session")
-def safe_export_dir(exported: Exported) -> Path:
-    """The same policy exported with ``--safe-action 0.1,0``."""
-    return exported(SHIPPED_TD3, "--episodes", "0", "--safe-action", "0.1,0")
+@pytest.fixture
+def safe_export_dir(exported: Exported, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The same policy exported with ``--safe-action 0.1,0``, copied for each test."""
+    return _copy(exported(SHIPPED_TD3, "--episodes", "0", "--safe-action", "0.1,0"), tmp_path_factory)
+
+
+def _copy(export: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    copy = tmp_path_factory.mktemp("export") / "export"
+    shutil.copytree(export, copy)
+    return copy
 
 
 @pytest.fixture(scope="session")
