@@ -4,9 +4,9 @@
 - ``exported``: ``embedrl export`` run once per session for each (source content, flags), shared by every test
   that reads the same export; a test that changes an export copies it first (``shutil.copytree``).
 - Tiers: markers set by the fixtures a test uses (``@marks_its_users``): ``sandbox`` (a CAN sandbox guest),
-  ``qemu`` (a QEMU machine: the x86 sandbox guest or Cortex-M firmware), ``training`` (trains a policy); a
-  test that does such a thing itself carries the marker. ``make test-fast`` deselects them and ``slow``;
-  ``make test`` runs everything.
+  ``qemu`` (a QEMU machine: the x86 sandbox guest or Cortex-M firmware), ``training`` (trains a policy),
+  ``slow`` (minutes of work, e.g. many exports); a test that does such a thing itself carries the marker.
+  ``make test-fast`` deselects all four; ``make test`` runs everything.
 - SIGTERM stops the session as Ctrl-C does (fixtures torn down, guests closed), also when it arrives while
   a test runs ``embedrl.cli.main`` in-process, whose own handler would otherwise turn it into one failed
   test and let the session run on.
@@ -29,7 +29,7 @@ from embedrl import train
 from embedrl.cli import main
 from embedrl.common import sha256
 
-TIERS = ("sandbox", "qemu", "training")
+TIERS = ("slow", "sandbox", "qemu", "training")
 """The markers a fixture may set on the tests that use it (registered in pyproject.toml)."""
 Fixture = TypeVar("Fixture", bound=Callable[..., object])
 

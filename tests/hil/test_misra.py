@@ -10,11 +10,12 @@ import pytest
 
 from embedrl.hil import misra
 from embedrl.hil.misra import Deviation, Finding
-from tests.conftest import Exported
+from tests.conftest import Exported, marks_its_users
 from tests.hil.conftest import SHIPPED_TD3
 
 
 @pytest.fixture(scope="module")
+@marks_its_users("slow")  # three exports, cppcheck's MISRA addon over each deployed node
 def exports(exported: Exported) -> dict[str, Path]:
     out = {}
     for precision in ("float32", "int8", "q15"):

@@ -6,10 +6,10 @@ another working folder into a folder whose path has spaces. Each source is expor
 (float32, int8, q15) with the closed loop skipped; the HIL run then compares the node with the export's
 own reference for that precision (:mod:`embedrl.export.reference`).
 
-Fast suite: every source x precision through the Python reference node. Slow suite: every source x
-precision through the compiled C node over vcan in the shared guest (``--sandbox auto``), plus rows under
-QEMU that cover every precision, every scenario and the foreign ONNX there: every pair of values of the
-five factors meets in at least one row (:data:`C_ROWS`, checked by a test).
+Every source x precision through the Python reference node, and through the compiled C node over vcan in
+the shared guest (``--sandbox auto``), plus rows under QEMU that cover every precision, every scenario and
+the foreign ONNX there: every pair of values of the five factors meets in at least one row (:data:`C_ROWS`,
+checked by a test). The 21 exports take minutes: the matrix is in the slow tier.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ SOURCES = {
 }
 PRECISIONS = ("float32", "int8", "q15")
 PYTHON_ROWS = list(itertools.product(SOURCES, PRECISIONS))
-"""The fast suite: every source at every precision through the Python node."""
+"""Every source at every precision through the Python node."""
 C_ROWS = [(s, p, "auto") for s, p in itertools.product(SOURCES, PRECISIONS)] + [
     ("td3", "float32", "qemu"),
     ("onnx", "int8", "qemu"),
@@ -71,6 +71,7 @@ def _foreign_onnx(folder: Path, float_export: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+@marks_its_users("slow")  # 21 exports
 def exports(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, str], Path]:
     """Every source exported at every precision (closed loop skipped), into folders with spaces."""
     base = tmp_path_factory.mktemp("paths") / "exports with spaces"
