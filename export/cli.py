@@ -306,6 +306,26 @@ def register(sub: Any) -> None:
         "(default: the scenario's names; obs0.., act0.. for envs without a spec)",
     )
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    _add_precision_arguments(p)
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser(
+        "verify-chain",
+        help="recompute every hash of an export's traceability chain; name the first link that changed",
+    )
+    add_export_dir_argument(p, "an `embedrl export` folder (with chain.json)")
+    p.add_argument("--verbose", action="store_true", help="one line per link")
+    p.add_argument(
+        "--key", type=Path, metavar="PUBLIC.pem",
+        help="check the chain's signature with this Ed25519 public key (PEM); an unsigned export then fails",
+    )  # fmt: skip
+    p.set_defaults(func=cmd_verify_chain)
+
+    _register_benchmarks(sub)
+
+
+def _add_precision_arguments(p: Any) -> None:
+    """``export``'s signature, verification tolerance, model limits, precision and targets."""
     p.add_argument(
         "--sign", type=Path, metavar="PRIVATE.pem",
         help="sign the traceability chain with this Ed25519 private key (PEM, `openssl genpkey -algorithm "
@@ -341,21 +361,6 @@ def register(sub: Any) -> None:
         choices=tuple(TARGETS),
         help="also build firmware for this Cortex-M, run it on QEMU and measure it (repeatable)",
     )
-    p.set_defaults(func=cmd_export)
-
-    p = sub.add_parser(
-        "verify-chain",
-        help="recompute every hash of an export's traceability chain; name the first link that changed",
-    )
-    add_export_dir_argument(p, "an `embedrl export` folder (with chain.json)")
-    p.add_argument("--verbose", action="store_true", help="one line per link")
-    p.add_argument(
-        "--key", type=Path, metavar="PUBLIC.pem",
-        help="check the chain's signature with this Ed25519 public key (PEM); an unsigned export then fails",
-    )  # fmt: skip
-    p.set_defaults(func=cmd_verify_chain)
-
-    _register_benchmarks(sub)
 
 
 def _register_benchmarks(sub: Any) -> None:

@@ -127,6 +127,16 @@ def register(sub: Any) -> None:
         help="pass even if episodes end in a fault (fault-injection runs); without it a fault fails the run",
     )
     r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
+    _add_node_arguments(r)
+    r.set_defaults(func=cmd_run)
+    _register_bench(hil_sub)
+    _register_doctor(hil_sub)
+    _register_report(sub)
+    _register_scope(sub)
+
+
+def _add_node_arguments(r: Any) -> None:
+    """``hil run``'s options about the node: its kind, core, frames, count and what it may build."""
     r.add_argument(
         "--trust-c",
         action="store_true",
@@ -165,11 +175,6 @@ def register(sub: Any) -> None:
         choices=tuple(TARGETS),
         help=f"the firmware node's core (runtime_c/cortex_m/targets.mk) (default: {DEFAULT_TARGET})",
     )
-    r.set_defaults(func=cmd_run)
-    _register_bench(hil_sub)
-    _register_doctor(hil_sub)
-    _register_report(sub)
-    _register_scope(sub)
 
 
 def cmd_scope(args: argparse.Namespace) -> int:

@@ -483,47 +483,11 @@ class Int8Layer:
         b = ctx.const(
             f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
         )
-        word, odd = ctx.function("word", word_source), ctx.function("odd", odd_source)
-        dsp = f"#if {ctx.prefix.upper()}_DSP"
-        sums = f"{ctx.prefix}_acc"
-        groups = k_pad // WORD
-        pairs = n_out - n_out % 2
-        tail = [
-            "{ /* the last, odd output */",
-            f"    int32_t a0 = {b}[{n_out - 1}];",
-            f"    for (int g = 0; g < {groups}; ++g) {{",
-            f"        const int32_t v0 = {word}(&{w}[{n_out - 1}][{WORD} * g]);",
-            f"        a0 = __smlad({xe}[g], __sxtb16(v0), a0);",
-            f"        a0 = __smlad({xo}[g], {odd}(v0), a0);",
-            "    }",
-            f"    {sums}[{n_out - 1}] = a0;",
-            "}",
-        ]
+        dsp, sums = f"#if {ctx.prefix.upper()}_DSP", f"{ctx.prefix}_acc"
         lines = [
             f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''}, int8 x int8 -> int32 */",
             dsp,
-            f"for (int g = 0; g < {groups}; ++g) {{",
-            f"    const int32_t a = {word}(&{src}[{WORD} * g]);",
-            f"    {xe}[g] = __sxtb16(a);",
-            f"    {xo}[g] = {odd}(a);",
-            "}",
-            f"for (int n = 0; n < {pairs}; n += 2) {{",
-            f"    int32_t a0 = {b}[n];",
-            f"    int32_t a1 = {b}[n + 1];",
-            f"    for (int g = 0; g < {groups}; ++g) {{ /* 8 multiply-adds in 4 SMLAD */",
-            f"        const int32_t e = {xe}[g];",
-            f"        const int32_t o = {xo}[g];",
-            f"        const int32_t v0 = {word}(&{w}[n][{WORD} * g]);",
-            f"        const int32_t v1 = {word}(&{w}[n + 1][{WORD} * g]);",
-            "        a0 = __smlad(e, __sxtb16(v0), a0);",
-            "        a1 = __smlad(e, __sxtb16(v1), a1);",
-            f"        a0 = __smlad(o, {odd}(v0), a0);",
-            f"        a1 = __smlad(o, {odd}(v1), a1);",
-            "    }",
-            f"    {sums}[n] = a0;",
-            f"    {sums}[n + 1] = a1;",
-            "}",
-            *(tail if n_out % 2 else []),
+            *self._dsp_sums(ctx, src, xe, xo, w, b),
             "#endif",
             f"for (int n = 0; n < {n_out}; ++n) {{",
             dsp,
@@ -551,4 +515,48 @@ class Int8Layer:
             f"(r < {low - zero} ? {low} : r{plus_zero});",
             f"    {dst}[n] = (int8_t)q;",
             "}",
+        ]
+
+    def _dsp_sums(self, ctx: EmitContext, src: str, xe: str, xo: str, w: str, b: str) -> list[str]:
+        """The DSP loop (without its ``#if``): the input's words unpacked once into ``xe``/``xo``, then every
+        output's sum into the accumulators, two outputs per pass and the last odd one alone."""
+        n_out, k_in = self.weights.shape
+        word, odd = ctx.function("word", word_source), ctx.function("odd", odd_source)
+        sums = f"{ctx.prefix}_acc"
+        groups = padded(k_in) // WORD
+        pairs = n_out - n_out % 2
+        tail = [
+            "{ /* the last, odd output */",
+            f"    int32_t a0 = {b}[{n_out - 1}];",
+            f"    for (int g = 0; g < {groups}; ++g) {{",
+            f"        const int32_t v0 = {word}(&{w}[{n_out - 1}][{WORD} * g]);",
+            f"        a0 = __smlad({xe}[g], __sxtb16(v0), a0);",
+            f"        a0 = __smlad({xo}[g], {odd}(v0), a0);",
+            "    }",
+            f"    {sums}[{n_out - 1}] = a0;",
+            "}",
+        ]
+        return [
+            f"for (int g = 0; g < {groups}; ++g) {{",
+            f"    const int32_t a = {word}(&{src}[{WORD} * g]);",
+            f"    {xe}[g] = __sxtb16(a);",
+            f"    {xo}[g] = {odd}(a);",
+            "}",
+            f"for (int n = 0; n < {pairs}; n += 2) {{",
+            f"    int32_t a0 = {b}[n];",
+            f"    int32_t a1 = {b}[n + 1];",
+            f"    for (int g = 0; g < {groups}; ++g) {{ /* 8 multiply-adds in 4 SMLAD */",
+            f"        const int32_t e = {xe}[g];",
+            f"        const int32_t o = {xo}[g];",
+            f"        const int32_t v0 = {word}(&{w}[n][{WORD} * g]);",
+            f"        const int32_t v1 = {word}(&{w}[n + 1][{WORD} * g]);",
+            "        a0 = __smlad(e, __sxtb16(v0), a0);",
+            "        a1 = __smlad(e, __sxtb16(v1), a1);",
+            f"        a0 = __smlad(o, {odd}(v0), a0);",
+            f"        a1 = __smlad(o, {odd}(v1), a1);",
+            "    }",
+            f"    {sums}[n] = a0;",
+            f"    {sums}[n + 1] = a1;",
+            "}",
+            *(tail if n_out % 2 else []),
         ]
