@@ -23,6 +23,7 @@ from pathlib import Path
 
 from embedrl.hil.errors import HilError
 from embedrl.hil.sandbox.console import Diagnosis, diagnose
+from embedrl.reaper import GroupReaper
 
 REPO = Path(__file__).resolve().parents[2]
 IFACE = "vcan0"
@@ -178,9 +179,11 @@ class VmGuest(Guest):
                 env=env,
                 pass_fds=pass_fds,
             )
+        self._reaper = GroupReaper(self.process.pid)  # the guest ends with this process, even on SIGKILL
         ready = self.queue / "ready"
         while not ready.is_file():
             if self.process.poll() is not None:
+                self._kill()  # the helpers UML forked
                 raise SandboxError(self._died("exited while booting"))
             if time.monotonic() - start > boot_timeout_s:
                 self._kill()
@@ -264,6 +267,7 @@ class VmGuest(Guest):
         with contextlib.suppress(ProcessLookupError):
             os.killpg(self.process.pid, signal.SIGKILL)
         self.process.wait()
+        self._reaper.release()
 
 
 def _read(path: Path) -> str:

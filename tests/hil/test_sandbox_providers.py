@@ -7,6 +7,11 @@ skip says why; CI sets ``EMBEDRL_REQUIRE_SANDBOXES=uml,qemu`` so those two canno
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -16,6 +21,7 @@ import embedrl.hil.sandbox as sandbox
 from embedrl.hil.sandbox import Guest, Provider
 from tests.conftest import marks_its_users
 from tests.hil.helpers import boot_or_skip, hil
+from tests.test_reaper import DEADLINE_S, group_alive
 
 pytestmark = pytest.mark.slow
 CANDIDATES = sandbox.providers("auto")
@@ -52,3 +58,35 @@ def test_a_lock_step_episode_over_vcan_equals_the_simulation(
     assert report["crc_errors"] == 0 and report["sequence_errors"] == 0
     lines = log.read_text().splitlines()  # written inside the guest, moved to where it was asked for
     assert len(lines) == report["frames_tx"] + report["frames_rx"]
+
+
+OWNER = """
+import sys, tempfile, time
+from pathlib import Path
+import embedrl.hil.sandbox as sandbox
+guest = sandbox.select("uml", Path(sys.argv[1]), say=lambda _: None)
+print(guest.process.pid, flush=True)
+time.sleep(600)
+"""
+"""A process that boots a User-Mode Linux guest and waits to be killed."""
+
+
+@pytest.mark.sandbox
+def test_a_guest_ends_with_the_process_that_booted_it_even_on_sigkill(tmp_path: Path) -> None:
+    if all(p.missing() for p in sandbox.providers("uml")):
+        pytest.skip("no User-Mode Linux here")
+    script = tmp_path / "owner.py"
+    script.write_text(OWNER)
+    owner = subprocess.Popen([sys.executable, str(script), str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    assert owner.stdout is not None
+    pgid = int(owner.stdout.readline())  # the guest's process group: UML and the host processes it forked
+    os.killpg(pgid, 0)
+    owner.send_signal(signal.SIGKILL)
+    owner.wait()
+    deadline = time.monotonic() + DEADLINE_S
+    while group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    alive = group_alive(pgid)
+    if alive:
+        os.killpg(pgid, signal.SIGKILL)
+    assert not alive, "the guest outlived the killed process that booted it"
