@@ -156,6 +156,29 @@ def cmd_verify_chain(args: argparse.Namespace) -> int:
     return 0 if signed.passed else 1
 
 
+def _quantization_rows(report: dict[str, Any]) -> list[tuple[str, str]]:
+    """The summary's lines on a quantised export: scheme, bit-exactness, distance from its reference."""
+    v = report["verification"]
+    q = v["quantization"]
+    rows = [
+        ("quantization", q["scheme"]),
+        ("C vs Python model of it", f"{q['model_mismatches']} of {v['samples']} samples differ in any bit"),
+    ]
+    qdq = q.get("qdq")
+    if qdq is None:
+        rows.append((f"worst |{report['quantize']} - float|", f"{q['worst_action_error_vs_float']:.3g}"))
+        return rows
+    rows.append(("worst |C - QDQ model| (action)", f"{q['worst_action_error_vs_float']:.3g}"))
+    rows.append(
+        (
+            "last layer vs QDQ model",
+            f"max {qdq['max_output_steps']:.2f}, p99 {qdq['p99_output_steps']:.2f} output steps "
+            f"(allowed {qdq['tolerance_steps']:g}; {qdq['saturated_outputs']} saturated left out)",
+        )
+    )
+    return rows
+
+
 def _print_summary(report: dict[str, Any]) -> None:
     v = report["verification"]
     rows = [
@@ -166,15 +189,7 @@ def _print_summary(report: dict[str, Any]) -> None:
     if v["onnx_vs_sb3_max_abs_error"] is not None:
         rows.append(("max |ONNX - SB3|", f"{v['onnx_vs_sb3_max_abs_error']:.3g}"))
     if "quantization" in v:
-        q = v["quantization"]
-        rows.append(("quantization", q["scheme"]))
-        rows.append(
-            (
-                "C vs Python model of it",
-                f"{q['model_mismatches']} of {v['samples']} samples differ in any bit",
-            )
-        )
-        rows.append((f"worst |{report['quantize']} - float|", f"{q['worst_action_error_vs_float']:.3g}"))
+        rows += _quantization_rows(report)
     else:
         rows.append(("max |C - onnxruntime|", f"{v['c_vs_onnxruntime_max_abs_error']:.3g}"))
     nan = v.get("nan_propagation")

@@ -24,7 +24,7 @@ multiplier exponent outside [-31, 30], a bias or a sum beyond int32) is refused,
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -66,6 +66,23 @@ def activation_for(values: np.ndarray) -> Activation:
     scale = (hi - lo) / (INT8_MAX - INT8_MIN)
     zero = int(np.clip(round(INT8_MIN - lo / scale), INT8_MIN, INT8_MAX))
     return Activation(scale, zero)
+
+
+@dataclass(frozen=True)
+class Given:
+    """A quantisation the model carries (a QDQ model: :mod:`embedrl.export.qdq`), used, not calibrated."""
+
+    activations: dict[str, Activation] = field(default_factory=dict)
+    """Each quantised activation's scale and zero point, by float tensor name."""
+    weight_scales: dict[str, np.ndarray] = field(default_factory=dict)
+    """Each int8 weight's scales (one, or one per output channel), by the float constant's name."""
+
+    def activation(self, tensor: str, layer: str) -> Activation:
+        if tensor not in self.activations:
+            raise UnsupportedOpError(
+                f"{SCHEME}: the quantised model gives tensor '{tensor}' (layer '{layer}') no QuantizeLinear"
+            )
+        return self.activations[tensor]
 
 
 @dataclass(frozen=True)
@@ -162,13 +179,14 @@ def quantize_input(x: np.ndarray, quant: Activation) -> np.ndarray:
     return np.floor((v + F(0.5)).astype(F)).astype(np.int64)
 
 
-def plan(graph: Graph, calibration: np.ndarray) -> IntegerSection:
-    """Find the Gemm chain, calibrate its activations on ``calibration`` observations, quantise it; refuse a
-    layer whose scales do not fit the encoding (:class:`UnrepresentableRangeError`, naming it)."""
+def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> IntegerSection:
+    """Find the Gemm chain, calibrate its activations on ``calibration`` observations (or take them and the
+    weights' scales from ``given``), quantise it; refuse a layer whose scales do not fit the encoding
+    (:class:`UnrepresentableRangeError`, naming it)."""
     inner = chain(graph, SCHEME)
-    values = interpret.run(graph, calibration, "float64")
+    values = interpret.run(graph, calibration, "float64") if given is None else {}
     section_input = inner[0].inputs[0]
-    quant = activation_for(values[section_input])
+    quant = _activation(section_input, inner[0].name, values, given)
     in_quant = quant
     nodes = [n for n in inner if n.op != "Relu"]
     layers = []
@@ -179,9 +197,9 @@ def plan(graph: Graph, calibration: np.ndarray) -> IntegerSection:
                 f"Gemm node '{node.name}': alpha/beta != 1 are not supported with {SCHEME}"
             )
         w = affine.weights  # output-major [N][K]
-        peak = np.max(np.abs(w), axis=1)
-        w_scale = np.where(peak > 0, peak / INT8_MAX, 1.0)
-        w_q = np.clip(np.rint(w / w_scale[:, None]), -INT8_MAX, INT8_MAX).astype(np.int64)
+        w_q, w_scale = _int8_weights(
+            node.name, w, None if given is None else given.weight_scales.get(node.inputs[1])
+        )
         acc_scale = in_quant.scale * w_scale
         bias = np.zeros(w.shape[0]) if affine.bias is None else affine.bias
         bias_acc = np.rint(bias / acc_scale)
@@ -196,7 +214,7 @@ def plan(graph: Graph, calibration: np.ndarray) -> IntegerSection:
                 node.name, w_q.astype(np.int8), bias_q, none, none, 0, False, acc_scale.astype(F)
             )
         else:
-            out = activation_for(values[consumers[0].outputs[0] if relu else node.outputs[0]])
+            out = _activation(consumers[0].outputs[0] if relu else node.outputs[0], node.name, values, given)
             multiplier, shift = _multipliers(node.name, acc_scale / out.scale)
             layer = Int8Layer(node.name, w_q.astype(np.int8), bias_q, multiplier, shift, out.zero, relu, None)
             in_quant = out
@@ -209,6 +227,37 @@ def plan(graph: Graph, calibration: np.ndarray) -> IntegerSection:
         frozenset(n.name for n in inner),
         inner[0].name,
     )
+
+
+def _activation(tensor: str, layer: str, values: dict[str, np.ndarray], given: Given | None) -> Activation:
+    """A tensor's quantisation: the model's own, or calibrated from its values."""
+    return activation_for(values[tensor]) if given is None else given.activation(tensor, layer)
+
+
+WEIGHT_GRID_TOLERANCE = 1e-3
+"""How far (in steps) a given weight may sit from its int8 grid point: float32 rounding, never a step."""
+
+
+def _int8_weights(layer: str, w: np.ndarray, scales: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric per-output-channel int8 weights and their scales: ``max|w[n]| / 127``, or the model's own
+    scales (which must put every weight on the int8 grid of its output channel)."""
+    if scales is None:
+        peak = np.max(np.abs(w), axis=1)
+        w_scale = np.where(peak > 0, peak / INT8_MAX, 1.0)
+        return np.clip(np.rint(w / w_scale[:, None]), -INT8_MAX, INT8_MAX).astype(np.int64), w_scale
+    fits = scales.size in (1, w.shape[0]) and bool(np.all(scales > 0))
+    given = np.broadcast_to(np.asarray(scales, np.float64), (w.shape[0],)) if fits else np.ones(w.shape[0])
+    steps = w / given[:, None]
+    if (
+        not fits
+        or np.max(np.abs(steps - np.rint(steps))) > WEIGHT_GRID_TOLERANCE
+        or np.max(np.abs(steps)) > INT8_MAX + 0.5
+    ):
+        raise UnsupportedOpError(
+            f"{SCHEME}: layer '{layer}': the model's int8 weights are not quantised per output channel "
+            f"({scales.size} scale(s) for {w.shape[0]} outputs)"
+        )
+    return np.rint(steps).astype(np.int64), np.array(given)
 
 
 def _check_accumulator(layer: str, bias_acc: np.ndarray, w_q: np.ndarray) -> None:

@@ -25,13 +25,26 @@ import onnx
 
 from embedrl import train
 from embedrl.common import owned_temporary_folder, provenance, sha256, with_umask
-from embedrl.export import build, chain, cycles, nan_check, quantize, stack, target, verify
+from embedrl.export import (
+    build,
+    chain,
+    cycles,
+    full_integer,
+    interpret,
+    nan_check,
+    qdq,
+    quantize,
+    stack,
+    target,
+    verify,
+)
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
+from embedrl.export.full_integer import Given
 from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
-from embedrl.export.onnx_import import Limits, load_onnx, to_ir
+from embedrl.export.onnx_import import Limits, load_onnx
 from embedrl.export.reference import OBSERVATIONS_FILE, OnnxPolicy
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
@@ -286,6 +299,8 @@ class Lowered:
     reference: Callable[[np.ndarray], np.ndarray]
     """The policy the export is verified against (SB3's ``predict`` or onnxruntime)."""
     onnx_policy: Callable[[np.ndarray], np.ndarray]
+    given: Given | None = None
+    """A QDQ model's own int8 quantisation (:mod:`embedrl.export.qdq`)."""
 
 
 @dataclass(frozen=True)
@@ -319,6 +334,14 @@ class Verified:
 def _export_into(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> dict[str, Any]:
     """The stages in order: load, lower, generate, build, verify, write (the report)."""
     loaded = _load(staging, opts, log)
+    if qdq.is_qdq(loaded.model):
+        if opts.quantize not in (None, full_integer.SCHEME):
+            raise ExportError(
+                f"{opts.source.name} is quantised (QDQ): it carries its own int8 quantisation; export it "
+                f"with --quantize {full_integer.SCHEME} or without --quantize, not --quantize {opts.quantize}"
+            )
+        opts = replace(opts, quantize=full_integer.SCHEME)
+        log(f"      quantised (QDQ): its own int8 scales, as --quantize {full_integer.SCHEME}")
     lowered = _lower(loaded, staging, opts)
     generated = _generate(loaded, lowered, staging, opts, log)
     with owned_temporary_folder("embedrl-build-") as tmp:
@@ -411,7 +434,7 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
 
 
 def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
-    graph = to_ir(loaded.model)
+    graph, given = qdq.lowered(loaded.model)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     obs_space, act_space, interface, interface_problem = _spaces(opts, obs_dim, act_dim)
     if not isinstance(obs_space, gym.spaces.Box) or obs_space.shape != (obs_dim,):
@@ -441,7 +464,7 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     action_clamp = {"added": clamp, "bounds": [bounds[0].tolist(), bounds[1].tolist()]}
     if clamp:  # the policy's actions can leave the action space: bound them in the graph itself
         loaded.model = append_clamp(loaded.model, act_space.low, act_space.high)
-        graph = to_ir(loaded.model)
+        graph, given = qdq.lowered(loaded.model)
     if interface is not None:
         interface = interface.with_safe_action(opts.safe_action).with_state_size(graph.state_size)
         (staging / INTERFACE_FILE).write_text(interface.dumps())
@@ -454,7 +477,14 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
     onnx.save(loaded.model, str(loaded.onnx_path))
     reference = loaded.loaded if loaded.loaded is not None else OnnxPolicy(loaded.model)
     return Lowered(
-        graph, obs_space, interface, interface_problem, action_clamp, reference, OnnxPolicy(loaded.model)
+        graph,
+        obs_space,
+        interface,
+        interface_problem,
+        action_clamp,
+        reference,
+        OnnxPolicy(loaded.model),
+        given,
     )
 
 
@@ -516,7 +546,7 @@ def _generate(
     samples, from_rollouts = verify.sample_observations(
         lowered.obs_space, opts.env_id, lowered.reference, opts.seed
     )
-    section = quantize.plan_section(graph, opts.quantize, samples)
+    section = quantize.plan_section(graph, opts.quantize, samples, lowered.given)
     obs_dim, act_dim = graph.size(graph.input), graph.size(graph.output)
     log(f"[2/5] generating C ({len(graph.nodes)} ops, {obs_dim} -> {act_dim})")
     header = {
@@ -629,6 +659,8 @@ def _numerical_checks(
                 f"the {opts.quantize} C differs from the Python model of its arithmetic "
                 f"on {mismatches} samples"
             )
+        if lowered.given is not None and section is not None:
+            checks["quantization"]["qdq"] = _qdq_check(loaded.model, lowered, section, samples)
     else:
         failure = verify.tolerance_failure(
             c_actions, onnx_actions, samples, opts.tolerance, "the generated C differs from onnxruntime"
@@ -636,6 +668,21 @@ def _numerical_checks(
         if failure:
             raise VerificationError(failure)
     return checks
+
+
+def _qdq_check(
+    model: onnx.ModelProto, lowered: Lowered, section: Section, samples: np.ndarray
+) -> dict[str, Any]:
+    """The integer section's output against onnxruntime running the QDQ model, in its output steps."""
+    assert lowered.given is not None
+    c_output = interpret.run(lowered.graph, samples, "int8", section)[section.output]
+    found = qdq.compare(model, section.output, lowered.given, c_output, samples)
+    if found["max_output_steps"] > found["tolerance_steps"]:
+        raise VerificationError(
+            f"the int8-full C's last layer is {found['max_output_steps']:.2f} output steps from onnxruntime "
+            f"running the QDQ model (allowed {found['tolerance_steps']})"
+        )
+    return found
 
 
 def _write_test_data(loaded: Loaded, generated: Generated, staging: Path) -> tuple[np.ndarray, Path]:

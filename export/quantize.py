@@ -42,8 +42,18 @@ SECTIONS: dict[str, Callable[[Graph, np.ndarray], Section]] = {
 observations."""
 
 
-def plan_section(graph: Graph, scheme: str | None, calibration: np.ndarray) -> Section | None:
-    """The scheme's integer section calibrated on ``calibration`` (None for float32 and int8)."""
+def plan_section(
+    graph: Graph, scheme: str | None, calibration: np.ndarray, given: full_integer.Given | None = None
+) -> Section | None:
+    """The scheme's integer section calibrated on ``calibration`` (None for float32 and int8), or, for
+    int8-full, quantised as ``given`` (a QDQ model's own quantisation)."""
+    if given is not None:
+        if scheme != full_integer.SCHEME:
+            raise UnsupportedOpError(
+                f"a QDQ-quantised ONNX carries its own int8 quantisation: export it with --quantize "
+                f"{full_integer.SCHEME} or without --quantize, not {scheme or 'float32'}"
+            )
+        return full_integer.plan(graph, np.asarray(calibration, np.float32), given)
     planner = SECTIONS.get(scheme or "")
     return None if planner is None else planner(graph, np.asarray(calibration, np.float32))
 

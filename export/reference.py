@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from embedrl.export import interpret, quantize
+from embedrl.export import interpret, qdq, quantize
 from embedrl.export.errors import ExportError
 from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
-from embedrl.export.onnx_import import load_onnx, to_ir
+from embedrl.export.onnx_import import load_onnx
 
 REPORT_FILE = "export_report.json"
 OBSERVATIONS_FILE = "observations.npy"
@@ -96,7 +96,7 @@ def reference_policy(export_dir: Path) -> Policy:
     precision = precision_of(export_dir)
     if precision == "float32":
         return OnnxPolicy(onnx_path)
-    graph = to_ir(load_onnx(onnx_path))
+    graph, given = qdq.lowered(load_onnx(onnx_path))
     section = None
     if precision in quantize.SECTIONS:
         observations = export_dir / "test" / OBSERVATIONS_FILE
@@ -104,7 +104,7 @@ def reference_policy(export_dir: Path) -> Policy:
             raise ExportError(
                 f"{export_dir}: no test/{OBSERVATIONS_FILE} to plan the {precision} section from"
             )
-        section = quantize.plan_section(graph, precision, np.load(observations, allow_pickle=False))
+        section = quantize.plan_section(graph, precision, np.load(observations, allow_pickle=False), given)
 
     return QuantizedPolicy(graph, section)
 

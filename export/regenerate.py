@@ -68,8 +68,9 @@ def _compare(export_dir: Path, expected: dict[str, str]) -> str | None:
 
 def _generated(export_dir: Path) -> tuple[Graph, Section | None, np.ndarray, dict[str, str]]:
     from embedrl.export.codegen import generate
-    from embedrl.export.onnx_import import load_onnx, to_ir
+    from embedrl.export.onnx_import import load_onnx
     from embedrl.export.pipeline import tool_version
+    from embedrl.export.qdq import lowered
     from embedrl.export.quantize import plan_section
     from embedrl.train.interface import Interface
 
@@ -78,12 +79,12 @@ def _generated(export_dir: Path) -> tuple[Graph, Section | None, np.ndarray, dic
     if report["tool"] != tool:
         raise ExportError(f"it was exported by {report['tool']}, this is {tool}")
     onnx_path = export_dir / "policy.onnx"
-    graph = to_ir(load_onnx(onnx_path))
+    graph, given = lowered(load_onnx(onnx_path))
     quantize = report["quantize"]
     observations = np.load(export_dir / OBSERVATIONS, allow_pickle=False).astype(np.float32)
     if observations.ndim != 2 or observations.shape[1] != graph.size(graph.input):
         raise ValueError(f"{OBSERVATIONS} holds {observations.shape}, not rows of the policy's observations")
-    section = plan_section(graph, quantize, observations)
+    section = plan_section(graph, quantize, observations, given)
     interface_file = export_dir / "interface.json"
     interface = Interface.from_json(read_json(interface_file)) if interface_file.is_file() else None
     source = report["source"]

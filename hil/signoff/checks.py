@@ -52,7 +52,7 @@ def _numerics(v: dict[str, Any], tolerance: float) -> dict[str, Any]:
             if v["bit_exact_with_model"]
             else f"C differs from its integer model on the {v['samples']:,} samples"
         )
-        return _row(name, v["passed"], f"{detail}; max |C - float ONNX| {v['max_error']:.3g}")
+        return _row(name, v["passed"], f"{detail}; max |C - policy.onnx| {v['max_error']:.3g}")
     detail = f"max |C - ONNX| {v['max_error']:.3g} on {v['samples']:,} samples (tolerance {tolerance:g})"
     return _row(name, v["passed"], detail)
 

@@ -25,9 +25,10 @@ def layer_table(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     """``{"rows": [...], "unattributed_bytes", "header_weight_bytes", "weight_bytes"}``: one row per node
     (``op``, ``name``, ``input_shape``, ``output_shape``, ``macs``, ``weight_bytes``, ``activation_bytes``,
     ``cycles`` per target)."""
-    from embedrl.export.onnx_import import load_onnx, to_ir
+    from embedrl.export.onnx_import import load_onnx
+    from embedrl.export.qdq import lowered
 
-    graph = to_ir(load_onnx(export_dir / "policy.onnx"))
+    graph = lowered(load_onnx(export_dir / "policy.onnx"))[0]
     name = export["name"]
     arrays = const_arrays((export_dir / "c" / f"{name}.c").read_text(), name)
     header = _HEADER_WEIGHTS.search((export_dir / "c" / f"{name}.h").read_text())

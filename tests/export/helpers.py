@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import onnx
 from onnx import TensorProto, helper, numpy_helper
+from onnxruntime.quantization import CalibrationDataReader, QuantFormat, QuantType, quantize_static
 
 from embedrl.export import build
 from embedrl.export.codegen import generate
@@ -65,3 +66,30 @@ def mlp_model(widths: list[int], acts: list[str] | None = None, seed: int = 0) -
         nodes.append(helper.make_node(acts[i], [f"g{i}"], [out]))
         last = out
     return make_model(nodes, inits, widths[0], widths[-1])
+
+
+CALIBRATION_ROWS = 256
+"""Observations onnxruntime's quantiser calibrates on (the float export's verification observations)."""
+
+
+class Rows(CalibrationDataReader):  # type: ignore[misc]  # onnxruntime has no type information
+    """The float export's observations, one row per calibration step."""
+
+    def __init__(self, name: str, rows: np.ndarray) -> None:
+        self._feeds = iter([{name: rows[i : i + 1]} for i in range(len(rows))])
+
+    def get_next(self) -> dict[str, np.ndarray] | None:
+        return next(self._feeds, None)
+
+
+def quantized(float_export: Path, out: Path, activation: QuantType = QuantType.QInt8, **kw: object) -> Path:
+    """The float export's policy.onnx quantised by onnxruntime (QDQ, per channel unless ``kw`` says)."""
+    rows = np.load(float_export / "test" / "observations.npy")[:CALIBRATION_ROWS].astype(np.float32)
+    source = float_export / "policy.onnx"
+    name = onnx.load(str(source)).graph.input[0].name
+    options = {"per_channel": True, "weight_type": QuantType.QInt8, **kw}
+    quantize_static(
+        str(source), str(out), Rows(name, rows), quant_format=QuantFormat.QDQ, activation_type=activation,
+        **options,
+    )  # fmt: skip
+    return out
