@@ -30,9 +30,11 @@ import onnxruntime as ort
 import torch
 
 from embedrl import train
+from embedrl.common import read_json
 from embedrl.export import build
 from embedrl.export.errors import ExportError
 from embedrl.export.pipeline import ExportOptions, run_export
+from embedrl.train.interface import INTERFACE_FILE, Interface
 from embedrl.train.models import load_sb3
 
 STUDY_ARCH = [100, 100]
@@ -100,11 +102,8 @@ def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict
                 "depends on its state: export it with --target cortex-m4 for its instructions per step"
             )
         rng = np.random.default_rng(seed)
-        space = gym.make(report["env_id"]).observation_space
-        assert isinstance(space, gym.spaces.Box)
-        samples = rng.uniform(space.low, space.high, size=(10_000, report["observation_dim"])).astype(
-            np.float32
-        )
+        low, high = _observation_range(export_dir, report)
+        samples = rng.uniform(low, high, size=(10_000, report["observation_dim"])).astype(np.float32)
         c_ns, c_batched_ns, c_actions = _c_time(export_dir, report, samples, work)
         onnx_file = export_dir / "policy.onnx"
         if not onnx_file.is_file():
@@ -308,7 +307,19 @@ def _check_agreement(
     peers["reference_max_abs_diff_from_c"] = own
 
 
-WEIGHT_BYTES = {None: 4, "int8": 1, "q15": 2}
+def _observation_range(export_dir: Path, report: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Where the timed observations are drawn from: the interface's ranges (every export with one, also a
+    policy without an env), else the env's observation space."""
+    interface_file = export_dir / INTERFACE_FILE
+    if interface_file.is_file():
+        interface = Interface.from_json(read_json(interface_file))
+        return interface.obs_low, interface.obs_high
+    space = gym.make(report["env_id"]).observation_space
+    assert isinstance(space, gym.spaces.Box)
+    return space.low, space.high
+
+
+WEIGHT_BYTES = {None: 4, "int8": 1, "int8-full": 1, "q15": 2}
 """Bytes per matrix weight in the generated C, per precision."""
 
 

@@ -11,6 +11,7 @@ import pytest
 from onnx import helper
 
 from embedrl.cli import main
+from embedrl.export.quantize import SCHEMES
 from tests.export.helpers import make_model
 
 
@@ -50,19 +51,22 @@ def test_bench_export_reports_ratios_from_one_run(tmp_path: Path) -> None:
     )
 
 
-def test_a_quantised_export_is_checked_against_its_own_reference(tmp_path: Path) -> None:
-    """int8: the C must equal its precision's reference; its difference from the float peers is the
-    quantisation's, reported and not refused; the limit reads one byte per weight."""
+@pytest.mark.parametrize("precision", sorted(SCHEMES))
+def test_a_quantised_export_is_checked_against_its_own_reference(precision: str, tmp_path: Path) -> None:
+    """Every quantised precision: the C must equal its precision's reference; its difference from the float
+    peers is the quantisation's, reported and not refused; the limit reads the precision's weight bytes."""
     w = np.random.default_rng(1).normal(size=(2, 6)).astype(np.float32)
     model = make_model([helper.make_node("Gemm", ["x", "W"], ["y"], transB=1)], {"W": w}, 6, 2)
     onnx.save(model, str(tmp_path / "m.onnx"))
-    args = ["export", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "exp"), "--episodes", "0"]
-    assert main([*args, "--quantize", "int8"]) == 0
+    args = ["export", str(tmp_path / "m.onnx"), "--out", str(tmp_path / "exp"), "--episodes", "0",
+            "--obs-range=-1:1", "--act-range=-10:10", "--sample-time", "0.1"]  # fmt: skip
+    assert main([*args, "--quantize", precision]) == 0
     out = tmp_path / "bench.json"
     assert main(["bench-export", "--export-dir", str(tmp_path / "exp"), "--json", str(out)]) == 0
     data = json.loads(out.read_text())
-    assert data["precision"] == "int8" and data["reference_max_abs_diff_from_c"] <= 1e-5
-    assert data["onnxruntime_max_abs_diff_from_c"] > 0 and data["model_weight_bytes"] == 12
+    assert data["precision"] == precision and data["reference_max_abs_diff_from_c"] <= 1e-5
+    assert data["onnxruntime_max_abs_diff_from_c"] > 0
+    assert data["model_weight_bytes"] == 12 * {"int8": 1, "int8-full": 1, "q15": 2}[precision]
 
 
 def test_bench_export_needs_an_export_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
