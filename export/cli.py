@@ -169,11 +169,12 @@ def _quantization_rows(report: dict[str, Any]) -> list[tuple[str, str]]:
         rows.append((f"worst |{report['quantize']} - float|", f"{q['worst_action_error_vs_float']:.3g}"))
         return rows
     rows.append(("worst |C - QDQ model| (action)", f"{q['worst_action_error_vs_float']:.3g}"))
+    steps = ", ".join(f"{s:.2g}" for s in qdq["max_layer_steps"])
     rows.append(
         (
-            "last layer vs QDQ model",
-            f"max {qdq['max_output_steps']:.2f}, p99 {qdq['p99_output_steps']:.2f} output steps "
-            f"(allowed {qdq['tolerance_steps']:g}; {qdq['saturated_outputs']} saturated left out)",
+            "layers vs QDQ model",
+            f"max steps {steps} (input, then each layer; allowed {qdq['tolerance_steps']:g}); "
+            f"end to end {qdq['end_to_end_max_output_steps']:.2f} output steps",
         )
     )
     return rows

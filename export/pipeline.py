@@ -41,7 +41,7 @@ from embedrl.export import (
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
-from embedrl.export.full_integer import Given
+from embedrl.export.full_integer import Given, IntegerSection
 from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import Limits, load_onnx
@@ -676,11 +676,14 @@ def _qdq_check(
     """The integer section's output against onnxruntime running the QDQ model, in its output steps."""
     assert lowered.given is not None
     c_output = interpret.run(lowered.graph, samples, "int8", section)[section.output]
-    found = qdq.compare(model, section.output, lowered.given, c_output, samples)
-    if found["max_output_steps"] > found["tolerance_steps"]:
+    assert isinstance(section, IntegerSection)
+    found = qdq.compare(model, lowered.graph, section, c_output, samples)
+    worst = max(found["max_layer_steps"])
+    if worst > found["tolerance_steps"]:
+        layer = found["layers"][found["max_layer_steps"].index(worst)]
         raise VerificationError(
-            f"the int8-full C's last layer is {found['max_output_steps']:.2f} output steps from onnxruntime "
-            f"running the QDQ model (allowed {found['tolerance_steps']})"
+            f"the int8-full C's layer '{layer}' is {worst:.2f} steps from onnxruntime running the QDQ model "
+            f"on the same int8 input (allowed {found['tolerance_steps']:g})"
         )
     return found
 

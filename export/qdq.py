@@ -28,7 +28,7 @@ import onnxruntime as ort
 from onnx import helper, numpy_helper
 
 from embedrl.export.errors import UnsupportedOpError
-from embedrl.export.full_integer import Activation, Given
+from embedrl.export.full_integer import Activation, Given, IntegerSection, quantize_input
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import to_ir
 
@@ -149,52 +149,85 @@ def lowered(model: onnx.ModelProto) -> tuple[Graph, Given | None]:
     return to_ir(float_model), given
 
 
-MAX_OUTPUT_STEPS = 2.0
-"""How far the C's last-layer output may be from the QDQ model's, in steps of its output quantisation, where
-that quantisation does not saturate. The C requantises hidden layers with gemmlowp's fixed-point multiplier,
-the model (onnxruntime, and ONNX's reference, which agree) in float32: a hidden value one step apart moves the
-output by up to ~1.7 steps on the study's actor; and the C keeps the last layer's int32 sums, the model rounds
-them to its int8 grid (half a step)."""
+MAX_LAYER_STEPS = 1.0
+"""How far each integer layer of the C may be from the QDQ model's, in steps of the model's quantisation of
+the layer's output, given the same int8 input (the model's own): the C requantises with gemmlowp's fixed-point
+multiplier and rounds half away from zero, the model (onnxruntime, and ONNX's reference, which agree)
+multiplies in float32 and rounds half to even, so an output next to a rounding boundary may land one step
+apart; the last layer keeps its int32 sums in the C where the model rounds them to its grid (half a step)."""
 
 
 def compare(
-    model: onnx.ModelProto, section_output: str, given: Given, c_output: np.ndarray, samples: np.ndarray
+    model: onnx.ModelProto, graph: Graph, section: IntegerSection, c_output: np.ndarray, samples: np.ndarray
 ) -> dict[str, Any]:
-    """The C's last integer layer (``c_output``, float, before the output non-linearity) against onnxruntime
-    running the QDQ ``model`` on ``samples``, in steps of the model's quantisation of that tensor."""
-    pair = next(
-        (
-            (q, d)
-            for q in model.graph.node
-            if q.op_type == QUANTIZE and section_output in (q.input[0], f"{q.input[0]}{RELU_SUFFIX}")
-            for d in model.graph.node
-            if d.op_type == DEQUANTIZE and d.input[0] == q.output[0]
-        ),
-        None,
-    )
-    if pair is None:
-        raise UnsupportedOpError(
-            f"the quantised model does not quantise the last layer's output '{section_output}'"
-        )
+    """The C's integer section against onnxruntime running the QDQ ``model`` on ``samples``: layer by layer
+    (each layer fed the model's own int8 input, its output compared in the model's steps) and end to end (the
+    last layer's output ``c_output`` against the model's), leaving out outputs where the model saturates."""
+    tensors = [section.input, *_layer_outputs(graph, section)]
+    names = [_quantized_name(model, t) for t in tensors]
     probe = copy.deepcopy(model)
-    probe.graph.output.append(helper.make_tensor_value_info(pair[1].output[0], onnx.TensorProto.FLOAT, None))
+    for name in names:
+        probe.graph.output.append(helper.make_tensor_value_info(name, onnx.TensorProto.INT8, None))
     session = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
     inputs = {probe.graph.input[0].name: np.asarray(samples, np.float32)}
-    model_output = np.asarray(session.run([pair[1].output[0]], inputs)[0], np.float64).reshape(c_output.shape)
-    activation = given.activations[section_output]
-    low, high = (
-        activation.scale * (INT8_MIN - activation.zero),
-        activation.scale * (INT8_MAX - activation.zero),
-    )
-    margin = activation.scale / 2  # the model's values are on its grid: the end points, or a step inside
-    saturated = (model_output <= low + margin) | (model_output >= high - margin)
-    steps = np.abs(np.asarray(c_output, np.float64) - model_output)[~saturated] / activation.scale
+    ints = [np.asarray(v, np.int64) for v in session.run(names, inputs)]
+    activations = [section.quant, *(_given_activation(model, t) for t in tensors[1:])]
+    layer_steps = [float(np.max(np.abs(quantize_input(samples, section.quant) - ints[0])))]
+    for j, layer in enumerate(section.layers):
+        mine, theirs = layer.reference(ints[j]), ints[j + 1]
+        out = activations[j + 1]
+        if j < len(section.layers) - 1:
+            layer_steps.append(float(np.max(np.abs(mine - theirs))))
+        else:
+            layer_steps.append(_steps(np.asarray(mine, np.float64) / out.scale + out.zero, theirs))
+    last = activations[-1]
+    end_to_end = _steps(np.asarray(c_output, np.float64) / last.scale + last.zero, ints[-1])
     return {
         "reference": "onnxruntime running the QDQ model",
-        "output_tensor": section_output,
-        "output_step": activation.scale,
-        "max_output_steps": float(steps.max()) if steps.size else 0.0,
-        "p99_output_steps": float(np.percentile(steps, 99)) if steps.size else 0.0,
-        "saturated_outputs": int(saturated.sum()),
-        "tolerance_steps": MAX_OUTPUT_STEPS,
+        "layers": [section.input, *(layer.name for layer in section.layers)],
+        "max_layer_steps": layer_steps,
+        "tolerance_steps": MAX_LAYER_STEPS,
+        "end_to_end_max_output_steps": end_to_end,
+        "output_step": last.scale,
     }
+
+
+def _steps(mine: np.ndarray, theirs: np.ndarray) -> float:
+    """Largest distance in steps where the model's int8 output does not saturate."""
+    inside = (theirs > INT8_MIN) & (theirs < INT8_MAX)
+    gaps = np.abs(mine - theirs)[inside]
+    return float(gaps.max()) if gaps.size else 0.0
+
+
+def _layer_outputs(graph: Graph, section: IntegerSection) -> list[str]:
+    """Each integer layer's output tensor in the float graph (its ReLU's, where one follows)."""
+    outputs: list[str] = []
+    for node in graph.nodes:
+        if node.name in section.nodes:
+            if node.op == "Relu":
+                outputs[-1] = node.outputs[0]
+            else:
+                outputs.append(node.outputs[0])
+    return outputs
+
+
+def _quantize_node(model: onnx.ModelProto, tensor: str) -> onnx.NodeProto:
+    source = tensor[: -len(RELU_SUFFIX)] if tensor.endswith(RELU_SUFFIX) else tensor
+    found = next(
+        (n for n in model.graph.node if n.op_type == QUANTIZE and n.input[0] in (tensor, source)), None
+    )
+    if found is None:
+        raise UnsupportedOpError(f"the quantised model does not quantise '{tensor}'")
+    node: onnx.NodeProto = found
+    return node
+
+
+def _quantized_name(model: onnx.ModelProto, tensor: str) -> str:
+    """The int8 tensor the model quantises ``tensor`` (a float graph tensor) into."""
+    return str(_quantize_node(model, tensor).output[0])
+
+
+def _given_activation(model: onnx.ModelProto, tensor: str) -> Activation:
+    node = _quantize_node(model, tensor)
+    constants = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+    return Activation(float(constants[node.input[1]].reshape(())), int(constants[node.input[2]].reshape(())))

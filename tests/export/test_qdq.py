@@ -24,10 +24,12 @@ from tests.export.helpers import quantized
 from tests.hil.conftest import SHIPPED_TD3
 
 
-@pytest.fixture(scope="module")
-def qdq_model(exported: Callable[..., Path], tmp_path_factory: pytest.TempPathFactory) -> Path:
+@pytest.fixture(scope="module", params=[True, False], ids=["per channel", "per tensor"])
+def qdq_model(
+    exported: Callable[..., Path], tmp_path_factory: pytest.TempPathFactory, request: pytest.FixtureRequest
+) -> Path:
     float_export = exported(SHIPPED_TD3, "--episodes", "0")
-    return quantized(float_export, tmp_path_factory.mktemp("qdq") / "td3 qdq.onnx")
+    return quantized(float_export, tmp_path_factory.mktemp("qdq") / "td3 qdq.onnx", per_channel=request.param)
 
 
 @pytest.fixture(scope="module")
@@ -58,8 +60,10 @@ def test_the_qdq_export_is_verified_against_onnxruntime_running_it(qdq_export: P
     assert quantization["model_mismatches"] == 0  # the C equals its integer model bit for bit
     found = quantization["qdq"]
     assert found["reference"] == "onnxruntime running the QDQ model"
-    assert 0 < found["max_output_steps"] <= found["tolerance_steps"] == qdq.MAX_OUTPUT_STEPS
-    assert found["p99_output_steps"] <= 1.0
+    assert found["layers"] == ["obs", "actor.mu.0", "actor.mu.2", "actor.mu.4"]
+    assert max(found["max_layer_steps"]) <= found["tolerance_steps"] == qdq.MAX_LAYER_STEPS == 1.0
+    assert found["max_layer_steps"][0] == 0  # the input is quantised as the model quantises it
+    assert 0 < found["end_to_end_max_output_steps"] < 3
     assert quantization["worst_action_error_vs_float"] < 0.2  # against the QDQ model's actions
     loop = json.loads((qdq_export / "export_report.json").read_text())["closed_loop"]
     assert loop["episodes"] == 10 and loop["differing_outcomes"] == 0
