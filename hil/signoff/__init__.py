@@ -44,6 +44,7 @@ def gather(
         "warnings": export["compiler"]["command"],
         "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
         "signature": signature.check(export_dir, public_key).to_json(),
+        "coverage": facts.coverage(export_dir, export, verification[0]),
     }
     tool = gathered["coding_standard"]["tool"]
     gathered["conditions"] = conditions.measurement_conditions(export, hils, tool)
@@ -79,6 +80,7 @@ def render(data: dict[str, Any]) -> str:
         "closed-loop": sections.closed_loop(data),
         "resources": sections.resources(data),
         "coding-standard": sections.coding_standard(data),
+        "coverage": sections.coverage(data),
         "traceability": sections.traceability(data),
     }
     title = f"Deployment report: {export['name']} ({data['interface']['name']})"
