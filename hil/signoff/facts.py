@@ -137,7 +137,7 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     (``max |C - ONNX|`` per sample; a quantised policy's is its quantisation error) and, quantised, against
     its integer model bit for bit. ``passed``: the C is the generator's, and float32 within the export's
     tolerance (``tolerance x max(1, |ONNX|)`` per output) or quantised bit-exact with its model."""
-    from embedrl.export import build, quantize
+    from embedrl.export import build, quantize, verify
     from embedrl.export.reference import OnnxPolicy, precision_of
     from embedrl.export.regenerate import regenerate
 
@@ -146,6 +146,7 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = {
         "precision": precision, "samples": 0, "max_error": None, "p99_error": None, "errors": np.zeros(0),
         "bit_exact_with_model": None, "onnx_vs_source": source, "generated_c": None, "passed": False,
+        "max_ulp": None,
     }  # fmt: skip
     again = regenerate(export_dir)
     problem = again if isinstance(again, str) else again.problem
@@ -164,6 +165,7 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     errors = np.max(diff, axis=1)
     row.update(samples=len(errors), errors=errors, generated_c=IDENTICAL)
     row["max_error"], row["p99_error"] = float(errors.max()), float(np.percentile(errors, 99))
+    row["max_ulp"] = verify.max_ulp(actions, np.asarray(expected, dtype=np.float32))
     if export.get("quantize"):
         model = quantize.evaluate(again.graph, observations, again.section)
         a32, m32 = np.ascontiguousarray(actions, np.float32), np.ascontiguousarray(model, np.float32)

@@ -79,7 +79,24 @@ def verification(facts: dict[str, Any]) -> str:
         + table(["precision", "generated C", "samples", "max |C - ONNX|", "99th percentile",
                  "bit-exact with its model", "passed", "max |ONNX - source model|"], rows)
         + facts["figures"]["errors"]
+        + _back_to_back(facts["back_to_back"])
     )  # fmt: skip
+
+
+def _back_to_back(links: list[dict[str, Any]]) -> str:
+    rows = [
+        [cell(f"{r['source']} -> {r['to']}"), cell(r["samples"]), cell(r["max_abs"], f"b2b-abs-{n}"),
+         cell(r["max_ulp"], f"b2b-ulp-{n}"), cell(r["tolerance"]), cell(r["passed"], f"b2b-passed-{n}"),
+         cell(r["how"])]
+        for n, r in enumerate(links, 1)
+    ]  # fmt: skip
+    return (
+        '<h3 id="back-to-back">Back to back, from the trained model to the bus</h3><p class="note">Each link '
+        "compares the action at its two ends on the same observations: the largest absolute difference, and "
+        "the largest distance in float32 steps (ULP; 0 is bit for bit). The bus carries each action as a "
+        "fixed-point signal, and a HIL run records only its largest difference per episode: no ULP there.</p>"
+        + table(["link", "samples", "max |difference|", "max ULP", "tolerance", "within", "how"], rows)
+    )
 
 
 def closed_loop(facts: dict[str, Any]) -> str:
