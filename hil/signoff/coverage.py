@@ -44,6 +44,8 @@ OUTSIDE_GOAL = {
 """Files measured and shown but not held to the goal, and why."""
 OVERFLOW = np.float32(np.finfo(np.float32).max)
 """A finite observation so large that the network's sums overflow: its own non-finite result."""
+LARGE = np.float32(1e4)
+"""A finite observation far outside every interface's range, whose sums stay finite."""
 BRANCH_REGION_KINDS = (4, 6)
 """llvm-cov's JSON: a branch region, an MC/DC condition's branch region."""
 
@@ -57,15 +59,21 @@ class Reason:
 
 
 def probe_rows(observations: np.ndarray) -> np.ndarray:
-    """The verification observations, then per position a NaN, +inf and -inf (the finite checks), then each
-    position at +/- the largest float32 (sums that overflow: the network's own non-finite result)."""
+    """The verification observations, then the probes: per position a NaN, +inf and -inf (the finite
+    checks); per position +/- :data:`LARGE` (activations far past any saturation point, still finite) and
+    +/- the largest float32 (sums that overflow to an infinity); and every position at the largest float32
+    with the same sign and with alternating signs (infinities of both signs meeting in one sum: NaN, the
+    network's own non-finite result)."""
     obs = np.asarray(observations, dtype=np.float32)
     dim = obs.shape[1]
     rows = [obs]
-    for value in (np.nan, np.inf, -np.inf, OVERFLOW, -OVERFLOW):
+    for value in (np.nan, np.inf, -np.inf, LARGE, -LARGE, OVERFLOW, -OVERFLOW):
         probe = np.zeros((dim, dim), dtype=np.float32)
         np.fill_diagonal(probe, value)
         rows.append(probe)
+    alternating = np.array([(-1.0) ** i for i in range(dim)], dtype=np.float32)
+    whole = np.stack([np.ones(dim), -np.ones(dim), alternating, -alternating]).astype(np.float32) * OVERFLOW
+    rows.append(whole)
     return np.concatenate(rows)
 
 
@@ -112,8 +120,7 @@ def summarise(export: dict[str, Any], lcov: str, policy_file: str, reasons: list
         gaps = _gaps(f, text, lines_not_run.get(f["filename"], []))
         in_goal = base in roles
         for gap in gaps:
-            gap["reason"] = next((r.reason for r in reasons if r.file == base and r.kind == gap["kind"]
-                                  and r.code in gap["code"]), None)  # fmt: skip
+            gap["reason"] = next((r.reason for r in reasons if r.file == base and explains(r, gap)), None)
         s = f["summary"]
         row = {
             "file": base,
@@ -130,6 +137,14 @@ def summarise(export: dict[str, Any], lcov: str, policy_file: str, reasons: list
     files.sort(key=lambda r: order.index(str(r["file"])))
     return {"files": files, "goal": {"lines": GOAL_LINES, "branches": GOAL_BRANCHES, "mcdc": GOAL_MCDC},
             "llvm_cov_json": export.get("version")}  # fmt: skip
+
+
+def explains(reason: Reason, gap: dict[str, Any]) -> bool:
+    """A reason explains a gap of its kind whose source text is its ``code`` (a line) or contains it (a
+    branch or condition: the decision around it may vary)."""
+    if reason.kind != gap["kind"]:
+        return False
+    return bool(reason.code == gap["code"] if gap["kind"] == "line" else reason.code in gap["code"])
 
 
 def percent(part: dict[str, int]) -> float | None:

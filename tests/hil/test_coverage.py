@@ -38,10 +38,10 @@ def test_the_shipped_td3_policy_is_covered_entirely_by_its_verification_vectors_
     assert policy["mcdc"]["count"] == 0  # every decision of the generated C has one condition
     assert policy["gaps"] == [] and policy["meets_goal"]
     probes = measured["probes"]
-    assert probes["verification_rows"] == 10_000 and probes["rows"] == 10_000 + 5 * 6
+    assert probes["verification_rows"] == 10_000 and probes["rows"] == 10_000 + 7 * 6 + 4
     # NaN, +inf and -inf at each of the 6 positions: refused as observations; the overflow probes that
     # make the network's own sums non-finite: refused as its result
-    assert probes["codes"]["1"] == 18 and probes["codes"]["2"] >= 1
+    assert probes["codes"]["1"] == 18 and probes["codes"]["2"] == 14
     assert sum(probes["codes"].values()) == probes["rows"]
 
 
@@ -94,16 +94,18 @@ def test_a_gap_without_a_reason_fails_the_check_and_names_its_place(tmp_path: Pa
     )[0]
 
 
-def test_the_committed_reasons_each_explain_a_gap_that_exists(measured: dict[str, Any]) -> None:
-    """A reason left behind after its gap was covered (or its code changed) is named."""
+def test_the_committed_reasons_for_the_node_each_explain_a_gap_that_exists(measured: dict[str, Any]) -> None:
+    """A reason for the node's files (the same for every export) left behind after its gap was covered, or
+    its code changed, is named. The generated policy's reasons are for other ops' and precisions' code."""
+    node = [r for r in coverage.load_reasons() if r.file != "policy.c"]
     used = {
-        (f["file"], g["kind"], r.code)
+        (f["file"], r.kind, r.code)
         for f in measured["files"]
         for g in f["gaps"]
-        for r in coverage.load_reasons()
-        if r.file == f["file"] and r.kind == g["kind"] and r.code in g["code"]
+        for r in node
+        if r.file == f["file"] and coverage.explains(r, g)
     }
-    assert {(r.file, r.kind, r.code) for r in coverage.load_reasons()} == used  # fmt: skip
+    assert {(r.file, r.kind, r.code) for r in node} == used
 
 
 def test_without_clang_19_make_coverage_refuses_in_one_line(tmp_path: Path) -> None:
@@ -128,3 +130,20 @@ def test_c_that_is_not_the_generators_is_never_measured(tmp_path: Path) -> None:
     why = "c/policy.c differs from what embedrl generates"
     assert said == f"the policy's C is not the generator's ({why}): not run on this host"
     assert coverage.check(said) == (False, f"not measured: {said}")
+
+
+@pytest.mark.slow  # an export per precision, each measured
+@pytest.mark.parametrize("precision", ["int8", "q15", "int8-full"])
+def test_every_gap_of_a_quantised_policy_has_its_reason(exported: Exported, precision: str) -> None:
+    export = exported(SHIPPED_TD3, "--episodes", "0", "--quantize", precision)
+    summary = facts.coverage(export, facts.load_export(export), {"generated_c": facts.IDENTICAL})
+    assert not isinstance(summary, str), summary
+    policy = _file(summary, "policy.c")
+    assert policy["gaps"] and all(g["reason"] for g in policy["gaps"]), policy["gaps"]
+    assert policy["lines"]["covered"] >= 0.9 * policy["lines"]["count"]
+    # NaN, +inf and -inf refused at the entry; an integer section never makes a non-finite result (int8 keeps
+    # float activations: its overflow probes do)
+    assert summary["probes"]["codes"]["1"] == 18 and ("2" in summary["probes"]["codes"]) == (
+        precision == "int8"
+    )
+    assert coverage.check(summary)[0]
