@@ -10,13 +10,14 @@ OUT ?= out
 setup: $(STAMP) ## the virtual environment .venv with embedrl and its Python dependencies
 
 # Debian packages the tests need: cross compiler, newlib, QEMU (Cortex-M); can-utils (its cangen floods the
-# bus in the fault catalogue); clang (libFuzzer: make -C runtime_c fuzz); for the CAN sandboxes where the
+# bus in the fault catalogue); clang (libFuzzer: make -C runtime_c fuzz); clang-19 and llvm-19 (coverage with
+# MC/DC: make -C runtime_c coverage, the report's coverage check); for the CAN sandboxes where the
 # kernel has no CAN (hil/sandbox): User-Mode Linux, kmod, iproute2, patchelf (uml); QEMU, busybox and
 # Debian's stable kernel with its vcan module (qemu). Installed when missing (as root or with passwordless
 # sudo); otherwise the command to run is printed. Then a User-Mode Linux >= 7.2 is cached for CPUs on
 # which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision; no network once cached).
 APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
-    patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang cppcheck chromium
+    patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang clang-19 llvm-19 cppcheck chromium
 deps: apt-packages $(STAMP) ## setup, the Debian packages and the cached User-Mode Linux the tests need
 	$(PY) -m embedrl.hil.sandbox.provision
 

@@ -629,10 +629,12 @@ def _numerical_checks(
         "tolerance": opts.tolerance,
         "tolerance_rule": "|error| <= tolerance x max(1, |output|) for every output",
         "onnx_vs_sb3_max_abs_error": None,
+        "onnx_vs_sb3_max_ulp": None,
     }
     if loaded.loaded is not None:
         sb3_actions = loaded.loaded.predict(samples)
         checks["onnx_vs_sb3_max_abs_error"] = verify.max_abs_error(onnx_actions, sb3_actions)
+        checks["onnx_vs_sb3_max_ulp"] = verify.max_ulp(onnx_actions, sb3_actions)
         failure = verify.tolerance_failure(
             onnx_actions, sb3_actions, samples, opts.tolerance, "the ONNX differs from SB3's predict()"
         )
@@ -645,6 +647,7 @@ def _numerical_checks(
         )
     err = verify.max_abs_error(c_actions, onnx_actions)
     checks["c_vs_onnxruntime_max_abs_error"] = err
+    checks["c_vs_onnxruntime_max_ulp"] = verify.max_ulp(c_actions, onnx_actions)
     if opts.quantize:
         # Quantised: the C must equal the Python model of its arithmetic bit for bit; its
         # distance from the float policy is reported (and judged in closed loop).

@@ -77,6 +77,20 @@ def max_abs_error(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.max(np.abs(a.astype(np.float64) - b.astype(np.float64))))
 
 
+def max_ulp(a: np.ndarray, b: np.ndarray) -> int:
+    """The largest distance between two float32 arrays in units in the last place: how many float32 values
+    steps apart each pair is (0: the same value; +0 and -0 are the same)."""
+    if a.shape != b.shape:
+        raise ValueError(f"shapes differ: {a.shape} vs {b.shape}")
+    if a.size == 0:
+        return 0
+    ordered = []
+    for x in (a, b):
+        bits = np.ascontiguousarray(x, np.float32).view(np.int32).astype(np.int64)
+        ordered.append(np.where(bits < 0, -(bits & 0x7FFFFFFF), bits))  # float order as integers
+    return int(np.max(np.abs(ordered[0] - ordered[1])))
+
+
 def tolerance_failure(
     actual: np.ndarray, expected: np.ndarray, samples: np.ndarray, tolerance: float, what: str
 ) -> str | None:

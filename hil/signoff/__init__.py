@@ -17,7 +17,7 @@ def gather(
     checked against ``public_key`` if given."""
     from embedrl.export import chain, signature
     from embedrl.hil import misra
-    from embedrl.hil.signoff import checks, conditions, facts, layers
+    from embedrl.hil.signoff import back_to_back, checks, conditions, facts, layers
 
     export = facts.load_export(export_dir)
     others = [(d, facts.load_export(d)) for d in also]
@@ -44,6 +44,8 @@ def gather(
         "warnings": export["compiler"]["command"],
         "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
         "signature": signature.check(export_dir, public_key).to_json(),
+        "coverage": facts.coverage(export_dir, export, verification[0]),
+        "back_to_back": back_to_back.links(export_dir, export, verification[0], hils),
     }
     tool = gathered["coding_standard"]["tool"]
     gathered["conditions"] = conditions.measurement_conditions(export, hils, tool)
@@ -79,6 +81,7 @@ def render(data: dict[str, Any]) -> str:
         "closed-loop": sections.closed_loop(data),
         "resources": sections.resources(data),
         "coding-standard": sections.coding_standard(data),
+        "coverage": sections.coverage(data),
         "traceability": sections.traceability(data),
     }
     title = f"Deployment report: {export['name']} ({data['interface']['name']})"

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from embedrl.export.target import TARGETS
+from embedrl.hil.signoff import back_to_back, coverage
 from embedrl.hil.verdict import link_health
 
 FLASH_SECTIONS = (".isr_vector", ".text", ".ARM.exidx", ".data")
@@ -35,6 +36,8 @@ def verdict(data: dict[str, Any], hils: list[tuple[str, dict[str, Any]]]) -> dic
         )
     )
     checks.append(_row("signature", data["signature"]["passed"], data["signature"]["detail"]))
+    checks.append(_row("coverage", *coverage.check(data["coverage"])))
+    checks.append(_row("back-to-back", *back_to_back.check(data["back_to_back"])))
     return {"passed": all(c["passed"] for c in checks), "checks": checks}
 
 

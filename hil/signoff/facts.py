@@ -26,6 +26,8 @@ TOP_SYMBOLS = 12
 RAM_ORIGIN = 0x20000000
 """Where the targets' RAM starts (runtime_c/Makefile's memory.ld): symbols below it are in flash."""
 ELF_MAGIC = b"\x7fELF"
+IDENTICAL = "identical to the generator's"
+"""A verification row's ``generated_c`` when the export's C is what embedrl generates from its ONNX."""
 SECTIONS = (".isr_vector", ".text", ".ARM.exidx", ".data", ".bss", ".heap", ".stack")
 
 
@@ -135,7 +137,7 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     (``max |C - ONNX|`` per sample; a quantised policy's is its quantisation error) and, quantised, against
     its integer model bit for bit. ``passed``: the C is the generator's, and float32 within the export's
     tolerance (``tolerance x max(1, |ONNX|)`` per output) or quantised bit-exact with its model."""
-    from embedrl.export import build, quantize
+    from embedrl.export import build, quantize, verify
     from embedrl.export.reference import OnnxPolicy, precision_of
     from embedrl.export.regenerate import regenerate
 
@@ -144,6 +146,7 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = {
         "precision": precision, "samples": 0, "max_error": None, "p99_error": None, "errors": np.zeros(0),
         "bit_exact_with_model": None, "onnx_vs_source": source, "generated_c": None, "passed": False,
+        "max_ulp": None,
     }  # fmt: skip
     again = regenerate(export_dir)
     problem = again if isinstance(again, str) else again.problem
@@ -160,8 +163,9 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
         actions, codes = policy.batch(observations)
     diff = np.abs(actions.astype(np.float64) - expected)
     errors = np.max(diff, axis=1)
-    row.update(samples=len(errors), errors=errors, generated_c="identical to the generator's")
+    row.update(samples=len(errors), errors=errors, generated_c=IDENTICAL)
     row["max_error"], row["p99_error"] = float(errors.max()), float(np.percentile(errors, 99))
+    row["max_ulp"] = verify.max_ulp(actions, np.asarray(expected, dtype=np.float32))
     if export.get("quantize"):
         model = quantize.evaluate(again.graph, observations, again.section)
         a32, m32 = np.ascontiguousarray(actions, np.float32), np.ascontiguousarray(model, np.float32)
@@ -172,6 +176,23 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
         within = diff <= tolerance * np.maximum(1.0, np.abs(expected))
         row["passed"] = bool(np.all(within)) and not np.any(codes)
     return row
+
+
+def coverage(export_dir: Path, export: dict[str, Any], row: dict[str, Any]) -> dict[str, Any] | str:
+    """The deployed C's coverage (:mod:`embedrl.hil.signoff.coverage`) with this export's policy, whose C
+    runs on this host only once ``row`` (its :func:`recompute`) found it to be the generator's; else, or
+    where it cannot be measured, one line saying why."""
+    from embedrl.export.errors import BuildError
+    from embedrl.export.regenerate import OBSERVATIONS
+    from embedrl.hil.signoff import coverage as measured
+
+    if row["generated_c"] != IDENTICAL:
+        return f"the policy's C is not the generator's ({row['generated_c']}): not run on this host"
+    observations = np.load(export_dir / OBSERVATIONS, allow_pickle=False).astype(np.float32)
+    try:
+        return measured.measure(export_dir / "c", export["name"], observations)
+    except BuildError as exc:
+        return str(exc).strip().splitlines()[-1]
 
 
 def image_memory(elf: Path) -> dict[str, Any]:

@@ -29,6 +29,7 @@ SECTIONS = (
     ("layers", "Layer by layer"),
     ("resources", "Target resources"),
     ("coding-standard", "Coding standard"),
+    ("coverage", "Coverage of the deployed C"),
     ("traceability", "Traceability chain"),
 )
 

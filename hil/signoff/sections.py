@@ -79,7 +79,24 @@ def verification(facts: dict[str, Any]) -> str:
         + table(["precision", "generated C", "samples", "max |C - ONNX|", "99th percentile",
                  "bit-exact with its model", "passed", "max |ONNX - source model|"], rows)
         + facts["figures"]["errors"]
+        + _back_to_back(facts["back_to_back"])
     )  # fmt: skip
+
+
+def _back_to_back(links: list[dict[str, Any]]) -> str:
+    rows = [
+        [cell(f"{r['source']} -> {r['to']}"), cell(r["samples"]), cell(r["max_abs"], f"b2b-abs-{n}"),
+         cell(r["max_ulp"], f"b2b-ulp-{n}"), cell(r["tolerance"]), cell(r["passed"], f"b2b-passed-{n}"),
+         cell(r["how"])]
+        for n, r in enumerate(links, 1)
+    ]  # fmt: skip
+    return (
+        '<h3 id="back-to-back">Back to back, from the trained model to the bus</h3><p class="note">Each link '
+        "compares the action at its two ends on the same observations: the largest absolute difference, and "
+        "the largest distance in float32 steps (ULP; 0 is bit for bit). The bus carries each action as a "
+        "fixed-point signal, and a HIL run records only its largest difference per episode: no ULP there.</p>"
+        + table(["link", "samples", "max |difference|", "max ULP", "tolerance", "within", "how"], rows)
+    )
 
 
 def closed_loop(facts: dict[str, Any]) -> str:
@@ -237,6 +254,45 @@ def _rule_order(rule: str) -> tuple[int, ...]:
 
 
 OUTSIDE = " (outside the bundle, digest only)"
+
+
+def coverage(facts: dict[str, Any]) -> str:
+    """Lines, branches and MC/DC conditions per file against the goal, then every gap with its reason."""
+    from embedrl.hil.signoff.coverage import GOAL_MCDC, LABELS, shown
+
+    c = facts["coverage"]
+    if isinstance(c, str):
+        return f'<p><span class="fail" data-key="coverage">not measured</span>: {escape(c)}</p>'
+    rows = [
+        [cell(f["file"]), cell(f["role"]), *(cell(shown(f[k]), f"coverage-{f['file']}-{k}") for k in LABELS),
+         cell(f["meets_goal"] if f["in_goal"] else None), cell(len(f["gaps"]) if f["in_goal"] else None)]
+        for f in c["files"]
+    ]  # fmt: skip
+    gaps = [
+        [cell(f"{f['file']}:{g['line']}"), cell(g["kind"]), cell(g["code"]), cell(g["detail"]),
+         cell(g["reason"] or "NO REASON RECORDED")]
+        for f in c["files"] for g in f["gaps"]
+    ]  # fmt: skip
+    p = c["probes"]
+    codes = ", ".join(f"code {k}: {n:,}" for k, n in p["codes"].items())
+    return (
+        "<p>clang's source-based coverage (<code>make -C runtime_c coverage</code>: clang-19 "
+        "<code>-fprofile-instr-generate -fcoverage-mapping -fcoverage-mcdc</code>, llvm-cov-19 export). The "
+        f"policy ran on {p['verification_rows']:,} verification observations and "
+        f"{p['rows'] - p['verification_rows']} probes (NaN, +/-inf, +/-1e4, +/-FLT_MAX at each position; "
+        f"every position at FLT_MAX with equal and alternating signs): {codes}. "
+        "The node's files ran under their C unit tests (runtime_c/tests: fake transport, clock and policy; "
+        "the static scenario's CAN code). A HIL run is not measured: the node in the sandbox is built "
+        f"without coverage. Goal per file: every line, every branch both ways, MC/DC >= {GOAL_MCDC:g}% of "
+        "the conditions of decisions with two or more (single-condition decisions are branches). Gaps need "
+        "a reason in <code>runtime_c/coverage_reasons.toml</code>.</p>"
+        + table(["file", "what", "lines", "branches", "MC/DC conditions", "meets goal", "gaps"], rows)
+        + (
+            f"<h3>Gaps ({len(gaps)})</h3>" + table(["where", "kind", "code", "what", "reason"], gaps)
+            if gaps
+            else ""
+        )
+    )
 
 
 def traceability(facts: dict[str, Any]) -> str:

@@ -581,6 +581,121 @@ static void test_a_node_answers_only_its_own_ids(void)
     CHECK(fake_sent_count() == 2 && fake_sent(0)->id == POLICY_IO_STATUS_ID + 4u && fake_sent(1)->id == POLICY_IO_DIAG_ID + 4u);
 }
 
+static void test_counters_saturate_in_the_status_frame(void)
+{
+    node_t node;
+    fresh(&node);
+    node.frames_ok = 70000u; /* above the 16-bit field */
+    node.crc_errors = 1000u; /* above the 8-bit field */
+    fake_reset();
+    node_poll(&node, 1000);
+    struct policy_dbc_node_status_t s;
+    policy_dbc_node_status_unpack(&s, fake_sent(0)->data, 8);
+    CHECK(s.frames_ok == 65535u && s.crc_errors == 255u && s.sequence_errors == 0u);
+}
+
+static void test_receive_ids_are_the_nodes_observation_frames(void)
+{
+    uint32_t ids[NODE_RX_IDS];
+    node_receive_ids(1u, ids);
+    for (unsigned k = 0; k < POLICY_IO_OBS_FRAMES; ++k) {
+        CHECK(ids[k] == POLICY_IO_OBS_FIRST_ID + POLICY_IO_NODE_STRIDE + k);
+    }
+}
+
+static void test_the_safe_action_is_refreshed_only_after_a_timeout_without_valid_frames(void)
+{
+    node_t node;
+    fresh(&node);
+    const float obs[6] = {1.0f, 1.0f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 1, obs, 2000);
+    node_poll(&node, 2000 + TIMEOUT_MS); /* SAFE, its safe action sent */
+    send_observation(&node, 2, obs, 2000 + TIMEOUT_MS + 50); /* answered, still SAFE (RECOVER > 1) */
+    unsigned sent = count_actions();
+    node_poll(&node, 2000 + 2 * TIMEOUT_MS); /* a timeout since the last safe action, not since the frame */
+    CHECK(node.state == NODE_SAFE && count_actions() == sent);
+    node_poll(&node, 2000 + 2 * TIMEOUT_MS + 50); /* now silent for a timeout: refreshed */
+    CHECK(count_actions() == sent + 1u);
+}
+
+static void test_poll_returns_the_nearest_deadline(void)
+{
+    node_t node;
+    fresh(&node);
+    CHECK(node_poll(&node, 1000) == TIMEOUT_MS); /* status sent, next in 1000 ms; the watchdog's period */
+    CHECK(node_poll(&node, 1950) == 50u);        /* the status is due first */
+    const float obs[6] = {1.0f, 1.0f, 0.0f, 1.0f, 0.0f, 0.0f};
+    send_observation(&node, 1, obs, 2010);
+    CHECK(node_poll(&node, 2030) == TIMEOUT_MS - 20u); /* armed: the watchdog's remaining time */
+}
+
+static void test_the_crc_covers_at_most_a_can_fd_frame(void)
+{
+    uint8_t a[E2E_MAX_FRAME_BYTES + 6u];
+    uint8_t b[E2E_MAX_FRAME_BYTES + 6u];
+    for (unsigned i = 0; i < sizeof a; ++i) {
+        a[i] = b[i] = (uint8_t)(7u * i + 1u);
+    }
+    b[E2E_MAX_FRAME_BYTES + 2u] ^= 0xFFu; /* beyond the bound: never read */
+    e2e_protect(0x123u, a, E2E_MAX_FRAME_BYTES);
+    e2e_protect(0x123u, b, (unsigned)sizeof b);
+    CHECK(a[0] == b[0]);
+}
+
+static void test_a_counter_that_does_not_follow_the_candidate_restarts_its_run(void)
+{
+    e2e_receiver rx;
+    memset(&rx, 0, sizeof rx);
+    CHECK(e2e_check_counter(&rx, 0u) == E2E_OK);
+    CHECK(e2e_check_counter(&rx, 9u) == E2E_WRONG_SEQUENCE);  /* outside the window: a candidate */
+    CHECK(e2e_check_counter(&rx, 12u) == E2E_WRONG_SEQUENCE); /* does not follow 9: a new candidate */
+    CHECK(rx.candidate == 12u && rx.candidate_run == 1u && rx.last_counter == 0u);
+    CHECK(e2e_check_counter(&rx, 13u) == E2E_OK_RESYNC);      /* follows 12 */
+}
+
+static void test_each_observation_signal_outside_its_range_drops_its_frame(void)
+{
+    const float good[6] = {1.0f, 1.0f, 0.0f, 1.0f, 0.0f, 0.0f};
+    const float bad[6] = {-1.9f, 1.4f, -1.1f, 1.1f, -0.8f, 2.1f}; /* each just outside its range */
+    for (unsigned i = 0; i < 6u; ++i) {
+        node_t node;
+        fresh(&node);
+        float obs[6];
+        memcpy(obs, good, sizeof obs);
+        obs[i] = bad[i];
+        send_observation(&node, 1, obs, 1000);
+        CHECK(node.range_errors == 1u && count_actions() == 0u);
+    }
+}
+
+static void test_actions_are_checked_against_both_bounds_of_each_field(void)
+{
+    const float ok[2] = {-1.0f, 1.0f};
+    const float low0[2] = {-1.5f, 0.0f};
+    const float high0[2] = {1.5f, 0.0f};
+    const float low1[2] = {0.0f, -1.5f};
+    const float high1[2] = {0.0f, 1.5f};
+    CHECK(policy_io_action_ok(ok));
+    CHECK(!policy_io_action_ok(low0) && !policy_io_action_ok(high0));
+    CHECK(!policy_io_action_ok(low1) && !policy_io_action_ok(high1));
+}
+
+static void test_the_glue_refuses_a_frame_number_the_interface_does_not_have(void)
+{
+    uint8_t data[POLICY_IO_FRAME_BYTES];
+    float obs[POLICY_IO_OBS_DIM];
+    uint16_t step = 7u;
+    uint8_t counter = 3u;
+    memset(data, 0, sizeof data);
+    CHECK(policy_io_decode_observation(POLICY_IO_OBS_FRAMES, data, obs, &step, &counter) == POLICY_IO_OUT_OF_RANGE);
+    const float act[2] = {0.5f, -0.5f};
+    memset(data, 0xAA, sizeof data);
+    CHECK(policy_io_encode_action(POLICY_IO_ACT_FRAMES, act, 1u, 0u, data) == 0u);
+    for (unsigned i = 0; i < POLICY_IO_FRAME_BYTES; ++i) {
+        CHECK(data[i] == 0u); /* cleared, nothing packed */
+    }
+}
+
 int main(void)
 {
     test_codec_round_trips();
@@ -601,6 +716,15 @@ int main(void)
     test_a_step_that_goes_backwards_is_never_answered();
     test_link_loss_send_failures_and_bus_state_are_reported();
     test_a_node_answers_only_its_own_ids();
+    test_counters_saturate_in_the_status_frame();
+    test_receive_ids_are_the_nodes_observation_frames();
+    test_the_safe_action_is_refreshed_only_after_a_timeout_without_valid_frames();
+    test_poll_returns_the_nearest_deadline();
+    test_the_crc_covers_at_most_a_can_fd_frame();
+    test_a_counter_that_does_not_follow_the_candidate_restarts_its_run();
+    test_each_observation_signal_outside_its_range_drops_its_frame();
+    test_actions_are_checked_against_both_bounds_of_each_field();
+    test_the_glue_refuses_a_frame_number_the_interface_does_not_have();
     printf("%d checks, %d failures\n", checks, failures);
     return failures == 0 ? 0 : 1;
 }

@@ -95,6 +95,38 @@ static void test_commands_open_the_channel_and_frames_pass_only_when_open(void)
     CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\r' && !rx.open);
 }
 
+static void test_every_digit_outside_hex_is_refused(void)
+{
+    can_frame_t out;
+    CHECK(!slcan_decode("t!231AA", 7u, &out));  /* below '0' */
+    CHECK(!slcan_decode("t1:31AA", 7u, &out));  /* between '9' and 'A' */
+    CHECK(!slcan_decode("t12g1AA", 7u, &out));  /* above 'f' */
+    CHECK(!slcan_decode("t123-", 5u, &out));    /* a length that is no digit */
+    CHECK(!slcan_decode("t8000", 5u, &out));    /* ID 0x800: above the standard range */
+    CHECK(!slcan_decode("t1231#A", 7u, &out));  /* the high digit of a data byte */
+    CHECK(!slcan_decode("t1231A#", 7u, &out));  /* the low digit */
+    CHECK(slcan_decode("t7FF1fF", 7u, &out) && out.id == 0x7FFu && out.data[0] == 0xFFu);
+}
+
+static void test_every_known_command_is_answered_and_a_bad_frame_line_counted(void)
+{
+    static slcan_rx rx;
+    slcan_init(&rx);
+    can_frame_t frame;
+    uint8_t reply = 0u;
+    push_text(&rx, "L\r");
+    CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\r' && rx.open); /* listen-only */
+    const char *accepted[] = {"s4037\r", "V\r", "v\r", "N\r", "F\r", "Z1\r"};
+    for (unsigned i = 0; i < sizeof accepted / sizeof accepted[0]; ++i) {
+        push_text(&rx, accepted[i]);
+        CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\r');
+    }
+    push_text(&rx, "S1234567890123\r"); /* a command longer than any the adapter knows */
+    CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\a');
+    push_text(&rx, "tXYZ0\r"); /* open, but not a frame */
+    CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\a' && rx.bad_lines == 1u);
+}
+
 static void test_an_overlong_line_is_dropped_whole(void)
 {
     static slcan_rx rx;
@@ -139,6 +171,8 @@ int main(void)
     test_decode_round_trips_every_length();
     test_corrupt_lines_are_refused();
     test_commands_open_the_channel_and_frames_pass_only_when_open();
+    test_every_digit_outside_hex_is_refused();
+    test_every_known_command_is_answered_and_a_bad_frame_line_counted();
     test_an_overlong_line_is_dropped_whole();
     test_a_full_ring_counts_overflows_and_drops_the_damaged_line();
     printf("slcan: %d checks, %d failures\n", checks, failures);

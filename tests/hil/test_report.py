@@ -17,7 +17,7 @@ from tests.conftest import marks_its_users
 from tests.hil.conftest import SHIPPED_TD3
 
 SECTIONS = ("conditions", "interface", "entry-points", "verification", "closed-loop", "layers", "resources",
-            "coding-standard", "traceability")  # fmt: skip
+            "coding-standard", "coverage", "traceability")  # fmt: skip
 CHROMIUM = ("chromium", "--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
             "--disable-background-networking", "--disable-component-update",
             "--host-resolver-rules=MAP * ~NOTFOUND")  # fmt: skip
@@ -112,6 +112,8 @@ def test_the_page_opens_offline_with_every_section_and_key_figure(
     assert dom.keys["instructions-cortex-m4"] == f"{round(m4['instructions_per_inference']):,}"
     assert dom.keys["misra-unexplained"] == "0" and int(dom.keys["misra-findings"]) > 0
     assert dom.keys["chain-intact"] == "intact"
+    assert dom.keys["check-coverage"] == "yes" and dom.keys["coverage-policy.c-lines"] == "193/193 (100%)"
+    assert dom.keys["coverage-policy.c-branches"] == "122/122 (100%)"
     assert float(dom.keys["max-error-float32"]) <= 1e-5
     _assert_sign_off_figures(dom.keys, page.parent.parent / "export dir", export)
     assert page_requests(page, tmp_path / "net.json") == []
