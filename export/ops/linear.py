@@ -380,36 +380,44 @@ def requantize(acc: np.ndarray, m: np.ndarray, shift: np.ndarray) -> np.ndarray:
 
 
 def requantize_source(prefix: str) -> str:
-    """The C of :func:`requantize`, operation by operation (int32 in, int32 out)."""
-    return f"""/* acc * m * 2^(shift - 31), rounded as gemmlowp: saturating left shift, rounding doubling high
- * multiply, rounding divide by a power of two (m is within [2^30, 2^31), shift within [-31, 30]). */
-static int32_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift)
+    """The C of :func:`requantize`, then the output zero point and the clamp (int32 in, int8 out)."""
+    return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
+ * [-31, 30]), plus the output zero point, clamped to [low, 127] (low above -128: the ReLU).
+ * - shift > 0: the saturating left shift;
+ * - SaturatingRoundingDoublingHighMul (m > 0: it never saturates): gemmlowp adds 2^30 or 1 - 2^30 by the
+ *   product's sign and divides by 2^31 truncating, which is (x m + 2^30) >> 31 rounding down for both signs;
+ * - RoundingDivideByPOT by -shift. */
+#if defined(__GNUC__)
+__attribute__((cold, noinline)) /* rare (a scale above 1): keeps the usual path straight */
+#endif
+static int32_t {prefix}_shift_left(int32_t acc, int32_t shift)
 {{
-    int64_t x = acc;
+    const int64_t wide = (int64_t)acc * ((int64_t)1 << shift);
+    return wide > INT32_MAX ? INT32_MAX : (wide < INT32_MIN ? INT32_MIN : (int32_t)wide);
+}}
+
+static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
+{{
+    int32_t x = acc;
+    int32_t right = -shift;
     if (shift > 0) {{
-        x = x * ((int64_t)1 << shift);
-        x = x > INT32_MAX ? INT32_MAX : (x < INT32_MIN ? INT32_MIN : x);
+        x = {prefix}_shift_left(acc, shift);
+        right = 0;
     }}
-    const int64_t ab = x * (int64_t)m;
-    const int64_t nudge = ab >= 0 ? ((int64_t)1 << 30) : (1 - ((int64_t)1 << 30));
-    const int32_t high = (int32_t)((ab + nudge) / ((int64_t)1 << 31));
-    const int32_t right = shift > 0 ? 0 : -shift;
-    const int32_t mask = (int32_t)(((int64_t)1 << right) - 1);
+    const int32_t high = (int32_t)(((int64_t)x * (int64_t)m + ((int64_t)1 << 30)) >> 31);
+    const int32_t mask = (int32_t)((1u << (uint32_t)right) - 1u);
     const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
-    return (high >> right) + ((high & mask) > threshold ? 1 : 0);
+    const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
+    return (int8_t)(r > {INT8_MAX} - zero ? {INT8_MAX} : (r < low - zero ? low : r + zero));
 }}"""
 
 
-def word_source(prefix: str) -> str:
-    """DSP inner loop: four int8 values as one word (an unaligned load on the core; memcpy: no aliasing)."""
-    return f"""#if {prefix.upper()}_DSP
-static inline int32_t {prefix}_word(const int8_t *p)
+def byte_source(prefix: str) -> str:
+    """Portable loop: int8 value ``j`` (0-3, least significant first) of a packed weight word."""
+    return f"""static inline int32_t {prefix}_byte(uint32_t u, uint32_t j)
 {{
-    int32_t w;
-    (void)memcpy(&w, p, sizeof w);
-    return w;
-}}
-#endif"""
+    return (int32_t)(((u >> (8u * j)) & 0xFFu) ^ 0x80u) - 128;
+}}"""
 
 
 def odd_source(prefix: str) -> str:
@@ -433,6 +441,50 @@ static inline int32_t {prefix}_odd(int32_t w)
 def padded(k: int) -> int:
     """``k`` rounded up to whole :data:`WORD` s."""
     return -(-k // WORD) * WORD
+
+
+ROWS_PER_PASS = 4
+"""Outputs summed in one pass over the input (CMSIS-NN's 4-row kernel): each pair of input words is loaded
+once for four rows of weights. Outputs left over go in a pass of two, then of one."""
+
+
+@dataclass(frozen=True)
+class RowBlocks:
+    """A run of blocks of ``rows`` outputs each, from output ``first``; their weights start at word
+    ``offset`` of the layer's packed array."""
+
+    first: int
+    rows: int
+    count: int
+    offset: int
+
+
+def row_blocks(n_out: int, groups: int) -> list[RowBlocks]:
+    """The layer's outputs in passes of :data:`ROWS_PER_PASS`, then 2, then 1 (as many as needed)."""
+    runs, first = [], 0
+    for rows in (ROWS_PER_PASS, 2, 1):
+        count = (n_out - first) // rows
+        if count:
+            runs.append(RowBlocks(first, rows, count, first * groups))
+            first += rows * count
+    return runs
+
+
+def pack_weights(weights: np.ndarray) -> np.ndarray:
+    """int8 [N][K] -> int32 words in the order the kernels read them: per block of rows (:func:`row_blocks`),
+    per group of four inputs, the block's rows one word each; a word holds inputs ``4g .. 4g + 3`` of one row,
+    the first in its least significant byte. The padding to whole words is zero."""
+    n_out, k_in = weights.shape
+    rows = np.zeros((n_out, padded(k_in)), np.int8)
+    rows[:, :k_in] = weights
+    words = rows.view("<i4")  # [N][groups], little-endian: byte j of the word is input 4g + j
+    return np.concatenate(
+        [
+            words[run.first + b * run.rows : run.first + (b + 1) * run.rows].T.reshape(-1)
+            for run in row_blocks(n_out, words.shape[1])
+            for b in range(run.count)
+        ]
+    ).astype(np.int32)
 
 
 @dataclass(frozen=True)
@@ -466,97 +518,122 @@ class Int8Layer:
         r = requantize(acc, self.multiplier, self.shift) + self.out_zero
         return np.asarray(np.clip(r, self.out_zero if self.relu else INT8_MIN, INT8_MAX))
 
-    def c_lines(self, ctx: EmitContext, src: str, dst: str, xe: str, xo: str) -> list[str]:
+    def c_lines(self, ctx: EmitContext, src: str, dst: str, pairs: str) -> list[str]:
         """C reading the int8 array ``src`` (padded to whole words) and writing ``dst`` (int8, or the float
-        output if last); ``xe``/``xo`` are the DSP loop's buffers of the input's even and odd bytes as int16
-        pairs. Portable C: one dot product per output. DSP (Cortex-M4/M7): the input unpacked once, then two
-        outputs per pass, each word of weights two ``__sxtb16`` and two ``__smlad`` (four multiply-adds)."""
+        output if last). The weights are packed words (:func:`pack_weights`), read in the same order by both
+        loops. Portable C: a dot product per output. DSP (Cortex-M4/M7): the input unpacked once into
+        ``pairs`` (per word: its even bytes, then its odd bytes, as int16 pairs, ``__sxtb16``), then four
+        outputs per pass sharing each load of the input, each weight word two ``__sxtb16`` and two
+        ``__smlad`` (four multiply-adds); each output requantised once, when its sum is complete."""
         n_out, k_in = self.weights.shape
-        k_pad = padded(k_in)
-        rows = np.zeros((n_out, k_pad), np.int8)
-        rows[:, :k_in] = self.weights
+        groups = padded(k_in) // WORD
         w = ctx.const(
             f"{self.name}#int8full",
-            rows,
-            f"{self.name} weights, int8, output-major [{n_out}][{k_pad}] (padded)",
+            pack_weights(self.weights),
+            f"{self.name} weights, int8 [{n_out}][{k_in}] packed four to a word, {ROWS_PER_PASS} rows "
+            f"interleaved per group of four inputs",
         )
         b = ctx.const(
             f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
         )
-        dsp, sums = f"#if {ctx.prefix.upper()}_DSP", f"{ctx.prefix}_acc"
+        finish = self._finish(ctx, dst)
+        up = ctx.prefix.upper()
+        odd = ctx.function("odd", odd_source)
         lines = [
             f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''}, int8 x int8 -> int32 */",
-            dsp,
-            *self._dsp_sums(ctx, src, xe, xo, w, b),
-            "#endif",
-            f"for (int n = 0; n < {n_out}; ++n) {{",
-            dsp,
-            f"    const int32_t acc = {sums}[n];",
-            "#else",
-            f"    int32_t acc = {b}[n];",
-            f"    for (int k = 0; k < {k_in}; ++k) {{",
-            f"        acc += (int32_t){src}[k] * (int32_t){w}[n][k];",
-            "    }",
-            "#endif",
+            f"#if {up}_DSP",
+            f"for (int g = 0; g < {groups}; ++g) {{",
+            "    uint32_t u;",
+            f"    (void)memcpy(&u, &{src}[{WORD} * g], sizeof u);",
+            f"    {pairs}[2 * g] = __sxtb16((int32_t)u);",
+            f"    {pairs}[2 * g + 1] = {odd}((int32_t)u);",
+            "}",
         ]
+        for run in row_blocks(n_out, groups):
+            lines += _dsp_pass(run, groups, w, b, pairs, odd, finish)
+        lines.append("#else")
+        byte = ctx.function("byte", byte_source)
+        for run in row_blocks(n_out, groups):
+            lines += _portable_pass(run, groups, w, b, src, byte, finish)
+        return [*lines, "#endif"]
+
+    def _finish(self, ctx: EmitContext, dst: str) -> str:
+        """The statement storing output ``n`` from its sum ``acc`` (a format string of ``acc`` and ``n``)."""
+        n_out = self.weights.shape[0]
         if self.out_scale is not None:
             s = ctx.const(f"{self.name}#int8scale", self.out_scale, f"{self.name} output scales [{n_out}]")
-            return [*lines, f"    {dst}[n] = (float)acc * {s}[n];", "}"]
+            return f"{dst}[{{n}}] = (float){{acc}} * {s}[{{n}}];"
         requant = ctx.function("requantize", requantize_source)
         m = ctx.const(f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers")
         sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
-        low, zero = self.out_zero if self.relu else INT8_MIN, self.out_zero
-        plus_zero = f" + {zero}" if zero > 0 else (f" - {-zero}" if zero < 0 else "")
-        return [
-            *lines,
-            f"    const int32_t r = {requant}(acc, {m}[n], {sh}[n]);",
-            f"    /* r{plus_zero} clamped to [{low}, {INT8_MAX}]{' (the ReLU)' if self.relu else ''} */",
-            f"    const int32_t q = r > {INT8_MAX - zero} ? {INT8_MAX} : "
-            f"(r < {low - zero} ? {low} : r{plus_zero});",
-            f"    {dst}[n] = (int8_t)q;",
-            "}",
-        ]
+        low = self.out_zero if self.relu else INT8_MIN
+        return f"{dst}[{{n}}] = {requant}({{acc}}, {m}[{{n}}], {sh}[{{n}}], {self.out_zero}, {low});"
 
-    def _dsp_sums(self, ctx: EmitContext, src: str, xe: str, xo: str, w: str, b: str) -> list[str]:
-        """The DSP loop (without its ``#if``): the input's words unpacked once into ``xe``/``xo``, then every
-        output's sum into the accumulators, two outputs per pass and the last odd one alone."""
-        n_out, k_in = self.weights.shape
-        word, odd = ctx.function("word", word_source), ctx.function("odd", odd_source)
-        sums = f"{ctx.prefix}_acc"
-        groups = padded(k_in) // WORD
-        pairs = n_out - n_out % 2
-        tail = [
-            "{ /* the last, odd output */",
-            f"    int32_t a0 = {b}[{n_out - 1}];",
-            f"    for (int g = 0; g < {groups}; ++g) {{",
-            f"        const int32_t v0 = {word}(&{w}[{n_out - 1}][{WORD} * g]);",
-            f"        a0 = __smlad({xe}[g], __sxtb16(v0), a0);",
-            f"        a0 = __smlad({xo}[g], {odd}(v0), a0);",
-            "    }",
-            f"    {sums}[{n_out - 1}] = a0;",
-            "}",
+
+def _index(*terms: str) -> str:
+    """A C sum of the terms that are not empty or "0" (no ``+ 0``: MISRA 2.2)."""
+    kept = [t for t in terms if t not in ("", "0")]
+    return " + ".join(kept) if kept else "0"
+
+
+def _block(run: RowBlocks) -> str:
+    """The first output of block ``b`` of the run, as C."""
+    return _index(str(run.first), f"{run.rows} * b" if run.count > 1 else "")
+
+
+def _dsp_group(rows: int, g: str, pairs: str, odd: str) -> list[str]:
+    """The group ``g`` of four inputs for ``rows`` sums ``a0..``: ``2 * rows`` SMLAD."""
+
+    def at(scale: int, plus: int) -> str:
+        return _index(f"{scale} * {g}", str(plus))
+
+    lines = [
+        "{",
+        f"    const int32_t e = {pairs}[{at(2, 0)}];",
+        f"    const int32_t o = {pairs}[{at(2, 1)}];",
+    ]
+    lines += [f"    const int32_t w{i} = w[{at(rows, i)}];" for i in range(rows)]
+    for i in range(rows):
+        lines += [
+            f"    a{i} = __smlad(e, __sxtb16(w{i}), a{i});",
+            f"    a{i} = __smlad(o, {odd}(w{i}), a{i});",
         ]
-        return [
-            f"for (int g = 0; g < {groups}; ++g) {{",
-            f"    const int32_t a = {word}(&{src}[{WORD} * g]);",
-            f"    {xe}[g] = __sxtb16(a);",
-            f"    {xo}[g] = {odd}(a);",
-            "}",
-            f"for (int n = 0; n < {pairs}; n += 2) {{",
-            f"    int32_t a0 = {b}[n];",
-            f"    int32_t a1 = {b}[n + 1];",
-            f"    for (int g = 0; g < {groups}; ++g) {{ /* 8 multiply-adds in 4 SMLAD */",
-            f"        const int32_t e = {xe}[g];",
-            f"        const int32_t o = {xo}[g];",
-            f"        const int32_t v0 = {word}(&{w}[n][{WORD} * g]);",
-            f"        const int32_t v1 = {word}(&{w}[n + 1][{WORD} * g]);",
-            "        a0 = __smlad(e, __sxtb16(v0), a0);",
-            "        a1 = __smlad(e, __sxtb16(v1), a1);",
-            f"        a0 = __smlad(o, {odd}(v0), a0);",
-            f"        a1 = __smlad(o, {odd}(v1), a1);",
-            "    }",
-            f"    {sums}[n] = a0;",
-            f"    {sums}[n + 1] = a1;",
-            "}",
-            *(tail if n_out % 2 else []),
-        ]
+    return [*lines, "}"]
+
+
+def _dsp_pass(run: RowBlocks, groups: int, w: str, b: str, pairs: str, odd: str, finish: str) -> list[str]:
+    """The DSP kernel over one run of blocks: ``run.rows`` sums per pass, each input word pair loaded once."""
+    r = run.rows
+    lines = [
+        f"for (int b = 0; b < {run.count}; ++b) {{ /* {r} output(s) per pass, {4 * r} multiply-adds per "
+        f"group of four inputs in {2 * r} SMLAD */",
+        f"    const int32_t *w = &{w}[{_index(str(run.offset), f'{r * groups} * b')}];",
+        *(f"    int32_t a{i} = {b}[{_index(_block(run), str(i))}];" for i in range(r)),
+        f"    for (int g = 0; g < {groups}; ++g) {{",
+        *(f"        {line}" for line in _dsp_group(r, "g", pairs, odd)[1:-1]),
+        "    }",
+    ]
+    lines += [f"    {finish.format(acc=f'a{i}', n=_index(_block(run), str(i)))}" for i in range(r)]
+    return [*lines, "}"]
+
+
+def _portable_pass(
+    run: RowBlocks, groups: int, w: str, b: str, src: str, byte: str, finish: str
+) -> list[str]:
+    """The portable loop over one run of blocks: a dot product per output, reading its packed words."""
+    r = run.rows
+    n = _index(_block(run), "i")
+    word = _index(str(run.offset), f"{r * groups} * b", f"{r} * g + i" if r > 1 else "g")
+    return [
+        f"for (int b = 0; b < {run.count}; ++b) {{",
+        f"    for (int i = 0; i < {r}; ++i) {{",
+        f"        int32_t acc = {b}[{n}];",
+        f"        for (int g = 0; g < {groups}; ++g) {{",
+        f"            const uint32_t u = (uint32_t){w}[{word}];",
+        *(f"            acc += (int32_t){src}[{_index(f'{WORD} * g', str(j))}] * {byte}(u, {j}u);"
+          for j in range(WORD)),
+        "        }",
+        f"        {finish.format(acc='acc', n=n)}",
+        "    }",
+        "}",
+    ]  # fmt: skip
