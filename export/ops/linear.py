@@ -379,36 +379,53 @@ def requantize(acc: np.ndarray, m: np.ndarray, shift: np.ndarray) -> np.ndarray:
     return np.asarray((high >> right) + ((high & mask) > threshold), dtype=np.int64)
 
 
+REQUANT_CLAMP = 256
+"""The general requantisation returns its result clamped to [-256, 255]: adding a zero point in [-128, 127]
+cannot overflow, and the final clamp to int8 gives what the unclamped value would."""
+
+
 def requantize_source(prefix: str) -> str:
     """The C of :func:`requantize`, then the output zero point and the clamp (int32 in, int8 out)."""
     return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
- * [-31, 30]), plus the output zero point, clamped to [low, 127] (low above -128: the ReLU).
- * - shift > 0: the saturating left shift;
- * - SaturatingRoundingDoublingHighMul (m > 0: it never saturates): gemmlowp adds 2^30 or 1 - 2^30 by the
- *   product's sign and divides by 2^31 truncating, which is (x m + 2^30) >> 31 rounding down for both signs;
- * - RoundingDivideByPOT by -shift. */
+ * [-31, 30]), operation by operation: saturating left shift for shift > 0, SaturatingRoundingDoublingHighMul
+ * (m > 0: it never saturates; gemmlowp's nudge and truncating division are (x m + 2^30) >> 31 rounding down),
+ * RoundingDivideByPOT by -shift. Used for shift >= 0 (a scale of 1/2 or more: rare); its result is clamped to
+ * [-{REQUANT_CLAMP}, {REQUANT_CLAMP - 1}], which the int8 clamp after the zero point cannot tell apart. */
 #if defined(__GNUC__)
-__attribute__((cold, noinline)) /* rare (a scale above 1): keeps the usual path straight */
+__attribute__((cold, noinline))
 #endif
-static int32_t {prefix}_shift_left(int32_t acc, int32_t shift)
+static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift)
 {{
-    const int64_t wide = (int64_t)acc * ((int64_t)1 << shift);
-    return wide > INT32_MAX ? INT32_MAX : (wide < INT32_MIN ? INT32_MIN : (int32_t)wide);
-}}
-
-static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
-{{
-    int32_t x = acc;
-    int32_t right = -shift;
+    int64_t x = acc;
     if (shift > 0) {{
-        x = {prefix}_shift_left(acc, shift);
-        right = 0;
+        x = x * ((int64_t)1 << shift);
+        x = x > INT32_MAX ? INT32_MAX : (x < INT32_MIN ? INT32_MIN : x);
     }}
-    const int32_t high = (int32_t)(((int64_t)x * (int64_t)m + ((int64_t)1 << 30)) >> 31);
+    const int32_t high = (int32_t)((x * (int64_t)m + ((int64_t)1 << 30)) >> 31);
+    const int32_t right = shift > 0 ? 0 : -shift;
     const int32_t mask = (int32_t)((1u << (uint32_t)right) - 1u);
     const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
     const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
-    return (int8_t)(r > {INT8_MAX} - zero ? {INT8_MAX} : (r < low - zero ? low : r + zero));
+    return r > {REQUANT_CLAMP - 1} ? {REQUANT_CLAMP - 1} : (r < -{REQUANT_CLAMP} ? -{REQUANT_CLAMP} : r);
+}}
+
+/* The same for shift < 0, both roundings in one 64-bit sum: with c = 1 if acc < 0 (then gemmlowp's high is
+ * negative, or 0 whatever the rounding), the result is floor((acc m + 2^30 - c 2^31 + 2^(30 - shift)) /
+ * 2^(31 - shift)), taken as u = acc m + (c ? -2^30 : 2^30), w = floor(u / 2^31) (fits an int32), then
+ * ((w >> (-shift - 1)) + 1) >> 1. Plus the output zero point, clamped to [low, 127] (low above -128: the
+ * ReLU). */
+static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
+{{
+    int32_t r;
+    if (shift < 0) {{
+        const int64_t nudge = acc < 0 ? -((int64_t)1 << 30) : ((int64_t)1 << 30);
+        const int32_t w = (int32_t)(((int64_t)acc * (int64_t)m + nudge) >> 31);
+        r = ((w >> (-shift - 1)) + 1) >> 1;
+    }} else {{
+        r = {prefix}_requantize_general(acc, m, shift);
+    }}
+    const int32_t q = r + zero;
+    return (int8_t)(q > {INT8_MAX} ? {INT8_MAX} : (q < low ? low : q));
 }}"""
 
 
