@@ -418,14 +418,18 @@ static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, 
 {{
     int32_t r;
     if (shift < 0) {{
-        const int64_t nudge = acc < 0 ? -((int64_t)1 << 30) : ((int64_t)1 << 30);
+        /* -2^30 if acc < 0, else 2^30: its high word is acc's sign, its low word acc's bit 31 and 2^30 */
+        const uint32_t low_word = ((uint32_t)acc & 0x80000000u) | 0x40000000u;
+        const int64_t nudge = (int64_t)(acc >> 31) * ((int64_t)1 << 32) + (int64_t)low_word;
         const int32_t w = (int32_t)(((int64_t)acc * (int64_t)m + nudge) >> 31);
         r = ((w >> (-shift - 1)) + 1) >> 1;
     }} else {{
         r = {prefix}_requantize_general(acc, m, shift);
     }}
-    const int32_t q = r + zero;
-    return (int8_t)(q > {INT8_MAX} ? {INT8_MAX} : (q < low ? low : q));
+    int32_t q = r + zero;
+    q = q > {INT8_MAX} ? {INT8_MAX} : q;
+    q = q < low ? low : q; /* two conditional moves, no branch */
+    return (int8_t)q;
 }}"""
 
 
