@@ -15,6 +15,7 @@ import onnx
 import pytest
 
 from embedrl.cli import main
+from embedrl.export import build, target
 from embedrl.export.build import RUNTIME_C
 from tests.conftest import marks_its_users
 from tests.export.helpers import mlp_model
@@ -234,3 +235,30 @@ def test_make_reads_a_relative_policy_dir_from_where_it_was_started_and_refuses_
         capture_output=True, text=True,
     )  # fmt: skip
     assert result.returncode == 2 and "contains a space, which make cannot handle" in result.stderr
+
+
+@pytest.mark.parametrize("widths", [[6, 23, 41, 2], [6, 100, 100, 2]])
+def test_int8_full_dsp_and_portable_loops_give_the_models_bits_at_every_level(
+    tmp_path: Path, widths: list[int]
+) -> None:
+    """The Cortex-M4 image of an int8-full export: the DSP loop at -O0, -O2 (the export's build, checked
+    against the Python model) and -O3, and the portable loop on the same core, print the same action bits.
+    The first shape has outputs left over from the 4-row passes (23 = 5 x 4 + 2 + 1) and groups of four
+    inputs left over from the unrolled loop (41 inputs: 11 groups)."""
+    code, out = _export(tmp_path, widths, "--quantize", "int8-full", "--target", "cortex-m4")
+    assert code == 0
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["targets"]["cortex-m4"]["bit_exact_with_model"] is True
+    m4 = target.TARGETS["cortex-m4"]
+    vectors = out / "test" / "test_vectors.c"
+    runs = {}
+    for opt in ("-O2", "-O0", "-O3", "-O2 -DPOLICY_PORTABLE"):
+        build_dir = tmp_path / opt.replace(" ", "_")
+        build.make(
+            "firmware", out / "c", build_dir, opt=opt, extra={"TARGET": m4.name, "TEST_VECTORS": str(vectors)}
+        )
+        runs[opt] = target.run_qemu(m4, build_dir / m4.name / "firmware.elf", 256, widths[-1])
+    for opt, run in runs.items():
+        assert run.actions.tobytes() == runs["-O2"].actions.tobytes(), opt
+    # the DSP loop is the faster one (instructions counted under -icount)
+    assert runs["-O2"].instructions_per_inference < runs["-O2 -DPOLICY_PORTABLE"].instructions_per_inference
