@@ -308,7 +308,7 @@ def _check_agreement(
     peers["reference_max_abs_diff_from_c"] = own
 
 
-WEIGHT_BYTES = {None: 4, "int8": 1, "q15": 2}
+WEIGHT_BYTES = {None: 4, "int8": 1, "q15": 2, "int8-full": 1}
 """Bytes per matrix weight in the generated C, per precision."""
 
 

@@ -57,8 +57,69 @@ def per_row(lines: list[str], rows: str | None) -> list[str]:
     return [f"for (int r = 0; r < {rows}; ++r) {{", *(f"    {line}" for line in lines), "}"]
 
 
+DOT_ROWS = (8, 4, 2, 1)
+"""Outputs per pass of the dot-product order (:func:`dot_order_source`), largest first: 8 sums and the 8
+weights of one input fit the Cortex-M4F's 32 single-precision registers."""
+
+
+def dot_order_source(prefix: str) -> str:
+    """The switch between the float loop orders, by target (see :func:`_matmul_lines`)."""
+    return f"""/* Loop order of the float matrix products. On Cortex-M cores (a scalar FPU, or none): dot
+ * products, each pass keeping {DOT_ROWS[0]} sums in registers for the whole input. Elsewhere: input-major,
+ * the inner loop over the outputs, which vectorises. Both add each output's terms in the same order (its
+ * initial value, then inputs 0, 1, ...): the same bits. */
+#if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M')
+#define {prefix.upper()}_DOT_PRODUCTS 1
+#else
+#define {prefix.upper()}_DOT_PRODUCTS 0
+#endif"""
+
+
+def _dot_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str) -> list[str]:
+    """Dot products over the input-major weights ``w[k][n]``: :data:`DOT_ROWS` outputs per pass, each summed
+    in a register from ``init`` (C of output ``n``), then ``k = 0, 1, ...``: the input-major order's sums."""
+    lines, first, ctype = [], 0, "int8_t" if cast else "float"
+    for r in DOT_ROWS:
+        count = (n - first) // r
+        if not count:
+            continue
+        at = [_index("n", str(i)) for i in range(r)]
+        lines += [
+            f"for (int n = {first}; n < {first + r * count}; n += {r}) {{",
+            *(f"    float a{i} = {init.replace('[n]', f'[{at[i]}]')};" for i in range(r)),
+            f"    for (int k = 0; k < {k}; ++k) {{",
+            f"        const float xk = {x}[k];",
+            f"        const {ctype} *row = &{w}[k][n]; /* the pass's {r} weights of input k */",
+            *(f"        a{i} = a{i} + xk * {cast}row[{i}];" for i in range(r)),
+            "    }",
+            *(f"    {y}[{at[i]}] = a{i};" for i in range(r)),
+            "}",
+        ]
+        first += r * count
+    return lines
+
+
 def _matmul_lines(
-    x: str, y: str, w: str, k: int, n: int, init: str, cast: str = "", rows: str | None = None
+    x: str,
+    y: str,
+    w: str,
+    k: int,
+    n: int,
+    init: str,
+    cast: str = "",
+    rows: str | None = None,
+    order: str = "",
+) -> list[str]:
+    """``y = init + x @ w`` over input-major weights; for one observation with ``order`` (the C switch of
+    :func:`dot_order_source`) also the dot-product order, chosen by the preprocessor."""
+    lines = _input_major_lines(x, y, w, k, n, init, cast, rows)
+    if rows is not None or not order:
+        return lines
+    return [f"#if {order}", *_dot_lines(x, y, w, k, n, init, cast), "#else", *lines, "#endif"]
+
+
+def _input_major_lines(
+    x: str, y: str, w: str, k: int, n: int, init: str, cast: str, rows: str | None
 ) -> list[str]:
     # Per output the sum runs in a fixed order (init, then k = 0, 1, ...): the blocked pass
     # y[n] = y[n] + x0*w0[n] + x1*w1[n] + ... evaluates left to right, and vectorising over n
@@ -91,6 +152,14 @@ def _matmul_lines(
     return lines
 
 
+def _order(ctx: EmitContext) -> str:
+    """The C switch choosing the float loop order (emitted once), for one observation's code."""
+    if ctx.rows is not None:
+        return ""
+    ctx.function("dot_products", dot_order_source)
+    return f"{ctx.prefix.upper()}_DOT_PRODUCTS"
+
+
 def _quantized_lines(
     node: Node, ctx: EmitContext, w: np.ndarray, bias: str | None, x: str, y: str, n: int
 ) -> list[str]:
@@ -99,7 +168,7 @@ def _quantized_lines(
     k = w.shape[0]
     qsym = ctx.const(node.inputs[1] + "#int8", q, f"{node.name} weights, int8, input-major [{k}][{n}]")
     ssym = ctx.const(node.inputs[1] + "#scale", scale, f"{node.name} per-output scales [{n}]")
-    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)", rows=ctx.rows)
+    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)", rows=ctx.rows, order=_order(ctx))
     scaled = f"{ssym}[n] * {y}[n]"
     return [
         *lines,
@@ -268,8 +337,8 @@ class Gemm(Linear):
         if ctx.quantize:
             return _quantized_lines(node, ctx, w, bias, x, y, n)
         if alpha == 1.0 and beta == 1.0:
-            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f", rows=ctx.rows)
-        lines = _matmul_lines(x, y, wsym, k, n, "0.0f", rows=ctx.rows)
+            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f", rows=ctx.rows, order=_order(ctx))
+        lines = _matmul_lines(x, y, wsym, k, n, "0.0f", rows=ctx.rows, order=_order(ctx))
         scaled = f"{ctx.literal(alpha)} * {y}[n]"
         if bias is not None:
             scaled += f" + {ctx.literal(beta)} * {bias}"
@@ -329,7 +398,7 @@ class MatMul(Linear):
         if ctx.quantize:
             return _quantized_lines(node, ctx, w, None, x, y, n)
         wsym = ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights [{w.shape[0]}][{n}]")
-        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f", rows=ctx.rows)
+        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f", rows=ctx.rows, order=_order(ctx))
 
     def reference(
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str
