@@ -7,10 +7,12 @@ These tests need Debian's gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-sy
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import onnx
 import pytest
 
@@ -262,3 +264,27 @@ def test_int8_full_dsp_and_portable_loops_give_the_models_bits_at_every_level(
         assert run.actions.tobytes() == runs["-O2"].actions.tobytes(), opt
     # the DSP loop is the faster one (instructions counted under -icount)
     assert runs["-O2"].instructions_per_inference < runs["-O2 -DPOLICY_PORTABLE"].instructions_per_inference
+
+
+def _test_vectors(export: Path) -> np.ndarray:
+    """The observations compiled into the test image (exact float literals in test/test_vectors.c)."""
+    text = (export / "test" / "test_vectors.c").read_text()
+    rows = re.findall(r"\{([^{}]*)\}", text[text.index("= {") + 3 :])
+    return np.array([[float(v.strip().rstrip("f")) for v in row.split(",")] for row in rows], np.float32)
+
+
+def test_float_dot_products_on_cortex_m_give_the_host_input_major_bits(tmp_path: Path) -> None:
+    """float32: the Cortex-M images (dot products, 8/4/2/1 outputs per pass: 23 = 2 x 8 + 4 + 2 + 1 and
+    41 = 5 x 8 + 1) print the bits of the host's build of the same policy.c (input-major loops). The output
+    layer has no tanh: the C libraries' tanhf (glibc, newlib) may differ in the last bit."""
+    src, out = tmp_path / "mlp.onnx", tmp_path / "export"
+    onnx.save(mlp_model([6, 23, 41, 2], ["Relu", "Relu", "Identity"]), str(src))
+    args = ["export", str(src), "--out", str(out), "--episodes", "0", "--target", "cortex-m4"]
+    assert main([*args, "--target", "cortex-m3"]) == 0
+    source = (out / "c" / "policy.c").read_text()
+    assert source.count("#if POLICY_DOT_PRODUCTS") == 3
+    obs = _test_vectors(out)
+    host = build.CPolicy(out / "bin" / "host" / "libpolicy.so", "policy", 6, 2).rows(obs)[0]
+    for name in ("cortex-m4", "cortex-m3"):
+        run = target.run_qemu(target.TARGETS[name], out / "bin" / name / "firmware.elf", len(obs), 2)
+        assert run.actions.tobytes() == np.asarray(host, np.float32).tobytes(), name
