@@ -75,26 +75,56 @@ def dot_order_source(prefix: str) -> str:
 #endif"""
 
 
+DOT_INPUTS_PER_ITERATION = 4
+"""Inputs per iteration of a dot-product pass (unrolled; the rest after the loop): one loop test and branch
+per four inputs. Measured on the study actor (Cortex-M4F cycle model): 1 per iteration 57.4k cycles, 2: 54.5k,
+4: 52.4k."""
+
+
+def _dot_input(r: int, xk: str, row: str, cast: str, ctype: str) -> list[str]:
+    """One input's terms for the pass's ``r`` sums (``xk``: the input, ``row``: its weights' C address)."""
+    return [
+        "{",
+        f"    const float xk = {xk};",
+        f"    const {ctype} *row = {row}; /* the pass's {r} weights of this input */",
+        *(f"    a{i} = a{i} + xk * {cast}row[{i}];" for i in range(r)),
+        "}",
+    ]
+
+
 def _dot_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str) -> list[str]:
     """Dot products over the input-major weights ``w[k][n]``: :data:`DOT_ROWS` outputs per pass, each summed
     in a register from ``init`` (C of output ``n``), then ``k = 0, 1, ...``: the input-major order's sums."""
     lines, first, ctype = [], 0, "int8_t" if cast else "float"
+    step = (
+        1 if cast else DOT_INPUTS_PER_ITERATION
+    )  # int8 weights: the scheme is for small flash, no unrolling
+    whole = k - k % step
     for r in DOT_ROWS:
         count = (n - first) // r
         if not count:
             continue
         at = [_index("n", str(i)) for i in range(r)]
+        body = [
+            line
+            for j in range(step)
+            for line in _dot_input(
+                r, f"{x}[{_index('k', str(j))}]", f"&{w}[{_index('k', str(j))}][n]", cast, ctype
+            )
+        ]
         lines += [
             f"for (int n = {first}; n < {first + r * count}; n += {r}) {{",
             *(f"    float a{i} = {init.replace('[n]', f'[{at[i]}]')};" for i in range(r)),
-            f"    for (int k = 0; k < {k}; ++k) {{",
-            f"        const float xk = {x}[k];",
-            f"        const {ctype} *row = &{w}[k][n]; /* the pass's {r} weights of input k */",
-            *(f"        a{i} = a{i} + xk * {cast}row[{i}];" for i in range(r)),
-            "    }",
-            *(f"    {y}[{at[i]}] = a{i};" for i in range(r)),
-            "}",
         ]
+        if whole:
+            lines += [
+                f"    for (int k = 0; k < {whole}; k += {step}) {{",
+                *(f"        {b}" for b in body),
+                "    }",
+            ]
+        for k0 in range(whole, k):
+            lines += [f"    {b}" for b in _dot_input(r, f"{x}[{k0}]", f"&{w}[{k0}][n]", cast, ctype)]
+        lines += [*(f"    {y}[{at[i]}] = a{i};" for i in range(r)), "}"]
         first += r * count
     return lines
 

@@ -125,9 +125,25 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         float a1 = policy_w3_b1[n + 1];
         float a2 = policy_w3_b1[n + 2];
         float a3 = policy_w3_b1[n + 3];
-        for (int k = 0; k < 3; ++k) {
-            const float xk = policy_buf0[k];
-            const float *row = &policy_w2_W1[k][n]; /* the pass's 4 weights of input k */
+        {
+            const float xk = policy_buf0[0];
+            const float *row = &policy_w2_W1[0][n]; /* the pass's 4 weights of this input */
+            a0 = a0 + xk * row[0];
+            a1 = a1 + xk * row[1];
+            a2 = a2 + xk * row[2];
+            a3 = a3 + xk * row[3];
+        }
+        {
+            const float xk = policy_buf0[1];
+            const float *row = &policy_w2_W1[1][n]; /* the pass's 4 weights of this input */
+            a0 = a0 + xk * row[0];
+            a1 = a1 + xk * row[1];
+            a2 = a2 + xk * row[2];
+            a3 = a3 + xk * row[3];
+        }
+        {
+            const float xk = policy_buf0[2];
+            const float *row = &policy_w2_W1[2][n]; /* the pass's 4 weights of this input */
             a0 = a0 + xk * row[0];
             a1 = a1 + xk * row[1];
             a2 = a2 + xk * row[2];
@@ -161,11 +177,31 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     for (int n = 0; n < 2; n += 2) {
         float a0 = policy_w5_b2[n];
         float a1 = policy_w5_b2[n + 1];
-        for (int k = 0; k < 4; ++k) {
-            const float xk = policy_buf1[k];
-            const float *row = &policy_w4_W2[k][n]; /* the pass's 2 weights of input k */
-            a0 = a0 + xk * row[0];
-            a1 = a1 + xk * row[1];
+        for (int k = 0; k < 4; k += 4) {
+            {
+                const float xk = policy_buf1[k];
+                const float *row = &policy_w4_W2[k][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+            {
+                const float xk = policy_buf1[k + 1];
+                const float *row = &policy_w4_W2[k + 1][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+            {
+                const float xk = policy_buf1[k + 2];
+                const float *row = &policy_w4_W2[k + 2][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+            {
+                const float xk = policy_buf1[k + 3];
+                const float *row = &policy_w4_W2[k + 3][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
         }
         policy_buf0[n] = a0;
         policy_buf0[n + 1] = a1;
