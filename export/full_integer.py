@@ -119,9 +119,9 @@ class IntegerSection:
         return [max(widths[0::2])] + ([max(widths[1::2])] if len(widths) > 1 else [])
 
     def ram_bytes(self) -> int:
-        """RAM of the int8 buffers and, on DSP cores, of the input's int16 pairs and a layer's sums."""
+        """RAM of the int8 buffers and, on DSP cores, of a layer input's int16 pairs."""
         pairs = max(padded(w) for w in self.widths()) // WORD
-        return sum(self.buffer_sizes()) + 2 * 4 * pairs + 4 * self.outputs()
+        return sum(self.buffer_sizes()) + 2 * 4 * pairs
 
     def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
         """The section's C and the declarations of its buffers (and of the DSP switch)."""
@@ -134,9 +134,7 @@ class IntegerSection:
             f"#if defined(__ARM_FEATURE_DSP) && defined(__ARM_FEATURE_SIMD32) && !defined({up}_PORTABLE)",
             "#include <arm_acle.h>",
             f"#define {up}_DSP 1",
-            f"static int32_t {p}_xe[{pairs}]; /* even bytes of the layer input, as int16 pairs */",
-            f"static int32_t {p}_xo[{pairs}]; /* odd bytes */",
-            f"static int32_t {p}_acc[{self.outputs()}]; /* a layer's sums */",
+            f"static int32_t {p}_pairs[{2 * pairs}]; /* per input word: its even, then odd bytes (int16) */",
             "#else",
             f"#define {up}_DSP 0",
             "#endif",
@@ -165,7 +163,7 @@ class IntegerSection:
         for j, layer in enumerate(self.layers):
             last = j == len(self.layers) - 1
             dst = out_ref if last else qbufs[(j + 1) % 2]
-            lines += layer.c_lines(ctx, qbufs[j % 2], dst, f"{p}_xe", f"{p}_xo")
+            lines += layer.c_lines(ctx, qbufs[j % 2], dst, f"{p}_pairs")
         return lines, decls
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import tempfile
 from pathlib import Path
 
@@ -17,7 +18,15 @@ from embedrl.export.codegen import generate
 from embedrl.export.errors import UnrepresentableRangeError, UnsupportedOpError
 from embedrl.export.onnx_import import to_ir
 from embedrl.export.ops.deterministic import exp_det, tanh_det
-from embedrl.export.ops.linear import SHIFT_RANGE, quantize_columns, quantize_multiplier, requantize
+from embedrl.export.ops.linear import (
+    INT8_MAX,
+    INT8_MIN,
+    SHIFT_RANGE,
+    quantize_columns,
+    quantize_multiplier,
+    requantize,
+    requantize_source,
+)
 from tests.export.helpers import make_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")
@@ -196,6 +205,48 @@ def test_requantisation_rounds_as_gemmlowp() -> None:
     assert halves.tolist() == [2, 1, -1, 0]
     assert quantize_multiplier(2.0**-33) is None and quantize_multiplier(2.0**31) is None
     assert quantize_multiplier(0.0) is None and quantize_multiplier(float("nan")) is None
+
+
+REQUANT_HARNESS = """#include <stdint.h>
+#include <stdio.h>
+%s
+int main(void)
+{
+    long acc, m, shift, zero, low;
+    while (scanf("%%ld %%ld %%ld %%ld %%ld", &acc, &m, &shift, &zero, &low) == 5) {
+        const int8_t q = t_requantize((int32_t)acc, (int32_t)m, (int32_t)shift, (int32_t)zero, (int32_t)low);
+        printf("%%d\\n", (int)q);
+    }
+    return 0;
+}
+"""
+
+
+@pytest.mark.parametrize("level", ["-O0", "-O2"])
+def test_generated_requantisation_equals_the_model_at_the_extremes(level: str, tmp_path: Path) -> None:
+    """The C requantisation (one 64-bit sum for shift < 0, gemmlowp's steps otherwise), zero point and
+    clamp against the model on random and extreme sums, multipliers and shifts."""
+    rng = np.random.default_rng(1)
+    edges = [-(2**31), -(2**31) + 1, -(2**30) - 1, -(2**30), -1, 0, 1, 2**30, 2**31 - 1]
+    acc = np.concatenate([rng.integers(-(2**31), 2**31, 6000), np.repeat(edges, 8)])
+    m = rng.integers(2**30, 2**31, acc.size)
+    m[-len(edges) * 8 :: 2] = 2**31 - 1
+    m[-len(edges) * 8 + 1 :: 2] = 2**30
+    shift = rng.integers(SHIFT_RANGE[0], SHIFT_RANGE[1] + 1, acc.size)
+    shift[:3000] = rng.integers(-12, 1, 3000)  # the usual range
+    shift[-len(edges) * 8 :: 4] = SHIFT_RANGE[0]
+    shift[-len(edges) * 8 + 2 :: 4] = -1
+    zero = rng.integers(INT8_MIN, INT8_MAX + 1, acc.size)
+    relu = rng.random(acc.size) < 0.5
+    low = np.where(relu, zero, INT8_MIN)
+    want = np.clip(requantize(acc, m, shift) + zero, low, INT8_MAX)
+    (tmp_path / "r.c").write_text(REQUANT_HARNESS % requantize_source("t"))
+    exe = tmp_path / "r"
+    flags = ["-std=c99", "-Wall", "-Wextra", "-Werror", level]
+    subprocess.run(["cc", *flags, "-o", str(exe), str(tmp_path / "r.c")], check=True)
+    rows = "\n".join(" ".join(map(str, row)) for row in zip(acc, m, shift, zero, low, strict=True))
+    got = subprocess.run([str(exe)], input=rows, capture_output=True, text=True, check=True).stdout.split()
+    assert [int(v) for v in got] == want.tolist()
 
 
 @settings(max_examples=15, deadline=None)

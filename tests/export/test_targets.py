@@ -7,14 +7,17 @@ These tests need Debian's gcc-arm-none-eabi, libnewlib-arm-none-eabi and qemu-sy
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import onnx
 import pytest
 
 from embedrl.cli import main
+from embedrl.export import build, target
 from embedrl.export.build import RUNTIME_C
 from tests.conftest import marks_its_users
 from tests.export.helpers import mlp_model
@@ -234,3 +237,54 @@ def test_make_reads_a_relative_policy_dir_from_where_it_was_started_and_refuses_
         capture_output=True, text=True,
     )  # fmt: skip
     assert result.returncode == 2 and "contains a space, which make cannot handle" in result.stderr
+
+
+@pytest.mark.parametrize("widths", [[6, 23, 41, 2], [6, 100, 100, 2]])
+def test_int8_full_dsp_and_portable_loops_give_the_models_bits_at_every_level(
+    tmp_path: Path, widths: list[int]
+) -> None:
+    """The Cortex-M4 image of an int8-full export: the DSP loop at -O0, -O2 (the export's build, checked
+    against the Python model) and -O3, and the portable loop on the same core, print the same action bits.
+    The first shape has outputs left over from the 4-row passes (23 = 5 x 4 + 2 + 1) and groups of four
+    inputs left over from the unrolled loop (41 inputs: 11 groups)."""
+    code, out = _export(tmp_path, widths, "--quantize", "int8-full", "--target", "cortex-m4")
+    assert code == 0
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["targets"]["cortex-m4"]["bit_exact_with_model"] is True
+    m4 = target.TARGETS["cortex-m4"]
+    vectors = out / "test" / "test_vectors.c"
+    runs = {}
+    for opt in ("-O2", "-O0", "-O3", "-O2 -DPOLICY_PORTABLE"):
+        build_dir = tmp_path / opt.replace(" ", "_")
+        build.make(
+            "firmware", out / "c", build_dir, opt=opt, extra={"TARGET": m4.name, "TEST_VECTORS": str(vectors)}
+        )
+        runs[opt] = target.run_qemu(m4, build_dir / m4.name / "firmware.elf", 256, widths[-1])
+    for opt, run in runs.items():
+        assert run.actions.tobytes() == runs["-O2"].actions.tobytes(), opt
+    # the DSP loop is the faster one (instructions counted under -icount)
+    assert runs["-O2"].instructions_per_inference < runs["-O2 -DPOLICY_PORTABLE"].instructions_per_inference
+
+
+def _test_vectors(export: Path) -> np.ndarray:
+    """The observations compiled into the test image (exact float literals in test/test_vectors.c)."""
+    text = (export / "test" / "test_vectors.c").read_text()
+    rows = re.findall(r"\{([^{}]*)\}", text[text.index("= {") + 3 :])
+    return np.array([[float(v.strip().rstrip("f")) for v in row.split(",")] for row in rows], np.float32)
+
+
+def test_float_dot_products_on_cortex_m_give_the_host_input_major_bits(tmp_path: Path) -> None:
+    """float32: the Cortex-M images (dot products, 8/4/2/1 outputs per pass: 23 = 2 x 8 + 4 + 2 + 1 and
+    41 = 5 x 8 + 1) print the bits of the host's build of the same policy.c (input-major loops). The output
+    layer has no tanh: the C libraries' tanhf (glibc, newlib) may differ in the last bit."""
+    src, out = tmp_path / "mlp.onnx", tmp_path / "export"
+    onnx.save(mlp_model([6, 23, 41, 2], ["Relu", "Relu", "Identity"]), str(src))
+    args = ["export", str(src), "--out", str(out), "--episodes", "0", "--target", "cortex-m4"]
+    assert main([*args, "--target", "cortex-m3"]) == 0
+    source = (out / "c" / "policy.c").read_text()
+    assert source.count("#if POLICY_DOT_PRODUCTS") == 3
+    obs = _test_vectors(out)
+    host = build.CPolicy(out / "bin" / "host" / "libpolicy.so", "policy", 6, 2).rows(obs)[0]
+    for name in ("cortex-m4", "cortex-m3"):
+        run = target.run_qemu(target.TARGETS[name], out / "bin" / name / "firmware.elf", len(obs), 2)
+        assert run.actions.tobytes() == np.asarray(host, np.float32).tobytes(), name

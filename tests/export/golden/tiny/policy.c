@@ -61,6 +61,16 @@ static const float policy_safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;
 static float policy_buf0[3];
 static float policy_buf1[4];
 
+/* Loop order of the float matrix products. On Cortex-M cores (a scalar FPU, or none): dot
+ * products, each pass keeping 8 sums in registers for the whole input. Elsewhere: input-major,
+ * the inner loop over the outputs, which vectorises. Both add each output's terms in the same order (its
+ * initial value, then inputs 0, 1, ...): the same bits. */
+#if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M')
+#define POLICY_DOT_PRODUCTS 1
+#else
+#define POLICY_DOT_PRODUCTS 0
+#endif
+
 /* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
  * compiler assume that no NaN or infinity exists and drop isfinite(). */
 static int policy_finite(float x)
@@ -109,6 +119,42 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         policy_buf0[i] = policy_buf0[i] / policy_w1_std[i];
     }
     /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
+    #if POLICY_DOT_PRODUCTS
+    for (int n = 0; n < 4; n += 4) {
+        float a0 = policy_w3_b1[n];
+        float a1 = policy_w3_b1[n + 1];
+        float a2 = policy_w3_b1[n + 2];
+        float a3 = policy_w3_b1[n + 3];
+        {
+            const float xk = policy_buf0[0];
+            const float *row = &policy_w2_W1[0][n]; /* the pass's 4 weights of this input */
+            a0 = a0 + xk * row[0];
+            a1 = a1 + xk * row[1];
+            a2 = a2 + xk * row[2];
+            a3 = a3 + xk * row[3];
+        }
+        {
+            const float xk = policy_buf0[1];
+            const float *row = &policy_w2_W1[1][n]; /* the pass's 4 weights of this input */
+            a0 = a0 + xk * row[0];
+            a1 = a1 + xk * row[1];
+            a2 = a2 + xk * row[2];
+            a3 = a3 + xk * row[3];
+        }
+        {
+            const float xk = policy_buf0[2];
+            const float *row = &policy_w2_W1[2][n]; /* the pass's 4 weights of this input */
+            a0 = a0 + xk * row[0];
+            a1 = a1 + xk * row[1];
+            a2 = a2 + xk * row[2];
+            a3 = a3 + xk * row[3];
+        }
+        policy_buf1[n] = a0;
+        policy_buf1[n + 1] = a1;
+        policy_buf1[n + 2] = a2;
+        policy_buf1[n + 3] = a3;
+    }
+    #else
     for (int n = 0; n < 4; ++n) {
         policy_buf1[n] = policy_w3_b1[n];
     }
@@ -121,11 +167,46 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     for (int n = 0; n < 4; ++n) {
         policy_buf1[n] = policy_buf1[n] + policy_buf0[2] * policy_w2_W1[2][n];
     }
+    #endif
     /* Relu 'relu1' [1x4] -> [1x4] */
     for (int i = 0; i < 4; ++i) {
         policy_buf1[i] = policy_buf1[i] < 0.0f ? 0.0f : policy_buf1[i];
     }
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
+    #if POLICY_DOT_PRODUCTS
+    for (int n = 0; n < 2; n += 2) {
+        float a0 = policy_w5_b2[n];
+        float a1 = policy_w5_b2[n + 1];
+        for (int k = 0; k < 4; k += 4) {
+            {
+                const float xk = policy_buf1[k];
+                const float *row = &policy_w4_W2[k][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+            {
+                const float xk = policy_buf1[k + 1];
+                const float *row = &policy_w4_W2[k + 1][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+            {
+                const float xk = policy_buf1[k + 2];
+                const float *row = &policy_w4_W2[k + 2][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+            {
+                const float xk = policy_buf1[k + 3];
+                const float *row = &policy_w4_W2[k + 3][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + xk * row[0];
+                a1 = a1 + xk * row[1];
+            }
+        }
+        policy_buf0[n] = a0;
+        policy_buf0[n + 1] = a1;
+    }
+    #else
     for (int n = 0; n < 2; ++n) {
         policy_buf0[n] = policy_w5_b2[n];
     }
@@ -138,6 +219,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
             policy_buf0[n] = policy_buf0[n] + x0 * policy_w4_W2[k][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
         }
     }
+    #endif
     /* Tanh 'squash' [1x2] -> [1x2] */
     for (int i = 0; i < 2; ++i) {
         policy_buf0[i] = tanhf(policy_buf0[i]);
