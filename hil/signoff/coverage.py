@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import tempfile
 import tomllib
 from dataclasses import dataclass
@@ -84,9 +85,12 @@ def measure(c_dir: Path, name: str, observations: np.ndarray) -> dict[str, Any]:
     rows = probe_rows(observations)
     with tempfile.TemporaryDirectory(prefix="embedrl-coverage-") as tmp:
         work = Path(tmp)
+        # a copy of the C in a folder without spaces: make then builds it where it is, and llvm-cov names
+        # the sources read below by their real paths (not a temporary link's)
+        shutil.copytree(c_dir, work / "c")
         (work / "obs.f32").write_bytes(np.ascontiguousarray(rows, dtype="<f4").tobytes())
         build.make(
-            "coverage", c_dir, work, extra={"COVERAGE_OBS": str(work / "obs.f32"), "POLICY_NAME": name}
+            "coverage", work / "c", work, extra={"COVERAGE_OBS": str(work / "obs.f32"), "POLICY_NAME": name}
         )
         cov = work / "coverage"
         summary = summarise(json.loads((cov / "coverage.json").read_text()),
@@ -103,10 +107,17 @@ def load_reasons(path: Path = REASONS) -> list[Reason]:
     return [Reason(e["file"], e["kind"], e["code"], " ".join(e["reason"].split())) for e in entries]
 
 
-def summarise(export: dict[str, Any], lcov: str, policy_file: str, reasons: list[Reason]) -> dict[str, Any]:
+def summarise(
+    export: dict[str, Any],
+    lcov: str,
+    policy_file: str,
+    reasons: list[Reason],
+    policy_source: Path | None = None,
+) -> dict[str, Any]:
     """Per file of the goal (the policy, then the node's) and outside it: lines, branches and MC/DC
     conditions covered of all, and each gap (line not run, branch direction never taken, condition not
-    shown independent) with its reason or None."""
+    shown independent) with its reason or None. The policy's source is read from ``policy_source`` if
+    given (make may have built it through a temporary link: a folder with spaces)."""
     roles = {policy_file: "the generated policy", **NODE_FILES}
     lines_not_run = _lines_not_run(lcov)
     files = []
