@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import subprocess
 import tempfile
 import tomllib
 from dataclasses import dataclass
@@ -29,6 +30,8 @@ GOAL_LINES = 100.0
 GOAL_BRANCHES = 100.0
 GOAL_MCDC = 95.0
 REASONS = RUNTIME_C / "coverage_reasons.toml"
+CLANG = "clang-19"
+"""The compiler ``make coverage`` uses (its COV_CC default)."""
 TEST_DOUBLES = RUNTIME_C / "tests"
 """The C tests and their doubles (the fake policy's policy.c among them): measured, never reported."""
 NODE_FILES = {
@@ -97,9 +100,16 @@ def measure(c_dir: Path, name: str, observations: np.ndarray) -> dict[str, Any]:
                             (cov / "coverage.lcov").read_text(), f"{name}.c", load_reasons())  # fmt: skip
         codes = [int(line.split()[2]) for line in (cov / "policy_steps.txt").read_text().splitlines()
                  if line.startswith("A ")]  # fmt: skip
+    summary["compiler"] = _version(CLANG)
     summary["probes"] = {"rows": len(rows), "verification_rows": len(observations),
                          "codes": {str(c): codes.count(c) for c in sorted(set(codes))}}  # fmt: skip
     return summary
+
+
+def _version(tool: str) -> str:
+    """The first line of ``tool --version`` (the measurement conditions)."""
+    result = subprocess.run([tool, "--version"], capture_output=True, text=True)
+    return (result.stdout.strip().splitlines() or [tool])[0]
 
 
 def load_reasons(path: Path = REASONS) -> list[Reason]:
@@ -236,7 +246,8 @@ def check(summary: dict[str, Any] | str) -> tuple[bool, str]:
         file, gap = unexplained[0]
         first = f"{file}:{gap['line']} `{gap['code']}` ({gap['kind']}, {gap['detail']})"
         return False, f"{len(unexplained)} gap(s) without a reason, first {first}; {figures}"
-    return True, figures
+    gaps = sum(len(f["gaps"]) for f in summary["files"])
+    return True, f"{figures}; {gaps} gap(s), each with its reason"
 
 
 LABELS = {"lines": "lines", "branches": "branches", "mcdc": "MC/DC"}
