@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
+import subprocess
 import tempfile
 import tomllib
 from dataclasses import dataclass
@@ -28,6 +30,8 @@ GOAL_LINES = 100.0
 GOAL_BRANCHES = 100.0
 GOAL_MCDC = 95.0
 REASONS = RUNTIME_C / "coverage_reasons.toml"
+CLANG = "clang-19"
+"""The compiler ``make coverage`` uses (its COV_CC default)."""
 TEST_DOUBLES = RUNTIME_C / "tests"
 """The C tests and their doubles (the fake policy's policy.c among them): measured, never reported."""
 NODE_FILES = {
@@ -84,18 +88,28 @@ def measure(c_dir: Path, name: str, observations: np.ndarray) -> dict[str, Any]:
     rows = probe_rows(observations)
     with tempfile.TemporaryDirectory(prefix="embedrl-coverage-") as tmp:
         work = Path(tmp)
+        # a copy of the C in a folder without spaces: make then builds it where it is, and llvm-cov names
+        # the sources read below by their real paths (not a temporary link's)
+        shutil.copytree(c_dir, work / "c")
         (work / "obs.f32").write_bytes(np.ascontiguousarray(rows, dtype="<f4").tobytes())
         build.make(
-            "coverage", c_dir, work, extra={"COVERAGE_OBS": str(work / "obs.f32"), "POLICY_NAME": name}
+            "coverage", work / "c", work, extra={"COVERAGE_OBS": str(work / "obs.f32"), "POLICY_NAME": name}
         )
         cov = work / "coverage"
         summary = summarise(json.loads((cov / "coverage.json").read_text()),
                             (cov / "coverage.lcov").read_text(), f"{name}.c", load_reasons())  # fmt: skip
         codes = [int(line.split()[2]) for line in (cov / "policy_steps.txt").read_text().splitlines()
                  if line.startswith("A ")]  # fmt: skip
+    summary["compiler"] = _version(CLANG)
     summary["probes"] = {"rows": len(rows), "verification_rows": len(observations),
                          "codes": {str(c): codes.count(c) for c in sorted(set(codes))}}  # fmt: skip
     return summary
+
+
+def _version(tool: str) -> str:
+    """The first line of ``tool --version`` (the measurement conditions)."""
+    result = subprocess.run([tool, "--version"], capture_output=True, text=True)
+    return (result.stdout.strip().splitlines() or [tool])[0]
 
 
 def load_reasons(path: Path = REASONS) -> list[Reason]:
@@ -103,10 +117,17 @@ def load_reasons(path: Path = REASONS) -> list[Reason]:
     return [Reason(e["file"], e["kind"], e["code"], " ".join(e["reason"].split())) for e in entries]
 
 
-def summarise(export: dict[str, Any], lcov: str, policy_file: str, reasons: list[Reason]) -> dict[str, Any]:
+def summarise(
+    export: dict[str, Any],
+    lcov: str,
+    policy_file: str,
+    reasons: list[Reason],
+    policy_source: Path | None = None,
+) -> dict[str, Any]:
     """Per file of the goal (the policy, then the node's) and outside it: lines, branches and MC/DC
     conditions covered of all, and each gap (line not run, branch direction never taken, condition not
-    shown independent) with its reason or None."""
+    shown independent) with its reason or None. The policy's source is read from ``policy_source`` if
+    given (make may have built it through a temporary link: a folder with spaces)."""
     roles = {policy_file: "the generated policy", **NODE_FILES}
     lines_not_run = _lines_not_run(lcov)
     files = []
@@ -225,7 +246,8 @@ def check(summary: dict[str, Any] | str) -> tuple[bool, str]:
         file, gap = unexplained[0]
         first = f"{file}:{gap['line']} `{gap['code']}` ({gap['kind']}, {gap['detail']})"
         return False, f"{len(unexplained)} gap(s) without a reason, first {first}; {figures}"
-    return True, figures
+    gaps = sum(len(f["gaps"]) for f in summary["files"])
+    return True, f"{figures}; {gaps} gap(s), each with its reason"
 
 
 LABELS = {"lines": "lines", "branches": "branches", "mcdc": "MC/DC"}

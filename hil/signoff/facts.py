@@ -193,6 +193,8 @@ def coverage(export_dir: Path, export: dict[str, Any], row: dict[str, Any]) -> d
         return measured.measure(export_dir / "c", export["name"], observations)
     except BuildError as exc:
         return str(exc).strip().splitlines()[-1]
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        return f"llvm-cov's output could not be read: {exc}"
 
 
 def image_memory(elf: Path) -> dict[str, Any]:

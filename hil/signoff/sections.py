@@ -276,7 +276,8 @@ def coverage(facts: dict[str, Any]) -> str:
     p = c["probes"]
     codes = ", ".join(f"code {k}: {n:,}" for k, n in p["codes"].items())
     return (
-        "<p>clang's source-based coverage (<code>make -C runtime_c coverage</code>: clang-19 "
+        "<p>clang's source-based coverage (<code>make -C runtime_c coverage</code>: "
+        f"{escape(c['compiler'])}, "
         "<code>-fprofile-instr-generate -fcoverage-mapping -fcoverage-mcdc</code>, llvm-cov-19 export). The "
         f"policy ran on {p['verification_rows']:,} verification observations and "
         f"{p['rows'] - p['verification_rows']} probes (NaN, +/-inf, +/-1e4, +/-FLT_MAX at each position; "
