@@ -2,7 +2,9 @@
 
 The weights are stored input-major (``W[k][n]``) so the inner loop runs over outputs and vectorises
 without reassociating any sum: each output is summed in a fixed order, the same at every optimisation
-level. ``--quantize int8``: each weight column (one output) is scaled symmetrically to int8,
+level. On Cortex-M (scalar FPU or none) the same weights are read as dot products, several sums in
+registers per pass (:func:`dot_order_source`), adding each output's terms in the same order: the same bits.
+``--quantize int8``: each weight column (one output) is scaled symmetrically to int8,
 ``q = round(w / s)`` with ``s = max|w| / 127``; ``acc = sum_k x[k] * q[k][n]`` in float32 and
 ``y[n] = b[n] + s[n] * acc[n]``.
 """
