@@ -706,7 +706,7 @@ def _block(run: RowBlocks) -> str:
 GROUPS_PER_ITERATION = (4, 5, 3)
 """Groups of four inputs per iteration of the DSP loop: the first of these that divides the layer's groups
 (no groups left after the loop), else the first, the rest unrolled after the loop. Measured on the study's
-actor (Cortex-M4 cycle model): 25 groups per row, 1 per iteration 28,4k cycles, 2: 26.0k, 4: 24.9k, 5: 24.1k.
+actor (Cortex-M4 cycle model): 25 groups per row, 1 per iteration 28.4k cycles, 2: 26.0k, 4: 24.9k, 5: 24.1k.
 A compiler barrier between groups keeps each group's loads after the previous group's sums (without it gcc 12
 loads all the groups' words first and spills accumulators to the stack)."""
 
