@@ -2,7 +2,9 @@
 
 The weights are stored input-major (``W[k][n]``) so the inner loop runs over outputs and vectorises
 without reassociating any sum: each output is summed in a fixed order, the same at every optimisation
-level. ``--quantize int8``: each weight column (one output) is scaled symmetrically to int8,
+level. On Cortex-M (scalar FPU or none) the same weights are read as dot products, several sums in
+registers per pass (:func:`dot_order_source`), adding each output's terms in the same order: the same bits.
+``--quantize int8``: each weight column (one output) is scaled symmetrically to int8,
 ``q = round(w / s)`` with ``s = max|w| / 127``; ``acc = sum_k x[k] * q[k][n]`` in float32 and
 ``y[n] = b[n] + s[n] * acc[n]``.
 """
@@ -704,7 +706,7 @@ def _block(run: RowBlocks) -> str:
 GROUPS_PER_ITERATION = (4, 5, 3)
 """Groups of four inputs per iteration of the DSP loop: the first of these that divides the layer's groups
 (no groups left after the loop), else the first, the rest unrolled after the loop. Measured on the study's
-actor (Cortex-M4 cycle model): 25 groups per row, 1 per iteration 28,4k cycles, 2: 26.0k, 4: 24.9k, 5: 24.1k.
+actor (Cortex-M4 cycle model): 25 groups per row, 1 per iteration 28.4k cycles, 2: 26.0k, 4: 24.9k, 5: 24.1k.
 A compiler barrier between groups keeps each group's loads after the previous group's sums (without it gcc 12
 loads all the groups' words first and spills accumulators to the stack)."""
 
