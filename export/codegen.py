@@ -322,7 +322,8 @@ def generate(
         f"static float {name}_state{k}[{graph.size(read)}]; /* {_sanitize(read)}, next: {_sanitize(write)} */"
         for k, (read, write) in enumerate(graph.states)
     ]
-    source = _source(banner, name, ctx, body, [*states, *buffers, *int16_decls], ram, checks)
+    includes = section.c_includes(name) if section is not None else []
+    source = _source(banner, name, ctx, body, [*states, *buffers, *int16_decls], ram, checks, includes)
     return {
         f"{name}.h": _header(banner, graph, name, safe, interface),
         f"{name}.c": source + (_batch_source(name, ctx, block) if block is not None else _row_batch(name)),
@@ -552,7 +553,14 @@ def _state_lines(name: str, ctx: _Context) -> tuple[str, str, str]:
 
 
 def _source(
-    banner: str, name: str, ctx: _Context, body: list[str], buffers: list[str], ram: int, checks: bool
+    banner: str,
+    name: str,
+    ctx: _Context,
+    body: list[str],
+    buffers: list[str],
+    ram: int,
+    checks: bool,
+    includes: list[str],
 ) -> str:
     up = name.upper()
     out_ref = ctx.ref(ctx.graph.output)
@@ -580,7 +588,7 @@ def _source(
 #include <math.h>
 #include <stdint.h>
 #include <string.h>
-
+{"".join(chr(10) + line for line in includes)}{chr(10) if includes else ""}
 {chr(10).join(ctx.declarations)}
 
 {safe_decl}

@@ -62,6 +62,10 @@ class FixedSection:
         """RAM of the section's own buffers."""
         return 2 * sum(self.buffer_sizes())
 
+    def c_includes(self, prefix: str) -> list[str]:
+        """None: the section's C needs only the file's standard headers."""
+        return []
+
     def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
         """The section's C and its int16 buffer declarations."""
         p = ctx.prefix

@@ -123,6 +123,10 @@ class IntegerSection:
         pairs = max(padded(w) for w in self.widths()) // WORD
         return sum(self.buffer_sizes()) + 2 * 4 * pairs
 
+    def c_includes(self, prefix: str) -> list[str]:
+        """The ACLE header of the DSP loop, on the cores that have it, among the file's includes."""
+        return [f"#if {_dsp_condition(prefix)}", "#include <arm_acle.h>", "#endif"]
+
     def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
         """The section's C and the declarations of its buffers (and of the DSP switch)."""
         p, up = ctx.prefix, ctx.prefix.upper()
@@ -131,8 +135,7 @@ class IntegerSection:
         decls = [
             f"/* The DSP loop on cores with the ACLE SIMD32 intrinsics (Cortex-M4, M7); -D{up}_PORTABLE: the",
             " * portable loop. Both give the same bits (integer sums). */",
-            f"#if defined(__ARM_FEATURE_DSP) && defined(__ARM_FEATURE_SIMD32) && !defined({up}_PORTABLE)",
-            "#include <arm_acle.h>",
+            f"#if {_dsp_condition(p)}",
             f"#define {up}_DSP 1",
             f"static int32_t {p}_pairs[{2 * pairs}]; /* per input word: its even, then odd bytes (int16) */",
             "#else",
@@ -165,6 +168,13 @@ class IntegerSection:
             dst = out_ref if last else qbufs[(j + 1) % 2]
             lines += layer.c_lines(ctx, qbufs[j % 2], dst, f"{p}_pairs")
         return lines, decls
+
+
+def _dsp_condition(prefix: str) -> str:
+    """When the DSP loop is compiled: the core has the ACLE SIMD32 intrinsics, and no -D<PREFIX>_PORTABLE."""
+    return (
+        f"defined(__ARM_FEATURE_DSP) && defined(__ARM_FEATURE_SIMD32) && !defined({prefix.upper()}_PORTABLE)"
+    )
 
 
 def quantize_input(x: np.ndarray, quant: Activation) -> np.ndarray:

@@ -41,6 +41,10 @@ class Section(Protocol):
         it to integers) and the declarations of its buffers."""
         ...
 
+    def c_includes(self, prefix: str) -> list[str]:
+        """Preprocessor lines the section needs among the file's includes (MISRA C:2012 rule 20.1)."""
+        ...
+
     def ram_bytes(self) -> int:
         """RAM of the section's own buffers."""
         ...

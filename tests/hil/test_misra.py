@@ -15,16 +15,16 @@ from tests.hil.conftest import SHIPPED_TD3
 
 
 @pytest.fixture(scope="module")
-@marks_its_users("slow")  # three exports, cppcheck's MISRA addon over each deployed node
+@marks_its_users("slow")  # four exports, cppcheck's MISRA addon over each deployed node
 def exports(exported: Exported) -> dict[str, Path]:
     out = {}
-    for precision in ("float32", "int8", "q15"):
+    for precision in ("float32", "int8", "q15", "int8-full"):
         quantize = [] if precision == "float32" else ["--quantize", precision]
         out[precision] = exported(SHIPPED_TD3, "--episodes", "0", *quantize)
     return out
 
 
-@pytest.mark.parametrize("precision", ["float32", "int8", "q15"])
+@pytest.mark.parametrize("precision", ["float32", "int8", "q15", "int8-full"])
 def test_every_finding_on_the_deployed_node_is_explained(exports: dict[str, Path], precision: str) -> None:
     result = misra.check(exports[precision])
     assert result.unexplained == []
