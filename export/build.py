@@ -7,7 +7,6 @@ import ctypes
 import os
 import re
 import subprocess
-import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -47,7 +46,6 @@ def make(
             target,
             f"POLICY_DIR={policy_dir}",
             f"BUILD_DIR={out_dir}",
-            f"PYTHON={sys.executable}",  # generates the node's CAN code with this installation
         ]
         if opt is not None:
             cmd.append(f"OPT={opt}")

@@ -16,11 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from embedrl.export.contract.literals import c_float
 from embedrl.export.errors import ExportError
 from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
-from embedrl.export.ops.base import c_float
 from embedrl.export.ops.deterministic import helper_source
 from embedrl.export.ops.linear import per_row
 from embedrl.train.interface import Interface

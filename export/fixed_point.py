@@ -24,10 +24,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from embedrl.export import interpret
+from embedrl.export.contract.literals import c_float
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import Graph, Node
 from embedrl.export.ops import EMITTERS
-from embedrl.export.ops.base import EmitContext, c_float
+from embedrl.export.ops.base import EmitContext
 from embedrl.export.ops.linear import Q15_MAX as Q_MAX
 from embedrl.export.ops.linear import Q15Layer
 

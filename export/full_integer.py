@@ -29,11 +29,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from embedrl.export import interpret
+from embedrl.export.contract.literals import c_float
 from embedrl.export.errors import UnrepresentableRangeError, UnsupportedOpError
 from embedrl.export.fixed_point import chain
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
-from embedrl.export.ops.base import EmitContext, c_float
+from embedrl.export.ops.base import EmitContext
 from embedrl.export.ops.linear import (
     INT8_MAX,
     INT8_MIN,

@@ -40,6 +40,7 @@ from embedrl.export import (
 )
 from embedrl.export.bounds import action_bounds, append_clamp, within
 from embedrl.export.codegen import check_name, generate
+from embedrl.export.contract import sources as can_sources
 from embedrl.export.errors import ExportError, InvalidModelError, UnsupportedModelError, VerificationError
 from embedrl.export.full_integer import Given, IntegerSection
 from embedrl.export.interpret import Section
@@ -386,12 +387,18 @@ def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[cha
     for c_file in sorted((staging / "c").iterdir()):
         links.append(chain.link(staging, f"C source {c_file.name}", c_file, ["ONNX"]))
     sources = [k.name for k in links if k.name.startswith("C source")]
+    for folder in can_sources.FOLDERS:
+        for can_file in sorted((staging / folder).iterdir()) if (staging / folder).is_dir() else []:
+            name = f"CAN code {folder}/{can_file.name}"
+            links.append(chain.link(staging, name, can_file, ["interface"]))
+    classic = [k.name for k in links if k.name.startswith(f"CAN code {can_sources.folder(False)}/")]
     for test_file in sorted((staging / "test").iterdir()):
         links.append(chain.link(staging, f"test data {test_file.name}", test_file, ["ONNX"]))
     for binary in sorted((staging / "bin").rglob("*")):
         if binary.is_file():
             name = f"binary {binary.relative_to(staging / 'bin')}"
-            links.append(chain.link(staging, name, binary, sources))
+            node = binary.name == "node.elf"  # the firmware node: the policy and its classic CAN code
+            links.append(chain.link(staging, name, binary, sources + classic if node else sources))
     binaries = [k.name for k in links if k.name.startswith(("binary", "test data"))]
     links.append(chain.link(staging, "verification report", staging / "export_report.json", binaries))
     return links
@@ -563,7 +570,23 @@ def _generate(
     for filename, text in sources.items():
         (c_dir / filename).write_text(text)
         loaded.files[f"c/{filename}"] = c_dir / filename
+    if interface is not None:
+        _write_can_code(loaded, interface, staging, opts.name, log)
     return Generated(c_dir, samples, from_rollouts, section)
+
+
+def _write_can_code(
+    loaded: Loaded, interface: Interface, staging: Path, name: str, log: Callable[[str], None]
+) -> None:
+    """The node's CAN code beside ``c/`` (``can/``, ``can-fd/``: the DBC and its C), so ``make -C runtime_c``
+    builds the node with the C toolchain alone."""
+    files, left_out = can_sources.export_files(interface, name)
+    for path, text in files.items():
+        (staging / path).parent.mkdir(exist_ok=True)
+        (staging / path).write_text(text)
+        loaded.files[path] = staging / path
+    for line in left_out:
+        log(f"      {line}")
 
 
 def _build(

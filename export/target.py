@@ -20,8 +20,8 @@ import numpy as np
 
 from embedrl.common import read_json
 from embedrl.export import build, cycles, stack
+from embedrl.export.contract.literals import c_float
 from embedrl.export.errors import BuildError, ExportError
-from embedrl.export.ops.base import c_float
 
 TEST_VECTOR_COUNT = 256
 """Observations embedded in the test image (half uniform, half recorded from rollouts)."""

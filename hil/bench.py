@@ -33,13 +33,13 @@ ROUNDS = 3
 
 def floor(session: dict[str, Any], responder: str, exchanges: int) -> dict[str, Any]:
     """Exchanges per second between this process and the trivial responder, on ``session``'s interface."""
-    from embedrl.hil import candb
+    from embedrl.export.contract.interface_file import load_interface
     from embedrl.hil.codec import Codec
     from embedrl.hil.link import Link, Stats
     from embedrl.hil.session import SessionConfig, open_bus
 
     cfg = SessionConfig(**session)
-    interface = candb.load_interface(Path(cfg.interface))
+    interface = load_interface(Path(cfg.interface))
     codec = Codec(interface)
     ids = [frame_id for _, frame_id, _ in codec.plan.observation]
     if ids != list(range(ids[0], ids[0] + len(ids))):
@@ -123,29 +123,29 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
 
     from embedrl.export import build
     from embedrl.export.errors import BuildError
-    from embedrl.hil import candb, sandbox
+    from embedrl.hil import sandbox
     from embedrl.hil.errors import HilError
     from embedrl.hil.run import REPO, SESSION_TIMEOUT_S, check, check_export, make_node, session_config
-    from embedrl.train.interface import INTERFACE_FILE
     from embedrl.train.scenarios import TWO_ROBOTS
 
-    options = check_export(options, check(options))
-    if candb.load_interface(options.export_dir / INTERFACE_FILE).env_id == TWO_ROBOTS.env_id:
+    options, interface = check_export(options, check(options))
+    if interface.env_id == TWO_ROBOTS.env_id:
         raise HilError(
             f"{options.export_dir}: hil bench measures one node on one robot; this export runs one node per "
             "robot of the two-robot scenario (export a one-robot policy)"
         )
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-bench-"))
     try:
-        make_node(options, work, {})
+        make_node(options, interface, work, {})
         try:
             build.make("responder", options.export_dir / "c", work / "build")
         except BuildError as exc:
             raise HilError(str(exc)) from None
         with nullcontext(guest) if guest else sandbox.opened(options.sandbox_mode, work / "sandbox") as where:
             scratch = where.scratch()
-            cfg = session_config(options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
-                                 results=str(scratch / "results.json"), slowdown=where.slowdown)  # fmt: skip
+            cfg = session_config(options, interface, node_binary=str(work / "build" / "policy_node"),
+                                 iface=where.iface, results=str(scratch / "results.json"),
+                                 slowdown=where.slowdown)  # fmt: skip
             config = {"session": asdict(cfg), "responder": str(work / "build" / "can_responder"),
                       "exchanges": exchanges, "out": str(scratch / "bench.json")}  # fmt: skip
             (scratch / "config.json").write_text(json.dumps(config))

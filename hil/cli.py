@@ -7,8 +7,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from embedrl.export.contract.layout import WATCHDOG_MS
 from embedrl.export.target import TARGETS
-from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS
 from embedrl.hil.options import DEFAULT_SANDBOX, DEFAULT_TARGET, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS, NODE_KINDS
@@ -110,7 +110,7 @@ def register(sub: Any) -> None:
         "--timeout-ms",
         type=int,
         help=f"the node's watchdog in ms, {MIN_TIMEOUT_MS}..{MAX_TIMEOUT_MS}; with --realtime it must exceed "
-        f"the policy's sample time (default: {candb.WATCHDOG_MS}, times the sandbox's slowdown: 10 under "
+        f"the policy's sample time (default: {WATCHDOG_MS}, times the sandbox's slowdown: 10 under "
         "QEMU emulation)",
     )
     r.add_argument(

@@ -1,7 +1,7 @@
 """The simulator's side of the CAN contract: encode observations, decode actions and status, with E2E.
 
-The database and the frame layout come from the policy's interface (:mod:`hil.candb`), the same
-generator the node's C is built from.
+The database and the frame layout come from the policy's interface through the contract
+(:mod:`embedrl.export.contract`), the same generator the node's C is built from.
 """
 
 from __future__ import annotations
@@ -14,10 +14,19 @@ import cantools
 import numpy as np
 from cantools.database.can.c_source import camel_to_snake_case
 
-from embedrl.hil import candb, e2e
+from embedrl.export.contract.dbc import database
+from embedrl.export.contract.e2e import COUNTER_MODULO
+from embedrl.export.contract.layout import (
+    BUS_STATES,
+    DIAG_COUNTERS,
+    FRAME_BYTES,
+    STATUS_STATES,
+    STEP_MODULO,
+    layout,
+    status_id,
+)
+from embedrl.hil import e2e
 from embedrl.train.interface import Interface
-
-STEP_MODULO = candb.STEP_MODULO
 
 
 @dataclass(frozen=True)
@@ -60,14 +69,14 @@ class Codec:
 
     def __init__(self, interface: Interface, node_id: int = 0, fd: bool = False) -> None:
         self.interface = interface
-        self.db = candb.database(interface, node_id, fd)
-        self.plan = candb.layout(interface, node_id, fd)
+        self.db = database(interface, node_id, fd)
+        self.plan = layout(interface, node_id, fd)
         self.counters: dict[str, int] = {}
         self.receivers: dict[int, e2e.Receiver] = {}
         self.crc_errors = 0
         self.sequence_errors = 0
         self.action_parts = {frame_id: slots for _, frame_id, slots in self.plan.action}
-        self.status_id = candb.status_id(node_id)
+        self.status_id = status_id(node_id)
         self.diag_id = self.status_id + 1
         self.receive_ids = (*self.action_parts, self.status_id, self.diag_id)
         """Every ID the simulator listens to (its kernel filter)."""
@@ -82,17 +91,17 @@ class Codec:
     def skip_counters(self, frames: int) -> None:
         """Advance every observation message's counter by ``frames``, as if that many were lost."""
         for name, _, _ in self.plan.observation:
-            self.counters[name] = (self.counters.get(name, 0) + frames) % e2e.COUNTER_MODULO
+            self.counters[name] = (self.counters.get(name, 0) + frames) % COUNTER_MODULO
 
     def rewind(self) -> None:
         """Take back the counters of the observation just encoded (its frames will not be sent)."""
         for name, _, _ in self.plan.observation:
-            self.counters[name] = (self.counters.get(name, 0) - 1) % e2e.COUNTER_MODULO
+            self.counters[name] = (self.counters.get(name, 0) - 1) % COUNTER_MODULO
 
     def next_counter(self, name: str) -> int:
         """The alive counter for the next frame of message ``name``."""
         value = self.counters.get(name, 0)
-        self.counters[name] = (value + 1) % e2e.COUNTER_MODULO
+        self.counters[name] = (value + 1) % COUNTER_MODULO
         return value
 
     def encode_observation(self, obs: np.ndarray, step: int) -> tuple[list[can.Message], np.ndarray]:
@@ -146,7 +155,7 @@ class Codec:
         """A complete E2E-valid action (all its frames for one step), a NodeStatus or a NodeDiag, else
         None (other IDs, bad CRC, repeated or old counter, an action still missing frames)."""
         known = msg.arbitration_id in self.receive_ids
-        length = self.plan.frame_bytes if msg.arbitration_id in self.action_parts else candb.FRAME_BYTES
+        length = self.plan.frame_bytes if msg.arbitration_id in self.action_parts else FRAME_BYTES
         if msg.is_extended_id or not known or msg.dlc != length:
             return None
         fields = self._checked(msg)
@@ -154,7 +163,7 @@ class Codec:
             return None
         if msg.arbitration_id == self.status_id:
             return Status(
-                candb.STATUS_STATES.get(int(fields["State"]), "UNKNOWN"),
+                STATUS_STATES.get(int(fields["State"]), "UNKNOWN"),
                 int(fields["FramesOk"]),
                 int(fields["CrcErrors"]),
                 int(fields["SequenceErrors"]),
@@ -162,9 +171,9 @@ class Codec:
                 int(fields["InferenceUs"]),
             )
         if msg.arbitration_id == self.diag_id:
-            counters = {name: int(fields[name]) for name, _, _ in candb.DIAG_COUNTERS}
+            counters = {name: int(fields[name]) for name, _, _ in DIAG_COUNTERS}
             return Diag(
-                candb.BUS_STATES.get(int(fields["BusState"]), "UNKNOWN"),
+                BUS_STATES.get(int(fields["BusState"]), "UNKNOWN"),
                 **{camel_to_snake_case(k): v for k, v in counters.items()},
             )
         step = int(fields["Step"])

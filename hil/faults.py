@@ -28,7 +28,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 
-from embedrl.hil import candb, e2e
+from embedrl.export.contract.layout import layout
+from embedrl.hil import e2e
 
 if TYPE_CHECKING:  # the command lists the injectors without loading the session's machinery
     import can
@@ -244,7 +245,7 @@ class OutOfRange(Injector):
     detects = "range_errors"
 
     def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
-        slot = candb.layout(ctx.interface).observation_slots[0]
+        slot = layout(ctx.interface).observation_slots[0]
         wrong = np.array(obs, dtype=np.float32)
         wrong[slot.index] = slot.field.high + 64 * slot.scale
         ctx.codec.rewind()
@@ -487,7 +488,7 @@ def parse_schedule(entries: list[str]) -> list[Scheduled]:
 
 def is_safe(action: np.ndarray, interface: Interface) -> bool:
     """Whether ``action`` is the interface's safe action, within the CAN quantisation."""
-    step = max(slot.scale for slot in candb.layout(interface).action_slots)
+    step = max(slot.scale for slot in layout(interface).action_slots)
     return bool(np.max(np.abs(action - np.asarray(interface.safe_action))) <= step)
 
 

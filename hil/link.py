@@ -12,7 +12,8 @@ from dataclasses import dataclass, field
 
 import can
 
-from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
+from embedrl.export.contract.layout import STEP_MODULO
+from embedrl.hil.codec import Action, Codec, Diag, Status
 
 ALIVE_POLL_S = 0.05
 """While waiting for an action, how often to ask whether the node is still running."""

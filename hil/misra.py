@@ -25,8 +25,10 @@ from pathlib import Path
 from typing import Any
 
 from embedrl.export.build import RUNTIME_C
-from embedrl.hil import candb
+from embedrl.export.contract.interface_file import load_interface
+from embedrl.export.contract.sources import folder, write
 from embedrl.hil.errors import HilError
+from embedrl.train.interface import INTERFACE_FILE
 
 DEVIATIONS = RUNTIME_C / "misra_deviations.toml"
 FIRMWARE_SOURCES = (
@@ -148,8 +150,10 @@ def run_cppcheck(export_dir: Path) -> list[Finding]:
     if shutil.which("cppcheck") is None:
         raise HilError("cppcheck is not installed: run `make deps` (Debian's cppcheck)")
     with tempfile.TemporaryDirectory(prefix="embedrl-misra-") as tmp:
-        can = Path(tmp) / "can"
-        candb.write(candb.load_interface(export_dir / "interface.json"), can)
+        can = export_dir / folder(fd=False)  # the classic CAN code the firmware node is built from
+        if not can.is_dir():  # exported before exports carried it: the same generator's
+            can = Path(tmp) / "can"
+            write(load_interface(export_dir / INTERFACE_FILE), can)
         sources = [
             *(RUNTIME_C / s for s in FIRMWARE_SOURCES),
             *sorted(can.glob("*.c")),

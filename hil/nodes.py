@@ -4,7 +4,7 @@
 (CRC, alive counter with re-synchronisation), each signal's range, an observation only from frames of
 one step, steps that do not go forward never answered, the watchdog with the interface's safe action,
 recovery after K valid observations, NodeStatus and NodeDiag every
-:data:`~embedrl.hil.candb.STATUS_PERIOD_MS`, a bus filter for its own IDs. Its policy is the exported
+:data:`~embedrl.hil.STATUS_PERIOD_MS`, a bus filter for its own IDs. Its policy is the exported
 export's policy at its precision (the ONNX under onnxruntime, or the model of the int8 or q15 arithmetic
 the C equals bit for bit). It runs in a thread on any python-can bus, so the session logic is tested on
 python-can's virtual bus in milliseconds; the C node over SocketCAN gives the verdict.
@@ -23,7 +23,18 @@ import can
 import numpy as np
 from cantools.database.can.c_source import camel_to_snake_case
 
-from embedrl.hil import candb, e2e
+from embedrl.export.contract.dbc import database
+from embedrl.export.contract.e2e import COUNTER_MODULO
+from embedrl.export.contract.layout import (
+    DIAG_COUNTERS,
+    FRAME_BYTES,
+    STATUS_PERIOD_MS,
+    STEP_MODULO,
+    episode_start_id,
+    layout,
+    scale_of,
+)
+from embedrl.hil import e2e
 from embedrl.hil.codec import decode_fields
 from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import Interface
@@ -38,7 +49,7 @@ def action_ok(action: np.ndarray, interface: Interface) -> bool:
     values = np.asarray(action, dtype=np.float32).reshape(-1)
     if values.shape != (len(interface.action),) or not np.all(np.isfinite(values)):
         return False
-    bounds = [(f.low - candb.scale_of(f) / 2, f.high + candb.scale_of(f) / 2) for f in interface.action]
+    bounds = [(f.low - scale_of(f) / 2, f.high + scale_of(f) / 2) for f in interface.action]
     return all(np.float32(lo) <= v <= np.float32(hi) for (lo, hi), v in zip(bounds, values, strict=True))
 
 
@@ -115,14 +126,14 @@ class PythonNode(Node):
     ) -> None:
         self.open_bus = open_bus
         self.interface = interface
-        self.db = candb.database(interface, node_id, fd)
-        self.plan = candb.layout(interface, node_id, fd)
+        self.db = database(interface, node_id, fd)
+        self.plan = layout(interface, node_id, fd)
         self.policy = policy
         self.timeout_s = timeout_ms / 1000
         self.recover = recover
         self.safe = np.asarray(interface.safe_action, dtype=np.float32)
         self.obs_ids = [frame_id for _, frame_id, _ in self.plan.observation]
-        self.episode_start_id = candb.episode_start_id(node_id) if interface.state_size else None
+        self.episode_start_id = episode_start_id(node_id) if interface.state_size else None
         self._start()
 
     def _start(self) -> None:
@@ -195,7 +206,7 @@ class PythonNode(Node):
     def _send(self, name: str, fields: dict[str, float]) -> None:
         message = self.db.get_message_by_name(name)
         counter = self.tx_counters.get(message.frame_id, 0)
-        self.tx_counters[message.frame_id] = (counter + 1) % e2e.COUNTER_MODULO
+        self.tx_counters[message.frame_id] = (counter + 1) % COUNTER_MODULO
         data = message.encode({"Crc": 0, "Counter": counter, **fields}, scaling=True, strict=False)
         self.bus.send(
             can.Message(
@@ -229,7 +240,7 @@ class PythonNode(Node):
             },
         )
         diag: dict[str, float] = {"BusState": 0}  # python-can's virtual bus has no controller
-        for name, bits, _ in candb.DIAG_COUNTERS:
+        for name, bits, _ in DIAG_COUNTERS:
             diag[name] = min(self.counts.get(camel_to_snake_case(name), 0), 2**bits - 1)
         self._send("NodeDiag", diag)
 
@@ -251,7 +262,7 @@ class PythonNode(Node):
         self._check_watchdog(now)  # after the refresh: entering SAFE sends the safe action itself
         if now >= self.next_status:
             self._send_status()
-            self.next_status = now + candb.STATUS_PERIOD_MS / 1000
+            self.next_status = now + STATUS_PERIOD_MS / 1000
         return max(0.0, min(self.next_status - now, self.timeout_s))
 
     def _on_frame(self, msg: can.Message, now: float) -> None:
@@ -298,7 +309,7 @@ class PythonNode(Node):
     def _on_episode_start(self, msg: can.Message) -> None:
         """An E2E-valid EpisodeStart resets the policy's state (as ``node_on_frame``)."""
         data = bytes(msg.data)
-        if msg.dlc != candb.FRAME_BYTES or not e2e.crc_ok(msg.arbitration_id, data):
+        if msg.dlc != FRAME_BYTES or not e2e.crc_ok(msg.arbitration_id, data):
             self.counts["crc_errors"] += 1
             return
         fields = decode_fields(self.db.get_message_by_frame_id(msg.arbitration_id), data)
@@ -315,8 +326,8 @@ class PythonNode(Node):
 
     def _complete(self, step: int, now: float) -> None:
         self.pending_step, self.pending_parts = None, set()
-        ahead = (step - self.last_step) % candb.STEP_MODULO
-        if self.step_reference and not 0 < ahead < candb.STEP_MODULO // 2:
+        ahead = (step - self.last_step) % STEP_MODULO
+        if self.step_reference and not 0 < ahead < STEP_MODULO // 2:
             self.counts["stale_steps"] += 1  # a replayed or repeated step: never answered twice
             self.consecutive_valid = 0
             return

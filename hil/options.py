@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from embedrl.hil.candb import WATCHDOG_MS
+from embedrl.export.contract.layout import WATCHDOG_MS
 
 DEFAULT_TIMEOUT_MS = WATCHDOG_MS
 """The node's watchdog on the host (stretched by a slow guest's slowdown)."""

@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from embedrl.hil import candb
+from embedrl.export.contract.layout import rounding_errors
 from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
-from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
+from embedrl.train.interface import NO_ENV, Interface
 from embedrl.train.scenarios import TWO_ROBOTS
 
 if TYPE_CHECKING:
@@ -37,7 +37,7 @@ def robot_outcome(outcome: str) -> str:
     return "timeout" if outcome == "stopped" else outcome
 
 
-def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
+def hil_report(options: RunOptions, interface: Interface, results: dict[str, Any]) -> dict[str, Any]:
     """The report of a session's ``results``, the simulation on the same seeds, the plots asked for."""
     from embedrl.export.reference import precision_of
 
@@ -49,7 +49,6 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
         for e in results["episodes"]
     ]  # fmt: skip
     report = EvalReport.from_results(episodes, options.seed, f"HIL {options.export_dir}")
-    interface = candb.load_interface(options.export_dir / INTERFACE_FILE)
     sim, pairs = _simulation(options, interface, results, episodes)
     sim_results = sim.results if sim else [None] * len(episodes)
     differing = [h.seed for h, s in zip(episodes, sim_results, strict=True) if s and h.outcome != s.outcome]
@@ -65,7 +64,7 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
     extra["open_loop"] = sim is None
     extra["precision"] = precision_of(options.export_dir)  # what the node's actions were compared with
     extra["two_robots"] = pairs
-    extra["can_rounding_error"] = candb.rounding_errors(interface)  # the signals' resolution, stated
+    extra["can_rounding_error"] = rounding_errors(interface)  # the signals' resolution, stated
     extra["node"] = options.node
     extra["sample_time_s"] = interface.sample_time_s  # the round trip's yardstick in the summary
     firmware = results.get("firmware")
@@ -85,7 +84,7 @@ def hil_report(options: RunOptions, results: dict[str, Any]) -> dict[str, Any]:
         row["node"] = e.get("node", 0)
     data["per_node"] = _per_node(data["per_episode"], options.nodes, differing)
     if options.plot:
-        _plot(options, report, episodes, results, sim)
+        _plot(options, interface, report, episodes, results, sim)
     return data
 
 
@@ -202,8 +201,8 @@ def _per_node(rows: list[dict[str, Any]], nodes: int, differing: list[int]) -> d
 
 
 def _plot(
-    options: RunOptions, report: EvalReport, episodes: list[EpisodeResult], results: dict[str, Any],
-    sim: EvalReport | None,
+    options: RunOptions, interface: Interface, report: EvalReport, episodes: list[EpisodeResult],
+    results: dict[str, Any], sim: EvalReport | None,
 ) -> None:  # fmt: skip
     from embedrl.hil.plots import plot_action_differences, plot_latency
     from embedrl.train.plots import plot_trajectories
@@ -212,7 +211,6 @@ def _plot(
     if any(e.trajectory for e in episodes):  # envs with a map (the warehouse scenarios)
         nodes = [e.get("node", 0) for e in results["episodes"]]
         plot_trajectories(report, options.plot / "hil_trajectories.png", overlay=sim, nodes=nodes)
-    interface = candb.load_interface(options.export_dir / INTERFACE_FILE)
     plot_latency(
         results["latencies_us"], options.plot / "hil_latency.png", results["sandbox"], options.realtime,
         interface.sample_time_s, results["config"]["node_timeout_ms"],  # the watchdog this run's node had
@@ -220,5 +218,5 @@ def _plot(
     plot_action_differences(
         results["action_diffs"],
         options.plot / "hil_action_diff.png",
-        candb.rounding_errors(interface)["action"],
+        rounding_errors(interface)["action"],
     )

@@ -19,7 +19,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from embedrl.common import read_json, sha256
-from embedrl.hil import candb
+from embedrl.export.contract import sources as can_sources
+from embedrl.export.contract.errors import ContractError
+from embedrl.export.contract.interface_file import load_interface
+from embedrl.export.contract.layout import MAX_NODES
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
 from embedrl.hil.options import (
@@ -62,8 +65,8 @@ def check(options: RunOptions) -> list[Scheduled]:
         schedule = parse_schedule(list(options.inject))
     except ValueError as exc:
         raise HilError(str(exc)) from None
-    if not 1 <= options.nodes <= candb.MAX_NODES:
-        raise HilError(f"--nodes must be within 1..{candb.MAX_NODES}, got {options.nodes}")
+    if not 1 <= options.nodes <= MAX_NODES:
+        raise HilError(f"--nodes must be within 1..{MAX_NODES}, got {options.nodes}")
     if options.nodes > 1 and (schedule or options.realtime):
         raise HilError("--nodes > 1 runs in lock-step without fault injection: drop --inject and --realtime")
     if options.kill_node is not None and options.kill_node[1] >= options.episodes:
@@ -117,8 +120,8 @@ def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
     schedule = check(options)
     if schedule and not options.allow_faults:
         print("note: injected faults change their episodes; without --allow-faults the run fails")
-    options = check_export(options, schedule)
-    data = hil_report(options, _in_work_folder(options, guest))
+    options, interface = check_export(options, schedule)
+    data = hil_report(options, interface, _in_work_folder(options, interface, guest))
     fired = {(r["kind"], r["episode"], r["step"]) for r in data["injections"] or []}
     data["injections_not_fired"] = [
         f"{s.injector.name}@{s.episode}:{s.step}"
@@ -127,7 +130,7 @@ def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
     ]
     data["export_files"] = {
         name: sha256(options.export_dir / name)
-        for name in CHAINED_FILES
+        for name in chained_files(options)
         if (options.export_dir / name).is_file()
     }  # which bytes the verdict is about (embedrl.export.chain checks them)
     data["verdict"] = verdict(data, options.allow_faults)
@@ -135,6 +138,16 @@ def run(options: RunOptions, guest: Guest | None = None) -> dict[str, Any]:
 
 
 CHAINED_FILES = ("policy.onnx", "interface.json", "c/policy.c")
+"""The export's files every run's verdict is about; a node built from C adds its CAN code."""
+
+
+def chained_files(options: RunOptions) -> tuple[str, ...]:
+    """The export's files this run's verdict is about: :data:`CHAINED_FILES` and the CAN code the node was
+    built from (``can/`` or ``can-fd/``)."""
+    if not NODE_KINDS[options.node].builds_c:
+        return CHAINED_FILES
+    folder = can_sources.folder(options.fd)
+    return (*CHAINED_FILES, *(f"{folder}/{name}" for name in can_sources.C_FILES))
 
 
 HIL_FOLDER = "hil"
@@ -187,7 +200,10 @@ def link_report(export_dir: Path, report: Path, data: dict[str, Any], made_by: s
 
     facts = {"passed": data["verdict"]["passed"], "node": data["node"], "target": data["target"],
              "episodes": data["episodes"], "node_binary_sha256": data.get("node_binary_sha256")}  # fmt: skip
-    made_from = ["interface", "C source policy.c", "C source policy.h"]
+    linked = {k.name for k in chain.read(export_dir)}
+    files = data.get("export_files")
+    can_code = [f"CAN code {path}" for path in files] if isinstance(files, dict) else []  # the built node's
+    made_from = ["interface", "C source policy.c", "C source policy.h", *(n for n in can_code if n in linked)]
     found = chain.link(export_dir, "HIL report", report, made_from, **facts)
     new = replace(found, name=f"HIL report {found.path}")
     log = chain.recorded_log(data)
@@ -233,18 +249,21 @@ def _export_interface(export_dir: Path) -> Interface:
             f"{export_dir}: no {INTERFACE_FILE} (the policy's interface, from which the CAN database is "
             "generated): export it again with `embedrl export`"
         )
-    return candb.load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
+    try:
+        return load_interface(export_dir / INTERFACE_FILE)  # untrusted: validated before use
+    except ContractError as exc:
+        raise HilError(str(exc)) from None
 
 
-def check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
+def check_export(options: RunOptions, schedule: list[Scheduled]) -> tuple[RunOptions, Interface]:
     """The options against the export's interface; the options to run (the export folder resolved, two
-    nodes for the two-robot scenario)."""
+    nodes for the two-robot scenario) and the interface, read once for the whole run."""
     options = replace(options, export_dir=options.export_dir.resolve())
     interface = _export_interface(options.export_dir)
     if NODE_KINDS[options.node].builds_c and not options.trust_c:
         from embedrl.export.regenerate import mismatch
 
-        problem = mismatch(options.export_dir)
+        problem = mismatch(options.export_dir, interface)
         if problem is not None:
             raise HilError(
                 f"{problem}: the {options.node} node would build and run it, so only the generator's C runs "
@@ -280,15 +299,15 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> RunOptions:
             f"--timeout-ms {timeout_ms} would trip the node's watchdog between real-time steps: "
             f"it must exceed the policy's sample time ({period_ms:.0f} ms)"
         )
-    return options
+    return options, interface
 
 
-def _in_work_folder(options: RunOptions, guest: Guest | None) -> dict[str, Any]:
+def _in_work_folder(options: RunOptions, interface: Interface, guest: Guest | None) -> dict[str, Any]:
     """The session's results, run from a temporary work folder: removed after a successful run, kept and
     named after a failure."""
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-"))
     try:
-        results = _build_and_run(options, guest, work)
+        results = _build_and_run(options, interface, guest, work)
     except HilError as exc:
         raise HilError(f"{exc} [node build and guest console kept in {work}]") from None
     except BaseException:  # interrupted (SIGINT, SIGTERM): nothing to diagnose, nothing left behind
@@ -302,7 +321,9 @@ def _in_work_folder(options: RunOptions, guest: Guest | None) -> dict[str, Any]:
     return results
 
 
-def session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) -> SessionConfig:
+def session_config(
+    options: RunOptions, interface: Interface, slowdown: float = 1.0, **where: Any
+) -> SessionConfig:
     """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the default
     watchdog and the wait for an answer."""
     from embedrl.export.reference import OBSERVATIONS_FILE
@@ -310,7 +331,7 @@ def session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) -> 
 
     export_dir = options.export_dir
     observations = export_dir / "test" / OBSERVATIONS_FILE
-    env_id = candb.load_interface(export_dir / INTERFACE_FILE).env_id
+    env_id = interface.env_id
     if env_id == TWO_ROBOTS.env_id:
         nodes = "of two robots, one node each, "
     elif options.nodes > 1:
@@ -345,19 +366,34 @@ def session_config(options: RunOptions, slowdown: float = 1.0, **where: Any) -> 
     )
 
 
-def _build_and_run(options: RunOptions, guest: Guest | None, work: Path) -> dict[str, Any]:
+def _build_and_run(
+    options: RunOptions, interface: Interface, guest: Guest | None, work: Path
+) -> dict[str, Any]:
     if options.node == "python":
-        return _python_session(options, work)
+        return _python_session(options, interface, work)
     if options.node == "c":
-        make_node(options, work, {"FD": "1"} if options.fd else {})
-    return _guest_session(options, guest, work)
+        make_node(options, interface, work, {"FD": "1"} if options.fd else {})
+    return _guest_session(options, interface, guest, work)
 
 
-def make_node(options: RunOptions, work: Path, extra: dict[str, str]) -> Path:
-    """``make -C runtime_c node``: the host node, or with ``TARGET`` the firmware image; its path."""
+def make_node(options: RunOptions, interface: Interface, work: Path, extra: dict[str, str]) -> Path:
+    """``make -C runtime_c node``: the host node, or with ``TARGET`` the firmware image; its path. An export
+    made before exports carried their CAN code gets it generated into ``work`` (``CAN_DIR``)."""
     from embedrl.export import build
     from embedrl.export.errors import BuildError
 
+    fd = extra.get("FD") == "1"
+    folder = can_sources.folder(fd)
+    if not (options.export_dir / folder).is_dir():
+        print(
+            f"note: {options.export_dir} has no {folder}/ (made before exports carried their CAN code): "
+            "generating it into the work folder; export the policy again to have it in the bundle"
+        )
+        try:
+            can_sources.write(interface, work / folder, fd=fd)
+        except ContractError as exc:
+            raise HilError(str(exc)) from None
+        extra = {**extra, "CAN_DIR": str(work / folder)}
     target = f" TARGET={extra['TARGET']}" if "TARGET" in extra else ""
     print(f"building the node: make -C runtime_c{target} node POLICY_DIR={options.export_dir / 'c'}")
     try:
@@ -369,22 +405,24 @@ def make_node(options: RunOptions, work: Path, extra: dict[str, str]) -> Path:
     return work / "build" / "policy_node"
 
 
-def _python_session(options: RunOptions, work: Path) -> dict[str, Any]:
+def _python_session(options: RunOptions, interface: Interface, work: Path) -> dict[str, Any]:
     """The reference node on python-can's virtual bus, in this process: no kernel, no build."""
     from embedrl.hil.session import run as run_session
 
     log = work / f"frames{options.log.suffix}" if options.log else None
     cfg = session_config(
-        options, bus="virtual", iface=f"embedrl-{os.getpid()}-{work.name}", log=str(log) if log else None,
-        results=str(work / "results.json"), progress=str(work / "progress"),
+        options, interface, bus="virtual", iface=f"embedrl-{os.getpid()}-{work.name}",
+        log=str(log) if log else None, results=str(work / "results.json"), progress=str(work / "progress"),
     )  # fmt: skip
     with episode_bar(work / "progress", options.episodes):
-        results = run_session(cfg)
+        results = run_session(cfg, interface)
     _move_log(log, options.log)
     return {**results, "sandbox": "none", "sandbox_detail": "python-can virtual bus (Python reference node)"}
 
 
-def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict[str, Any]:
+def _guest_session(
+    options: RunOptions, interface: Interface, guest: Guest | None, work: Path
+) -> dict[str, Any]:
     """The C node built in ``work`` and the session, both in ``guest`` (or the selected sandbox)."""
     from embedrl.hil import sandbox
 
@@ -397,13 +435,13 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
         scratch = where.scratch()  # the session's results and log: writable from inside the guest
         log = scratch / f"frames{options.log.suffix}" if options.log else None
         cfg = session_config(
-            options, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
+            options, interface, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
             progress=str(scratch / "progress"),
         )  # fmt: skip
         emulator: AbstractContextManager[None] = nullcontext()
         if options.node == "firmware":  # its watchdog is fixed in the image: built for this sandbox
-            cfg = _with_firmware(options, cfg, work)
+            cfg = _with_firmware(options, interface, cfg, work)
             if where.link is not None:  # QEMU on this machine, its UART0 on the guest's serial line
                 cfg = replace(cfg, firmware_link=where.link.device, firmware_control=str(scratch / "qemu"))
                 emulator = _qemu_on_host(cfg, where.link.host)
@@ -427,13 +465,15 @@ def _guest_session(options: RunOptions, guest: Guest | None, work: Path) -> dict
     return results
 
 
-def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> SessionConfig:
+def _with_firmware(
+    options: RunOptions, interface: Interface, cfg: SessionConfig, work: Path
+) -> SessionConfig:
     """The firmware image built with the session's watchdog and recovery count, and its board."""
     from embedrl.export.target import TARGETS
 
     extra = {"TARGET": options.firmware_target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
-    elf = make_node(options, work, extra)
+    elf = make_node(options, interface, work, extra)
     return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.firmware_target].qemu_machine)
 
 

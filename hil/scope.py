@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from embedrl.common import atomic_write
-from embedrl.hil import candb
+from embedrl.export.contract.layout import rounding_errors
 from embedrl.hil.codec import Codec
 
 EXACT = 1e-12
@@ -84,7 +84,7 @@ def plot(episode: dict[str, Any], path: Path, title: str) -> None:
     error = np.abs(episode["decoded"].astype(np.float64) - episode["observations"])
     for i, f in enumerate(interface.observation):
         can.stairs(np.maximum(error[:, i], EXACT), edges, baseline=None, label=f.name, lw=0.8)
-    worst = candb.rounding_errors(interface)["observation"]
+    worst = rounding_errors(interface)["observation"]
     can.axhline(worst, color="k", ls="--", lw=0.8, label=f"largest rounding (half a step) {worst:.1e}")
     can.set(yscale="log", ylabel=f"|field - CAN signal|\nas the node decodes it\n({EXACT:g}: exact)")
     can.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize="x-small", ncols=2)

@@ -31,9 +31,10 @@ import can
 import gymnasium as gym
 import numpy as np
 
+from embedrl.export.contract.interface_file import load_interface
+from embedrl.export.contract.layout import STEP_MODULO, WATCHDOG_MS, episode_start_id, layout
 from embedrl.export.reference import OnnxPolicy, reference_policy
-from embedrl.hil import candb
-from embedrl.hil.codec import STEP_MODULO, Action, Codec, Diag, Status
+from embedrl.hil.codec import Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.firmware import FirmwareNode, HostQemu, instruction_summary
 from embedrl.hil.link import Link, Stats
@@ -80,7 +81,7 @@ class SessionConfig:
     iface: str = "vcan0"
     episodes: int = 10
     seed: int = 0
-    node_timeout_ms: int = candb.WATCHDOG_MS
+    node_timeout_ms: int = WATCHDOG_MS
     node_recover: int = 3
     action_timeout_s: float = 2.0
     realtime: bool = False
@@ -450,7 +451,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
     if cfg.node == "firmware":
         if cfg.qemu_machine is None:
             raise ValueError("the firmware node needs qemu_machine")
-        plan = candb.layout(interface, node_id, cfg.fd)
+        plan = layout(interface, node_id, cfg.fd)
         on_host = None
         if cfg.firmware_link is not None and cfg.firmware_control is not None:
             on_host = HostQemu(Path(cfg.firmware_control), cfg.firmware_link)
@@ -459,7 +460,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
             lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
             Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
             [frame_id for _, frame_id, _ in plan.observation]
-            + ([candb.episode_start_id(node_id)] if interface.state_size else []),
+            + ([episode_start_id(node_id)] if interface.state_size else []),
             on_host,
         )  # fmt: skip
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
@@ -562,9 +563,11 @@ def _progress(cfg: SessionConfig, done: int) -> None:
         path.with_suffix(".tmp").replace(path)
 
 
-def run(cfg: SessionConfig) -> dict[str, Any]:
-    """Run the episodes; return the results (also written to cfg.results)."""
-    interface = candb.load_interface(Path(cfg.interface))
+def run(cfg: SessionConfig, interface: Interface | None = None) -> dict[str, Any]:
+    """Run the episodes; return the results (also written to cfg.results). ``interface``: the one in
+    ``cfg.interface``, already read by the caller in this process (a session in a guest reads it)."""
+    if interface is None:
+        interface = load_interface(Path(cfg.interface))
     if interface.env_id == TWO_ROBOTS.env_id:
         return _run_robots(cfg, interface)
     if cfg.nodes > 1:

@@ -18,13 +18,15 @@ from tests.source_tree import REPO, modules
 LAYERS = (
     "embedrl.common",
     "embedrl.train",
+    "embedrl.export.contract",
     "embedrl.export",
     "embedrl.hil",
     "embedrl.cli",
     "embedrl.__main__",
 )
 """Bottom to top: a module imports only from its own layer or the ones below (``python -m embedrl`` runs the
-command)."""
+command). A module is in the layer of the longest name it starts with: the contract (the interface's CAN
+layout, DBC, E2E parameters and C glue) is the bottom of the export package, below the rest of it and hil."""
 ENTRY_POINTS = ("embedrl.cli", "embedrl.__main__")
 MAX_FUNCTION_LINES = 80
 
@@ -51,10 +53,10 @@ def import_graph() -> dict[str, set[str]]:
 
 
 def _layer(module: str) -> int:
-    """The module's layer (``embedrl`` itself, the version, sits at the bottom)."""
-    return max(
-        (i for i, layer in enumerate(LAYERS) if module == layer or module.startswith(layer + ".")), default=0
-    )
+    """The module's layer: the longest of :data:`LAYERS` it is or is inside (``embedrl`` itself, the
+    version, sits at the bottom)."""
+    found = [layer for layer in LAYERS if module == layer or module.startswith(layer + ".")]
+    return LAYERS.index(max(found, key=len)) if found else 0
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -115,6 +117,42 @@ def test_lower_layers_never_import_upper_ones() -> None:
         if _layer(target) > _layer(module)
     ]
     assert upward == []
+
+
+def test_the_layer_of_a_module_is_its_longest_prefix() -> None:
+    assert _layer("embedrl.export.contract.dbc") < _layer("embedrl.export.codegen") < _layer("embedrl.hil")
+    assert _layer("embedrl.train.interface") < _layer("embedrl.export.contract")
+    assert _layer("embedrl.export.contracts") == _layer("embedrl.export")
+
+
+def test_the_contract_is_imported_from_its_own_home() -> None:
+    """hil reads the contract where it lives: no module of hil or export is left from the old
+    ``hil/candb.py`` (or any other copy), and both hil and export use the contract."""
+    graph = import_graph()
+    assert "embedrl.hil.candb" not in graph
+    contract = {m for m in graph if m.startswith("embedrl.export.contract")}
+    users = {m.rpartition(".")[0] for m, targets in graph.items() if targets & contract and m not in contract}
+    assert {"embedrl.hil", "embedrl.export"} <= users
+
+
+def _code_lines(text: str, comment: str) -> list[str]:
+    return [line for line in text.splitlines() if not line.lstrip().startswith(comment)]
+
+
+def test_export_reaches_hil_by_no_route_the_import_graph_cannot_see() -> None:
+    """No subprocess route from export (or from the C build it runs) into hil: no file of export/ names
+    an ``embedrl.hil`` module, and runtime_c's Makefile runs no Python and generates nothing (the export
+    writes all the C, so ``make -C runtime_c`` needs make and the C toolchain only)."""
+    named = [
+        str(path.relative_to(REPO))
+        for path in sorted((REPO / "export").rglob("*.py"))
+        if "embedrl.hil" in path.read_text() or "embedrl/hil" in path.read_text()
+    ]
+    assert named == []
+    makefile = _code_lines((REPO / "runtime_c" / "Makefile").read_text(), "#")
+    assert not [line for line in makefile if re.search(r"python|PYTHON|embedrl\.|-m\s+\w", line)]
+    for mk in sorted((REPO / "runtime_c").rglob("*.mk")):
+        assert not [line for line in _code_lines(mk.read_text(), "#") if re.search(r"python", line, re.I)]
 
 
 def test_no_library_module_imports_a_command_module() -> None:

@@ -1,5 +1,6 @@
 """One contract, derived everywhere: the scenario spec, the env, the generated policy.h, the generated
-CAN database and the node's generated glue all say the same thing, field by field."""
+CAN database and the node's generated glue all say the same thing, field by field (the glue sizes its
+vectors by policy.h's own macros)."""
 
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ import numpy as np
 
 from embedrl import train
 from embedrl.export.codegen import generate
+from embedrl.export.contract.dbc import database
+from embedrl.export.contract.layout import layout
+from embedrl.export.contract.sources import c_sources
 from embedrl.export.onnx_import import to_ir
-from embedrl.hil import candb
 from embedrl.hil.codec import Codec
 from embedrl.train.scenarios import STATIC
 from tests.export.helpers import mlp_model
@@ -31,8 +34,8 @@ def test_spec_env_policy_header_can_database_and_node_glue_agree() -> None:
     assert indices == expected
     assert f"#define POLICY_OBS_DIM {len(STATIC.observation)}" in header
 
-    db = candb.database(STATIC)
-    plan = candb.layout(STATIC)
+    db = database(STATIC)
+    plan = layout(STATIC)
     assert [s.index for s in plan.observation_slots] == list(range(len(STATIC.observation)))
     for slot in plan.observation_slots + plan.action_slots:
         signal = db.get_message_by_name(slot.message).get_signal_by_name(slot.signal)
@@ -43,8 +46,10 @@ def test_spec_env_policy_header_can_database_and_node_glue_agree() -> None:
         )
         assert (signal.unit or "") == slot.field.unit and signal.comment == slot.field.description
 
-    glue = candb.c_sources(STATIC)["policy_io.h"]
-    assert f"#define POLICY_IO_OBS_DIM {len(STATIC.observation)}u" in glue
+    glue = c_sources(STATIC)["policy_io.h"]
+    assert '#include "policy.h"' in glue and "_DIM" not in glue.replace("POLICY_OBS_DIM", "").replace(
+        "POLICY_ACT_DIM", ""
+    )  # one set of dimensions: the policy header's
     assert f"#define POLICY_IO_OBS_FRAMES {len(plan.observation)}u" in glue
 
     obs, _ = env.reset(seed=3)

@@ -50,7 +50,10 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
     )
     wheel = next(root.glob("embedrl-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
-    for required in ("embedrl/runtime_c/Makefile", "embedrl/runtime_c/node/node.c", "embedrl/hil/policy.dbc"):
+    for required in (
+        "embedrl/runtime_c/Makefile", "embedrl/runtime_c/node/node.c", "embedrl/hil/policy.dbc",
+        "embedrl/runtime_c/tests/can_static/policy_io.c",  # make -C runtime_c test: no Python needed
+    ):  # fmt: skip
         assert required in names
     assert not any(n.startswith(("train/", "export/", "hil/")) for n in names)  # one namespace only
     for folder in ("train", "export", "hil"):  # every package of the checkout, subpackages included

@@ -17,8 +17,8 @@ from gymnasium import spaces
 
 from embedrl.cli import COMMON_ERRORS, PACKAGES
 from embedrl.export.cli import _names
+from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.onnx_import import load_onnx, to_ir
-from embedrl.hil.candb import load_interface
 from embedrl.train.models import load_normalization, load_sb3
 from embedrl.train.scenarios import STATIC
 from tests.conftest import Exported

@@ -81,17 +81,6 @@ class EmitContext(Protocol):
         ...
 
 
-def c_float(value: float) -> str:
-    """A C float literal that round-trips the float32 value exactly (9 significant digits)."""
-    v = np.float32(value)
-    if not np.isfinite(v):
-        raise UnsupportedOpError(f"cannot write non-finite constant {value!r} as C")
-    text = f"{float(v):.9g}"
-    if not any(c in text for c in ".en"):
-        text += ".0"
-    return text + "f"
-
-
 def _size(shape: Shape) -> int:
     return int(np.prod(shape, dtype=np.int64))
 

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from embedrl.export.ops.base import F, c_float
+from embedrl.export.contract.literals import c_float
+from embedrl.export.ops.base import F
 
 EXP_CLAMP = (-87.0, 88.0)
 """exp_det's input range: beyond it float32 exp under- or overflows."""

@@ -17,7 +17,9 @@ from typing import Any
 import numpy as np
 
 from embedrl.common import read_json, sha256
-from embedrl.hil import candb
+from embedrl.export.contract.dbc import frame_rows
+from embedrl.export.contract.interface_file import load_interface
+from embedrl.export.contract.layout import WATCHDOG_MS
 from embedrl.hil.errors import HilError
 from embedrl.train.interface import INTERFACE_FILE
 
@@ -118,15 +120,15 @@ def _check_hil(data: Any) -> None:
 
 
 def interface_facts(export: dict[str, Any], export_dir: Path) -> dict[str, Any]:
-    interface = candb.load_interface(export_dir / INTERFACE_FILE)
+    interface = load_interface(export_dir / INTERFACE_FILE)
     return {
         "name": interface.name,
         "sample_time_s": interface.sample_time_s,
         "safe_action": list(interface.safe_action),
         "observation": export["interface"]["observation"],
         "action": export["interface"]["action"],
-        "frames": candb.frame_rows(interface),
-        "watchdog_ms": candb.WATCHDOG_MS,
+        "frames": frame_rows(interface),
+        "watchdog_ms": WATCHDOG_MS,
     }
 
 

@@ -10,9 +10,8 @@
 #define RESYNCS_MAX 63u
 #define LINK_RESETS_MAX 15u
 
-/* The generated CAN glue and the generated policy must describe the same vectors. */
-typedef char node_obs_dims_agree[(POLICY_IO_OBS_DIM == POLICY_OBS_DIM) ? 1 : -1];
-typedef char node_act_dims_agree[(POLICY_IO_ACT_DIM == POLICY_ACT_DIM) ? 1 : -1];
+/* The CAN glue sizes its vectors by the policy's own POLICY_OBS_DIM and POLICY_ACT_DIM (policy_io.h includes
+ * policy.h): one set of dimensions. The receive-ID table holds every observation frame. */
 typedef char node_frames_fit[(POLICY_IO_OBS_FRAMES <= 32u) ? 1 : -1];
 
 static const float safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;

@@ -100,7 +100,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
             unsigned part = frame.id - POLICY_IO_OBS_FIRST_ID;
             if (part < POLICY_IO_OBS_FRAMES && frame.len == POLICY_IO_FRAME_BYTES &&
                 e2e_crc_ok(frame.id, frame.data, frame.len)) {
-                float scratch[POLICY_IO_OBS_DIM];
+                float scratch[POLICY_OBS_DIM];
                 uint16_t step = 0;
                 uint8_t counter = 0;
                 (void)policy_io_decode_observation(part, frame.data, scratch, &step, &counter);

@@ -16,6 +16,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
 from embedrl import train
 from embedrl.cli import main
+from embedrl.export.contract.sources import C_FILES, DBC_FILE, FOLDERS
 from embedrl.export.verify import MAX_DIFFERING_OUTCOMES, MIN_SAMPLES, TOLERANCE
 from embedrl.train.interface import Interface
 from embedrl.train.models import save_normalization
@@ -69,14 +70,16 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
     assert loop["episodes"] == 20 and loop["differing_outcomes"] <= MAX_DIFFERING_OUTCOMES
     for who in ("reference", "c"):
         assert loop[who]["successes"] + loop[who]["collisions"] + loop[who]["timeouts"] == 20
-    assert sorted(report["files"]) == [
+    can_code = [f"{folder}/{name}" for folder in FOLDERS for name in (DBC_FILE, *C_FILES)]
+    assert sorted(report["files"]) == sorted([
         "c/policy.c",
         "c/policy.h",
+        *can_code,
         "interface.json",
         "policy.onnx",
         "test/observations.npy",
         "test/test_vectors.c",
-    ]
+    ])  # fmt: skip
     assert report["compiler"]["command"].startswith(
         "cc -std=c99 -Wall -Wextra -Wconversion -Wdouble-promotion -Wcast-qual -Wshadow -Werror -pedantic"
     )
@@ -84,6 +87,8 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
     assert sorted(p.name for p in out.iterdir()) == [
         "bin",
         "c",
+        "can",
+        "can-fd",
         "chain.json",
         "export_report.json",
         "interface.json",

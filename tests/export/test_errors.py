@@ -182,6 +182,8 @@ def test_cli_does_not_overwrite_without_force(tmp_path: Path, capsys: pytest.Cap
     assert sorted(p.name for p in out.iterdir()) == [
         "bin",
         "c",
+        "can",
+        "can-fd",
         "chain.json",
         "export_report.json",
         "interface.json",

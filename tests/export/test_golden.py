@@ -14,8 +14,8 @@ import pytest
 from onnx import helper
 
 from embedrl.export.codegen import generate
+from embedrl.export.contract.literals import c_float
 from embedrl.export.onnx_import import to_ir
-from embedrl.export.ops.base import c_float
 from tests.export.helpers import make_model
 
 GOLDEN = Path(__file__).parent / "golden" / "tiny"

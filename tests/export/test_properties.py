@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from embedrl.export.ops.base import c_float
+from embedrl.export.contract.literals import c_float
 from tests.export.helpers import compile_model, mlp_model
 
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "Softplus", "LeakyRelu", "Identity")

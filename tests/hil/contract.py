@@ -14,8 +14,8 @@ from typing import Any, ClassVar
 import pytest
 
 from embedrl.cli import main
-from embedrl.hil import candb
-from embedrl.hil.candb import load_interface
+from embedrl.export.contract.dbc import database
+from embedrl.export.contract.interface_file import load_interface
 from embedrl.hil.codec import decode_fields
 from embedrl.hil.faults import CATALOGUE, INJECT_STEP, INJECTORS
 from embedrl.hil.sandbox import Guest
@@ -233,7 +233,7 @@ class HilContract:
         assert report["verdict"]["passed"] is False
         assert report["node_diag"]["action_faults"] >= report["steps"] // 3  # SAFE, then K = 3 to recover
         interface = load_interface(lying / "interface.json")
-        db = candb.database(interface)
+        db = database(interface)
         action = db.get_message_by_name("Action")
         answers = [
             decode_fields(action, bytes.fromhex(line.split()[2].split("#")[1]))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 import subprocess
-import sys
 from pathlib import Path
 
 import can
@@ -13,6 +12,7 @@ import pytest
 from crccheck.crc import Crc8SaeJ1850
 
 from embedrl.export.build import RUNTIME_C
+from embedrl.export.contract import e2e as e2e_params
 from embedrl.hil import e2e
 from embedrl.hil.codec import Action, Codec, Status, decode_fields
 from embedrl.train.scenarios import STATIC
@@ -36,18 +36,18 @@ def test_crc8_equals_a_library_crc8_sae_j1850_over_the_data_id_and_payload(lengt
 def test_the_c_node_takes_its_e2e_constants_from_the_generated_header() -> None:
     generated = dict(
         (name, int(value.rstrip("u"), 16))
-        for name, value in re.findall(r"#define E2E_(\w+) (0x[0-9A-F]+u)", e2e.params_header())
+        for name, value in re.findall(r"#define E2E_(\w+) (0x[0-9A-F]+u)", e2e_params.params_header())
     )
     assert generated == {
-        "CRC8_POLY": e2e.CRC8_POLY, "CRC8_INIT": e2e.CRC8_INIT, "CRC8_XOR_OUT": e2e.CRC8_XOR_OUT,
-        "COUNTER_MODULO": e2e.COUNTER_MODULO, "MAX_FORWARD_JUMP": e2e.MAX_FORWARD_JUMP,
-        "RESYNC_FRAMES": e2e.RESYNC_FRAMES,
+        "CRC8_POLY": e2e_params.CRC8_POLY, "CRC8_INIT": e2e_params.CRC8_INIT,
+        "CRC8_XOR_OUT": e2e_params.CRC8_XOR_OUT, "COUNTER_MODULO": e2e_params.COUNTER_MODULO,
+        "MAX_FORWARD_JUMP": e2e_params.MAX_FORWARD_JUMP, "RESYNC_FRAMES": e2e_params.RESYNC_FRAMES,
     }  # fmt: skip
     assert (
         Crc8SaeJ1850._poly,
         Crc8SaeJ1850._initvalue,
         Crc8SaeJ1850._xor_output,
-    ) == (e2e.CRC8_POLY, e2e.CRC8_INIT, e2e.CRC8_XOR_OUT)
+    ) == (e2e_params.CRC8_POLY, e2e_params.CRC8_INIT, e2e_params.CRC8_XOR_OUT)
     for source in ("e2e.h", "e2e.c", "node.c", "node.h"):  # typed nowhere else
         text = (RUNTIME_C / "node" / source).read_text()
         assert not re.search(r"#define\s+\w*(POLY|COUNTER_MODULO|FORWARD_JUMP|RESYNC_FRAMES)\b", text), source
@@ -134,7 +134,7 @@ def test_actions_and_status_are_decoded_only_when_e2e_valid() -> None:
 def test_c_unit_tests_pass(target: str, tmp_path: Path) -> None:
     """The node's C unit tests (fake transport), plain and under AddressSanitizer + UBSan."""
     result = subprocess.run(
-        ["make", "-s", "-C", str(RUNTIME_C), target, f"BUILD_DIR={tmp_path}", f"PYTHON={sys.executable}"],
+        ["make", "-s", "-C", str(RUNTIME_C), target, f"BUILD_DIR={tmp_path}"],
         capture_output=True,
         text=True,
     )
@@ -154,8 +154,7 @@ def test_the_node_survives_a_bounded_fuzzing_run_with_its_invariants(tmp_path: P
     corpus = RUNTIME_C / "tests" / "fuzz_corpus"
     before = sorted(p.read_bytes() for p in corpus.iterdir())
     result = subprocess.run(
-        ["make", "-s", "-C", str(RUNTIME_C), "fuzz", f"BUILD_DIR={tmp_path}", f"PYTHON={sys.executable}",
-         f"FUZZ_SECONDS={FUZZ_SECONDS}"],
+        ["make", "-s", "-C", str(RUNTIME_C), "fuzz", f"BUILD_DIR={tmp_path}", f"FUZZ_SECONDS={FUZZ_SECONDS}"],
         capture_output=True,
         text=True,
         timeout=600,

@@ -11,7 +11,6 @@ from __future__ import annotations
 import re
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -22,8 +21,8 @@ import pytest
 from embedrl.cli import main
 from embedrl.export import cycles
 from embedrl.export.build import RUNTIME_C
+from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.reference import reference_policy
-from embedrl.hil.candb import load_interface
 from embedrl.hil.codec import Action, Codec
 from embedrl.hil.firmware import (
     INSTRUCTIONS_PER_TICK,
@@ -87,7 +86,7 @@ def test_the_cycle_model_classes_instructions_as_the_manual_does(
 def _firmware(export: Path, target: str, build: Path) -> Path:
     subprocess.run(
         ["make", "-s", "-C", str(RUNTIME_C), f"TARGET={target}", "node", f"POLICY_DIR={export / 'c'}",
-         f"BUILD_DIR={build}", f"PYTHON={sys.executable}"],
+         f"BUILD_DIR={build}"],
         check=True, capture_output=True, text=True,
     )  # fmt: skip
     return build / target / "node.elf"

@@ -25,8 +25,8 @@ import pytest
 from onnx import helper, numpy_helper
 
 from embedrl.cli import build_parser, main
+from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.reference import reference_policy
-from embedrl.hil.candb import load_interface
 from embedrl.hil.codec import Action, Codec, Status
 from embedrl.hil.errors import HilError
 from embedrl.hil.nodes import PythonNode

@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from embedrl.cli import main
-from embedrl.hil import candb
+from embedrl.export.contract.dbc import database, dbc_text
+from embedrl.export.contract.interface_file import load_interface
+from embedrl.export.contract.layout import STEP_MODULO, episode_start_id
 from embedrl.hil.codec import Codec
 from embedrl.hil.sandbox import Guest
 from embedrl.train.interface import Interface
@@ -44,26 +46,26 @@ def test_the_export_of_a_recurrent_policy_records_its_state_and_the_bus_gets_an_
     report = json.loads((recurrent_export / "export_report.json").read_text())
     assert report["closed_loop"]["differing_outcomes"] == 0
     assert report["closed_loop"]["c_trajectory_max_action_diff"] < 1e-5
-    interface = candb.load_interface(recurrent_export / "interface.json")
+    interface = load_interface(recurrent_export / "interface.json")
     assert interface.state_size == 2 * 64  # one LSTM layer of 64: h and c
     header = (recurrent_export / "c" / "policy.h").read_text()
     assert "#define POLICY_STATE_DIM 128" in header and "void policy_reset(void);" in header
-    db = candb.database(interface, node_id=2)
+    db = database(interface, node_id=2)
     message = db.get_message_by_name("EpisodeStart")
-    assert message.frame_id == candb.episode_start_id(2) == 0x100 + 2 * 0x20 + 0x1F
+    assert message.frame_id == episode_start_id(2) == 0x100 + 2 * 0x20 + 0x1F
     assert [s.name for s in message.signals] == ["Crc", "Counter", "Step"]
     # the frame the simulator sends decodes with the DBC the node is built from
     frame = Codec(interface).encode_episode_start(4100)[0]
-    dbc = cantools.database.load_string(candb.dbc_text(interface), database_format="dbc")
+    dbc = cantools.database.load_string(dbc_text(interface), database_format="dbc")
     assert isinstance(dbc, cantools.database.can.Database)
     decoded = dbc.decode_message(frame.arbitration_id, bytes(frame.data))
-    assert isinstance(decoded, dict) and decoded["Step"] == 4100 % candb.STEP_MODULO
+    assert isinstance(decoded, dict) and decoded["Step"] == 4100 % STEP_MODULO
 
 
 def test_a_policy_without_memory_has_no_episode_start() -> None:
     interface = MOVING_SHELF_PARTIAL
     assert interface.state_size == 0
-    assert "EpisodeStart" not in [m.name for m in candb.database(interface).messages]
+    assert "EpisodeStart" not in [m.name for m in database(interface).messages]
     assert Codec(interface).encode_episode_start(0) == []
     with_memory = interface.with_state_size(32)
     assert Interface.from_json(json.loads(with_memory.dumps())) == with_memory

@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 
 from embedrl.cli import main
-from embedrl.hil import candb
+from embedrl.export.contract import layout as can_layout
 from embedrl.hil.sandbox import Guest
 from embedrl.train.scenarios import MOVING_SHELF, STATIC, TWO_ROBOTS
 from tests.hil.helpers import hil
@@ -37,7 +37,7 @@ def two_robots_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _frames_per_step(interface: Any) -> int:
-    layout = candb.layout(interface)
+    layout = can_layout.layout(interface)
     return len(layout.observation)
 
 
@@ -84,9 +84,9 @@ def _check_two_robots(report: dict[str, Any], episodes: int, log: Path) -> None:
     ids = {line.split()[2].split("#")[0] for line in log.read_text().splitlines()}
     expected = set()
     for k in range(2):
-        layout = candb.layout(TWO_ROBOTS, k)
+        layout = can_layout.layout(TWO_ROBOTS, k)
         expected |= {f"{i:03X}" for _, i, _ in (*layout.observation, *layout.action)}
-        expected |= {f"{candb.status_id(k):03X}", f"{candb.status_id(k) + 1:03X}"}
+        expected |= {f"{can_layout.status_id(k):03X}", f"{can_layout.status_id(k) + 1:03X}"}
     assert ids == expected
     assert report["verdict"]["passed"], report["verdict"]
 

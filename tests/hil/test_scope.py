@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from embedrl.cli import main
-from embedrl.hil import candb, scope
+from embedrl.export.contract.layout import rounding_errors
+from embedrl.hil import scope
 from embedrl.train.potential_field import PotentialFieldController
 from embedrl.train.scenarios import SCENARIOS
 
@@ -20,7 +21,7 @@ def test_the_scope_holds_every_field_and_the_can_rounding_stays_within_half_a_st
     steps = len(episode["actions"])
     assert episode["observations"].shape == episode["decoded"].shape == (steps, fields)
     error = np.abs(episode["decoded"].astype(np.float64) - episode["observations"])
-    assert 0 < error.max() <= candb.rounding_errors(SCENARIOS[scenario])["observation"] * (1 + 1e-6)
+    assert 0 < error.max() <= rounding_errors(SCENARIOS[scenario])["observation"] * (1 + 1e-6)
     assert episode["outcome"] == "success"
 
 
