@@ -683,7 +683,7 @@ static void test_actions_are_checked_against_both_bounds_of_each_field(void)
 static void test_the_glue_refuses_a_frame_number_the_interface_does_not_have(void)
 {
     uint8_t data[POLICY_IO_FRAME_BYTES];
-    float obs[POLICY_IO_OBS_DIM];
+    float obs[POLICY_OBS_DIM];
     uint16_t step = 7u;
     uint8_t counter = 3u;
     memset(data, 0, sizeof data);
