@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -30,7 +29,7 @@ import onnxruntime as ort
 import torch
 
 from embedrl import train
-from embedrl.common import read_json
+from embedrl.common import owned_temporary_folder, read_json
 from embedrl.export import build
 from embedrl.export.errors import ExportError
 from embedrl.export.pipeline import ExportOptions, run_export
@@ -82,7 +81,7 @@ def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict
     emx-onnx-cgen's command, whose C of the same ONNX is timed as a peer (None: not measured)."""
     if emx is not None and not emx.is_file():
         raise ExportError(f"no emx-onnx-cgen at {emx}: `make bench` installs it into tools/emx")
-    with tempfile.TemporaryDirectory(prefix="embedrl-bench-") as tmp:
+    with owned_temporary_folder("embedrl-bench-") as tmp:
         work = Path(tmp)
         if export_dir is None:
             export_dir = work / "export"

@@ -22,7 +22,6 @@ from __future__ import annotations
 import ctypes
 import shlex
 import subprocess
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,7 @@ import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
+from embedrl.common import owned_temporary_folder
 from embedrl.export import build
 from embedrl.export.codegen import generate
 from embedrl.export.errors import BuildError, VerificationError
@@ -70,7 +70,7 @@ def check(
     rng = np.random.default_rng(seed)
     # The float ops around an integer section (q15, int8-full) use int8's helpers.
     precision = {None: None, "int8": "int8", "q15": "int8", "int8-full": "int8"}[quantize]
-    with tempfile.TemporaryDirectory(prefix="embedrl-nan-") as tmp:
+    with owned_temporary_folder("embedrl-nan-") as tmp:
         library = _compile([_one_op(graph, node, k, precision) for k, node in enumerate(probes)], Path(tmp))
         for k, node in enumerate(probes):
             summary["positions"] += _probe(

@@ -11,13 +11,12 @@ dependency: it is installed into ``tools/`` by ``make bench-target`` and named w
 from __future__ import annotations
 
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from embedrl.common import read_json
+from embedrl.common import owned_temporary_folder, read_json
 from embedrl.export import build, cycles, target
 from embedrl.export.errors import ExportError
 from embedrl.train.interface import INTERFACE_FILE, Interface
@@ -113,7 +112,7 @@ def run(export_dir: Path, targets: list[str], emx: Path) -> dict[str, Any]:
     """Every target measured, in a temporary build folder."""
     if not emx.is_file():
         raise ExportError(f"no emx-onnx-cgen at {emx}: `make bench-target` installs it into tools/emx")
-    with tempfile.TemporaryDirectory(prefix="embedrl-target-bench-") as tmp:
+    with owned_temporary_folder("embedrl-target-bench-") as tmp:
         return {
             "export": str(export_dir),
             "peer": f"emx-onnx-cgen {EMX_VERSION}",

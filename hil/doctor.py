@@ -7,13 +7,13 @@ works or not, boot time, and the reason (the self-test's result or the diagnosed
 from __future__ import annotations
 
 import platform
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
+from embedrl.common import owned_temporary_folder
 from embedrl.hil import sandbox
 
 CPUINFO = Path("/proc/cpuinfo")
@@ -49,7 +49,7 @@ def doctor(say: Callable[[str], None] = print, mode: str = "auto") -> dict[str, 
     info = machine()
     say(f"machine: {info['cpu']}, AMX {'yes' if info['amx'] else 'no'}, host kernel {info['host_kernel']}")
     checks = []
-    with tempfile.TemporaryDirectory(prefix="embedrl-doctor-") as tmp:
+    with owned_temporary_folder("embedrl-doctor-") as tmp:
         for provider in sandbox.providers(mode):
             say(f"checking {provider.label} ...")
             start = time.monotonic()

@@ -17,13 +17,13 @@ from __future__ import annotations
 import fnmatch
 import shutil
 import subprocess
-import tempfile
 import tomllib
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from embedrl.common import owned_temporary_folder
 from embedrl.export.build import RUNTIME_C
 from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.contract.sources import folder, write
@@ -149,7 +149,7 @@ def _checked_labels() -> list[str]:
 def run_cppcheck(export_dir: Path) -> list[Finding]:
     if shutil.which("cppcheck") is None:
         raise HilError("cppcheck is not installed: run `make deps` (Debian's cppcheck)")
-    with tempfile.TemporaryDirectory(prefix="embedrl-misra-") as tmp:
+    with owned_temporary_folder("embedrl-misra-") as tmp:
         can = export_dir / folder(fd=False)  # the classic CAN code the firmware node is built from
         if not can.is_dir():  # exported before exports carried it: the same generator's
             can = Path(tmp) / "can"

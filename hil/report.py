@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from embedrl.common import owned_temporary_folder
 from embedrl.export.contract.layout import rounding_errors
 from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
 from embedrl.train.interface import NO_ENV, Interface
@@ -166,11 +167,10 @@ def _time_on_target(options: RunOptions, per_step: dict[str, Any], sample_time_s
     """The node cycle's worst step at the modelled part's clock, with the cycles per instruction of the
     export's traced inference (:func:`embedrl.export.target.cycles_per_instruction`), and the margin to the
     sample time."""
-    import tempfile
 
     from embedrl.export import cycles, target
 
-    with tempfile.TemporaryDirectory(prefix="embedrl-cycles-") as tmp:
+    with owned_temporary_folder("embedrl-cycles-") as tmp:
         traced = target.cycles_per_instruction(options.export_dir, options.firmware_target, Path(tmp))
     timed = cycles.time_on_target(per_step["max"], traced, options.firmware_target, sample_time_s)
     step_s = timed["estimated_inference_us"] / 1e6

@@ -28,12 +28,12 @@ import json
 import shutil
 import subprocess
 import sys
-import tempfile
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from embedrl.common import owned_temporary_folder
 from embedrl.hil.sandbox import check
 from embedrl.hil.sandbox.uml import (
     MANIFEST,
@@ -133,7 +133,7 @@ def provision(suite: str = DEFAULT_SUITE, force: bool = False, say: Callable[[st
     shutil.rmtree(target, ignore_errors=True)  # an earlier attempt that never completed
     root = target / "root"
     root.mkdir(parents=True)
-    with tempfile.TemporaryDirectory(prefix="embedrl-debs-") as tmp:
+    with owned_temporary_folder("embedrl-debs-") as tmp:
         for deb in debs:
             say(f"downloading {deb.url} ({deb.size / 1e6:.1f} MB)")
             _run(["dpkg-deb", "-x", str(download(deb, Path(tmp))), str(root)])
@@ -144,7 +144,7 @@ def provision(suite: str = DEFAULT_SUITE, force: bool = False, say: Callable[[st
     )
     releases = sorted(p.name for p in (root / MODULES).iterdir())
     kernel = UmlKernel(binary, root / MODULES, f"{version}, cached")
-    with tempfile.TemporaryDirectory(prefix="embedrl-uml-check-") as tmp:
+    with owned_temporary_folder("embedrl-uml-check-") as tmp:
         result = check(UmlProvider(kernel), Path(tmp))
     if not result.works:
         raise ProvisionError(f"User-Mode Linux {version} does not work on this machine: {result.reason}")
@@ -172,7 +172,7 @@ def packaged_works() -> str | None:
     kernel = packaged_kernel()
     if kernel is None:
         return None
-    with tempfile.TemporaryDirectory(prefix="embedrl-uml-check-") as tmp:
+    with owned_temporary_folder("embedrl-uml-check-") as tmp:
         result = check(UmlProvider(kernel), Path(tmp))
     return result.reason if result.works else None
 

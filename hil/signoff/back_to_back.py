@@ -12,11 +12,12 @@ records no per-step values, so no ULP).
 
 from __future__ import annotations
 
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from embedrl.common import owned_temporary_folder
 
 
 def links(
@@ -92,7 +93,7 @@ def _firmware_link(
     observations = np.load(export_dir / OBSERVATIONS, allow_pickle=False).astype(np.float32)
     vectors = targets.pick_test_vectors(observations, int(export["verification"]["samples_from_rollouts"]))
     try:
-        with tempfile.TemporaryDirectory(prefix="embedrl-b2b-") as tmp:
+        with owned_temporary_folder("embedrl-b2b-") as tmp:
             work = Path(tmp)
             (work / "test_vectors.c").write_text(targets.test_vectors_source(vectors))
             out = targets.build_firmware(part, export_dir / "c", work / "test_vectors.c", work / "firmware")

@@ -16,7 +16,6 @@ import json
 import re
 import shutil
 import subprocess
-import tempfile
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from embedrl.common import owned_temporary_folder
 from embedrl.export.build import RUNTIME_C
 
 GOAL_LINES = 100.0
@@ -88,7 +88,7 @@ def measure(c_dir: Path, name: str, observations: np.ndarray) -> dict[str, Any]:
     from embedrl.export import build
 
     rows = probe_rows(observations)
-    with tempfile.TemporaryDirectory(prefix="embedrl-coverage-") as tmp:
+    with owned_temporary_folder("embedrl-coverage-") as tmp:
         work = Path(tmp)
         # a copy of the C in a folder without spaces: make then builds it where it is, and llvm-cov names
         # the sources read below by their real paths (not a temporary link's)

@@ -10,13 +10,12 @@ than this export's is refused.
 from __future__ import annotations
 
 import subprocess
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from embedrl.common import read_json, sha256
+from embedrl.common import owned_temporary_folder, read_json, sha256
 from embedrl.export.contract.dbc import frame_rows
 from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.contract.layout import WATCHDOG_MS
@@ -157,7 +156,7 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
         return row
     observations = again.observations
     expected = OnnxPolicy(export_dir / "policy.onnx")(observations)  # a recurrent policy: one sequence
-    with tempfile.TemporaryDirectory(prefix="embedrl-report-") as tmp:
+    with owned_temporary_folder("embedrl-report-") as tmp:
         build.make("lib", export_dir / "c", Path(tmp))
         policy = build.CPolicy(Path(tmp) / "libpolicy.so", export["name"], export["observation_dim"],
                                export["action_dim"])  # fmt: skip
