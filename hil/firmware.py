@@ -9,6 +9,12 @@ sees the same frames, IDs and E2E fields as with the host node. It needs no kern
 runs wherever the host node runs (can-utils' ``slcand`` would need the guest's ``slcan`` driver and a
 gateway rule per direction).
 
+The firmware's clock is the simulation's (``runtime_c/cortex_m/clock_sim.c``): the session lets time pass
+for it with :meth:`FirmwareNode.advance`, a time line (``Y`` and the microseconds in hex) on the serial
+line before each step's observation and while a fault keeps the bus quiet; the firmware answers ``Y`` once
+it has acted on the new time. Its watchdog and status period therefore count simulated time: a slow or
+busy host delays the run, never its verdict.
+
 QEMU runs with ``-icount shift=0``: virtual time advances 1 ns per guest instruction, so the timer the
 firmware reads counts instructions (:data:`INSTRUCTIONS_PER_TICK` per tick at the boards' 25 MHz). The
 firmware writes one line per answered step on its diagnostics UART (UART1, a file here):
@@ -44,6 +50,7 @@ import can
 import numpy as np
 from can.interfaces.slcan import slcanBus
 
+from embedrl.hil import candb
 from embedrl.hil.errors import HilError
 from embedrl.hil.nodes import Node
 
@@ -60,6 +67,12 @@ just after that step's action frame, so the last line can trail the last answer)
 BRIDGE_POLL_S = 0.01
 REQUEST_POLL_S = 0.005
 """How often the host's QEMU server looks for the session's requests (and the session for the answers)."""
+TIME_LINE_MAX_US = 0xFFFFFFFF
+"""The largest advance one time line carries (8 hex digits); a longer one is sent in parts."""
+TIME_ANSWER_TIMEOUT_S = 10.0
+"""How long the bridge waits for the firmware to answer a time line while its QEMU runs (a loaded host
+may be slow; a QEMU that exits ends the wait at once)."""
+TIME_ANSWER = "Y"
 _PTY = re.compile(r"char device redirected to (/dev/pts/\d+)")
 _STEP = re.compile(r"^S (\d+) (\d+)$")
 _STATUS = re.compile(r"^X (\d+) (\d+) (\d+)$")
@@ -281,7 +294,35 @@ class SerialLine(slcanBus):
 
     TERMINATORS = (slcanBus._OK[0], slcanBus._ERROR[0])
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._writing = threading.Lock()  # the bridge's thread and the session both write lines
+        self._answers = threading.Condition()
+        self._time_answers = 0
+        super().__init__(*args, **kwargs)
+
+    def tell_time(self, us: int, alive: Callable[[], bool]) -> bool:
+        """Send the time line advancing the firmware's clock by ``us``; True once the firmware answered
+        (read by the bridge's thread: every frame the firmware sent before the answer is on the bus)."""
+        with self._answers:
+            wanted = self._time_answers + 1
+        self._write(f"{TIME_ANSWER}{us:X}")
+        deadline = time.monotonic() + TIME_ANSWER_TIMEOUT_S
+        with self._answers:
+            while self._time_answers < wanted:
+                if not alive() or time.monotonic() > deadline:
+                    return False
+                self._answers.wait(BRIDGE_POLL_S)
+        return True
+
     def _read(self, timeout: float | None) -> str | None:
+        line = self._read_line(timeout)
+        if line is not None and line.startswith(TIME_ANSWER):
+            with self._answers:
+                self._time_answers += 1
+                self._answers.notify_all()
+        return line
+
+    def _read_line(self, timeout: float | None) -> str | None:
         fd = self.serialPortOrig.fileno()
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
@@ -299,11 +340,15 @@ class SerialLine(slcanBus):
             self._buffer.extend(chunk)
 
     def _write(self, string: str) -> None:
-        self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
+        with self._writing:
+            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
 
 
 class FirmwareNode(Node):
-    """The firmware image on QEMU, bridged to ``iface`` (python-can interface ``bus``)."""
+    """The firmware image on QEMU, bridged to ``iface`` (python-can interface ``bus``); its clock is the
+    simulation's (:meth:`advance`)."""
+
+    simulated_time = True
 
     def __init__(
         self,
@@ -340,6 +385,9 @@ class FirmwareNode(Node):
         ]
         for thread in self.threads:
             thread.start()
+        # Its first status went out before the bridge opened the serial channel (lost, counted as send
+        # failures): a status period of simulated time brings the next one, the sign that it is up.
+        self.advance(candb.STATUS_PERIOD_MS / 1000)
 
     def _carry(self, source: can.BusABC, sink: can.BusABC) -> None:
         """Frames from ``source`` to ``sink`` until the node stops (a closed end ends the direction)."""
@@ -363,6 +411,18 @@ class FirmwareNode(Node):
 
     def alive(self) -> bool:
         return self.emulator.alive()
+
+    def advance(self, seconds: float) -> bool:
+        """Time lines for ``seconds`` of the simulation's time (in parts of at most
+        :data:`TIME_LINE_MAX_US`), each answered before the next goes out; False if one is not (the firmware
+        is gone or hung: the step it was for then goes unanswered)."""
+        left = round(seconds * 1e6)
+        while left > 0 and self.running:
+            part = min(left, TIME_LINE_MAX_US)
+            if not self.serial.tell_time(part, self.alive):
+                return False
+            left -= part
+        return self.running
 
     def exit_reason(self) -> str:
         return f"the firmware's QEMU exited with status {self.emulator.exit_status()}"

@@ -31,9 +31,10 @@ from embedrl.hil.errors import HilError
 DEVIATIONS = RUNTIME_C / "misra_deviations.toml"
 FIRMWARE_SOURCES = (
     "node/node.c", "node/e2e.c", "cortex_m/node_main.c", "cortex_m/transport_uart.c", "cortex_m/slcan.c",
-    "cortex_m/clock_timer.c", "cortex_m/startup.c",
+    "cortex_m/timer.c", "cortex_m/clock_sim.c", "cortex_m/startup.c",
 )  # fmt: skip
-"""runtime_c's files of the firmware node (runtime_c/Makefile's FW_NODE_SRCS and STARTUP)."""
+"""runtime_c's files of the firmware node (runtime_c/Makefile's FW_NODE_SRCS with its default clock,
+NODE_CLOCK=sim, and STARTUP)."""
 CPPCHECK = ("cppcheck", "--addon=misra", "--std=c99", "--platform=arm32-wchar_t4", "-D__ARM_FP=4", "-q")
 """A 32-bit Arm target with an FPU (the start-up code's FPU branch is analysed too)."""
 GENERATED_PREFIXES = ("c/", "can/")

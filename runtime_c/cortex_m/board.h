@@ -6,6 +6,7 @@
 #ifndef EMBEDRL_BOARD_H
 #define EMBEDRL_BOARD_H
 
+#include <stdbool.h>
 #include <stdint.h>
 
 #define BOARD_REG(addr) (*(volatile uint32_t *)(addr))
@@ -45,12 +46,19 @@
 #define SYST_CSR_ENABLE_TICKINT_CORE 0x7u
 #define BOARD_CPU_HZ 25000000u
 
-/* Timer ticks since clock_init (free-running, wraps after 2^32 ticks: 171 s at 25 MHz). */
+/* The free-running timer (timer.c): started by clock_init; ticks since then (wraps after 2^32 ticks: 171 s
+ * at 25 MHz). */
+void timer_start(void);
 uint32_t clock_ticks(void);
-/* Start the timer and the 1 ms SysTick interrupt. */
-void clock_init(void);
-/* Sleep until the next interrupt (a received byte, or the next millisecond). */
+/* Sleep until the next interrupt (a received byte, or with the real-time clock the next millisecond); an
+ * interrupt already pending, even masked, ends it at once. */
 void clock_idle(void);
+
+/* The node's clock, one of two picked at link time (make NODE_CLOCK=sim|timer): clock_sim.c (the
+ * simulation's time, from the harness's time lines) or clock_timer.c (real time, SysTick every 1 ms). */
+void clock_init(void);
+/* The simulation's time advanced by us microseconds: true if this clock takes it (clock_sim.c). */
+bool clock_advance_us(uint32_t us);
 void SysTick_Handler(void);
 
 /* Write bytes to the diagnostics UART (blocking). */

@@ -4,6 +4,11 @@
  * the policy runs is kept (or counted as an overflow when the ring is full); the main loop takes lines
  * out in transport_recv. The far end is a serial CAN adapter, or on the HIL bench python-can's `slcan`
  * interface bridged to the bus (hil/firmware.py).
+ *
+ * A time line (slcan.h) advances the node's clock (clock_advance_us) and ends transport_recv at once, so
+ * that the node acts on the new time (its watchdog, its status frame); the "Y\r" answer goes out at the
+ * next transport_recv, after whatever the node sent then: the harness, once it reads the answer, has every
+ * frame the new time caused. A clock that takes no time from outside refuses the line ('\a').
  */
 #include <stddef.h>
 
@@ -24,6 +29,18 @@ void UART0RX_Handler(void)
     while (UART_STATE(UART0_BASE) & UART_STATE_RX_FULL) {
         slcan_rx_push(&rx, (uint8_t)(UART_DATA(UART0_BASE) & 0xFFu));
     }
+}
+
+/* Sleep until a byte arrives, unless one already has: interrupts are masked from the ring's check to the
+ * WFI, so a byte whose interrupt comes between the two is not slept through (its interrupt, pending, ends
+ * the WFI and runs once they are unmasked). */
+static void idle_until_byte(void)
+{
+    __asm__ volatile("cpsid i" ::: "memory");
+    if (rx.head == rx.tail) {
+        clock_idle();
+    }
+    __asm__ volatile("cpsie i" ::: "memory");
 }
 
 static void uart_put(uint32_t base, uint8_t byte)
@@ -60,7 +77,13 @@ int transport_open(const char *iface, const uint32_t *ids, unsigned count, int f
 
 transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t timeout_ms)
 {
+    static bool time_answer_due; /* a time line taken: answered once the node has acted on it */
     (void)bus_state; /* a UART link has no controller error states */
+    if (time_answer_due) {
+        time_answer_due = false;
+        uart_put(UART0_BASE, (uint8_t)'Y');
+        uart_put(UART0_BASE, (uint8_t)'\r');
+    }
     uint32_t start = clock_ms();
     do {
         uint8_t reply = 0u;
@@ -69,10 +92,16 @@ transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t 
             frame_ticks = clock_ticks();
             return TRANSPORT_FRAME;
         }
-        if (event == SLCAN_REPLY) {
+        if (event == SLCAN_TIME) {
+            if (clock_advance_us(rx.advance_us)) {
+                time_answer_due = true;
+                return TRANSPORT_TIMEOUT; /* the node's clock moved: let it act before the answer */
+            }
+            uart_put(UART0_BASE, (uint8_t)'\a');
+        } else if (event == SLCAN_REPLY) {
             uart_put(UART0_BASE, reply);
         } else if (event == SLCAN_NONE) {
-            clock_idle(); /* until a byte arrives or the next millisecond */
+            idle_until_byte(); /* (or with the real-time clock, the next millisecond) */
         }
     } while ((uint32_t)(clock_ms() - start) < timeout_ms);
     return TRANSPORT_TIMEOUT;

@@ -8,11 +8,14 @@ interface alone (no kernel CAN), then lock-step episodes through ``vcan0`` in th
 
 from __future__ import annotations
 
+import os
 import re
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -23,6 +26,7 @@ from embedrl.cli import main
 from embedrl.export import cycles
 from embedrl.export.build import RUNTIME_C
 from embedrl.export.reference import reference_policy
+from embedrl.hil import candb
 from embedrl.hil.candb import load_interface
 from embedrl.hil.codec import Action, Codec
 from embedrl.hil.firmware import (
@@ -32,6 +36,7 @@ from embedrl.hil.firmware import (
     instruction_summary,
     serve_qemu,
 )
+from embedrl.hil.link import Link, Stats
 from embedrl.hil.sandbox import Guest
 from tests.conftest import Exported
 from tests.hil.conftest import SHIPPED_TD3
@@ -156,6 +161,7 @@ def test_the_host_runs_the_firmware_at_the_guests_request(export_dir: Path, tmp_
         for start, in_order in enumerate((False, True)):
             guest_end.sendall(b"C\r" * 3)  # a closing bridge's lines, dropped before the next start
             assert emulator.start(tmp_path / f"uart1-{start}.txt") == "/dev/ttyS1" and emulator.alive()
+            codec.receivers.clear()  # a fresh image: its E2E counters start again
             frames, _ = codec.encode_observation(obs, 1)
             guest_end.sendall(b"O\r" + b"".join(_slcan(frame) for frame in frames))
             assert _answered_step(guest_end, codec) == 1
@@ -167,6 +173,52 @@ def test_the_host_runs_the_firmware_at_the_guests_request(export_dir: Path, tmp_
     assert _step_lines(tmp_path / "uart1-1.txt") == 1  # stopped in order: its last step's line written
     link.close()
     guest_end.close()
+
+
+@pytest.mark.slow
+def test_the_firmwares_watchdog_counts_the_simulations_time_not_the_hosts(
+    export_dir: Path, tmp_path: Path
+) -> None:
+    """Steps a second apart on the host's clock (twice the 500 ms watchdog) but a sample time apart in the
+    simulation's: every one answered, no timeout. Then the simulation's time goes on with no observation:
+    the safe action at exactly the watchdog (a status period at a time, counted from the last observation)
+    and one timeout in the node's status."""
+    elf = _firmware(export_dir, "cortex-m4", tmp_path)
+    interface = load_interface(export_dir / "interface.json")
+    codec = Codec(interface)
+    channel = f"pil-{tmp_path.name}"
+    observation_ids = [frame_id for _, frame_id, _ in candb.layout(interface).observation]
+    harness = Link(
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
+        codec,
+        Stats(),
+        channel,
+        None,
+    )
+    node = FirmwareNode(
+        str(elf), "mps2-an386", lambda: can.Bus(interface="virtual", channel=channel),
+        tmp_path / "uart1.txt", observation_ids,
+    )  # fmt: skip
+    obs = np.array([(f.low + f.high) / 2 for f in interface.observation], np.float32)
+    try:
+        for step in range(3):
+            assert node.advance(interface.sample_time_s)
+            harness.send(codec.encode_observation(obs, step)[0])
+            assert harness.wait_action(step, time.monotonic() + 10.0) is not None, f"step {step} unanswered"
+            time.sleep(2 * candb.WATCHDOG_MS / 1000)  # the host falls behind
+        quiet_ms, safe_at = 0, None
+        while safe_at is None and quiet_ms < 2 * candb.WATCHDOG_MS:
+            assert node.advance(candb.STATUS_PERIOD_MS / 1000)
+            quiet_ms += candb.STATUS_PERIOD_MS
+            while (decoded := harness.receive(0.05)) is not False:
+                if isinstance(decoded, Action) and np.allclose(decoded.action, interface.safe_action):
+                    safe_at = quiet_ms
+        status = harness.stats.last_status
+    finally:
+        node.kill()
+        harness.close()
+    assert safe_at == candb.WATCHDOG_MS
+    assert status is not None and status.timeouts == 1 and status.state == "SAFE"
 
 
 def _slcan(frame: can.Message) -> bytes:
@@ -245,6 +297,42 @@ def test_one_episode_with_the_firmware_node_on_the_m3(guest: Guest, export_dir: 
     assert report["firmware"]["stack_peak_bytes"] <= report["firmware"]["stack_bound"]["bytes"]
 
 
+@contextmanager
+def cpu_hogs() -> Iterator[None]:
+    """A busy loop per core (a process each, at normal priority) while the block runs."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
+@pytest.mark.slow
+def test_a_busy_host_changes_neither_the_verdict_nor_the_firmwares_steps(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    """The firmware's clock is the simulation's: the same run on a quiet machine and with every core busy
+    gives the same trajectory, the same actions, the same instructions at every step (within the timer's
+    tick) and no watchdog timeout."""
+    argv = ("--node", "firmware", "--episodes", "1", "--seed", "2")
+    quiet = hil(guest, export_dir, tmp_path, *argv)
+    with cpu_hogs():
+        busy = hil(guest, export_dir, tmp_path, *argv)
+    for report in (quiet, busy):
+        assert report["successes"] == 1 and report["rx_timeouts"] == 0 and report["retries"] == 0
+        assert report["node_status"]["timeouts"] == 0 and report["node_status"]["state"] == "RUN"
+    assert busy["per_episode"] == quiet["per_episode"]  # trajectory, outcome, return
+    assert busy["action_diffs"] == quiet["action_diffs"]  # the same actions for the same observations
+    # Each step's count is read off the board's timer: a tick is 40 instructions, and where in a tick a step
+    # starts follows host time while the core sleeps, so a count may read one tick either way.
+    steps = np.asarray(quiet["firmware"]["step_instructions"])
+    again = np.asarray(busy["firmware"]["step_instructions"])
+    assert len(steps) == len(again) == quiet["steps"] > 5
+    assert np.all(np.abs(again - steps) <= INSTRUCTIONS_PER_TICK) and np.all(steps > 40_000)
+
+
 @pytest.mark.slow
 def test_the_node_side_faults_are_detected_on_the_firmware_as_on_the_host_node(
     guest: Guest, export_dir: Path, tmp_path: Path
@@ -267,6 +355,7 @@ def test_the_firmware_node_refuses_what_it_cannot_do_in_one_line(
         (["--nodes", "2"], "drop --nodes"),
         (["--kill-node", "1@0:3"], "drop --kill-node"),
         (["--inject", "link-down-up", "--allow-faults"], "only the C node has"),
+        (["--timeout-ms", "300"], "must exceed the policy's sample time (300 ms)"),  # simulated time
     ):
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err.strip()
