@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 
+from embedrl.common import system_tool
 from embedrl.hil import candb, e2e
 
 if TYPE_CHECKING:  # the command lists the injectors without loading the session's machinery
@@ -547,4 +548,4 @@ def _copy(frame: can.Message) -> can.Message:
 
 
 def _ip(*argv: str) -> None:
-    subprocess.run(["ip", *argv], check=True, capture_output=True, timeout=10)
+    subprocess.run([system_tool("ip") or "ip", *argv], check=True, capture_output=True, timeout=10)
