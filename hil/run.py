@@ -440,7 +440,13 @@ def _with_firmware(options: RunOptions, cfg: SessionConfig, work: Path) -> Sessi
     extra = {"TARGET": options.firmware_target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
     elf = make_node(options, work, extra)
-    return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.firmware_target].qemu_machine)
+    target = TARGETS[options.firmware_target]
+    return replace(
+        cfg,
+        node_binary=str(elf),
+        qemu_machine=target.qemu_machine,
+        tick_instructions=target.tick_instructions,
+    )
 
 
 def _qemu_on_host(cfg: SessionConfig, link: socket.socket) -> AbstractContextManager[None]:

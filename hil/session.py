@@ -72,7 +72,9 @@ class SessionConfig:
     """``c`` (the compiled node, a process), ``firmware`` (the Cortex-M image on QEMU, bridged over SLCAN)
     or ``python`` (the reference node, a thread)."""
     qemu_machine: str | None = None
-    """The board that runs the firmware image (``node="firmware"``), e.g. ``mps2-an386``."""
+    """The board that runs the firmware image (``node="firmware"``), e.g. ``netduinoplus2``."""
+    tick_instructions: float = 1.0
+    """Guest instructions per tick of the firmware board's timer (its target's)."""
     firmware_link: str | None = None
     """The firmware node's QEMU runs on the host (:class:`embedrl.hil.firmware.HostQemu`): the guest's
     serial line to its UART0, e.g. ``/dev/ttyS1``; None: QEMU runs beside the session."""
@@ -481,7 +483,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
             Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
             [frame_id for _, frame_id, _ in plan.observation]
             + ([candb.episode_start_id(node_id)] if interface.state_size else []),
-            on_host,
+            on_host, cfg.tick_instructions,
         )  # fmt: skip
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
 
@@ -649,7 +651,7 @@ def run(cfg: SessionConfig) -> dict[str, Any]:
         results["firmware"] = {
             "machine": cfg.qemu_machine,
             "starts": node.starts,
-            "instructions_per_step": instruction_summary(node.step_instructions()),
+            "instructions_per_step": instruction_summary(node.step_instructions(), node.tick_instructions),
             "step_instructions": node.step_instructions(),
             "stack_peak_bytes": node.stack_peak(),
         }

@@ -1,7 +1,7 @@
 /*
  * The node's clock in real time (platform.h), for a part on its own: the board's timer (timer.c),
  * extended past its 32-bit wrap in 64 bits (the node reads the clock at least every watchdog period, far
- * more often than the 171 s wrap), and a 1 ms SysTick interrupt that wakes the idle loop's WFI.
+ * more often than the timer's wrap), and a 1 ms SysTick interrupt that wakes the idle loop's WFI.
  *
  * Under QEMU, while the core sleeps in WFI, virtual time follows the host's, so the watchdog and the
  * status period run in host time: a slow harness looks like a silent bus. Processor-in-the-loop runs use
@@ -10,7 +10,7 @@
 #include "board.h"
 #include "platform.h"
 
-#define TICKS_PER_US (BOARD_PCLK_HZ / 1000000u)
+#define TICKS_PER_US (BOARD_TIMER_HZ / 1000000u)
 
 static uint32_t last_ticks;
 static uint64_t total_ticks;

@@ -1,21 +1,19 @@
 /*
  * The board's free-running timer and the idle instruction, shared by both clocks (clock_timer.c,
- * clock_sim.c): TIMER0 counts down at BOARD_PCLK_HZ from 2^32 - 1; clock_ticks counts up from timer_start.
- * Under QEMU with -icount shift=N a tick is 40 / 2^N guest instructions (40 at shift=0) while the core
- * runs: the node's per-step instruction counts (node_main.c) are tick differences with no idle in between.
+ * clock_sim.c): clock_ticks counts up from timer_start (board_timer_ticks). Under QEMU with -icount
+ * shift=0 a tick is a fixed number of guest instructions while the core runs (targets.mk's TICK): the
+ * node's per-step instruction counts (node_main.c) are tick differences with no idle in between.
  */
 #include "board.h"
 
 void timer_start(void)
 {
-    TIMER_RELOAD(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_VALUE(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_CTRL(TIMER0_BASE) = TIMER_CTRL_ENABLE;
+    board_timer_start();
 }
 
 uint32_t clock_ticks(void)
 {
-    return 0xFFFFFFFFu - TIMER_VALUE(TIMER0_BASE);
+    return board_timer_ticks();
 }
 
 void clock_idle(void)
