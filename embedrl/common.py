@@ -40,6 +40,16 @@ ROLLOUT_SEED_OFFSET = 1_000_000
 PROVENANCE_PACKAGES = ("embedrl", "gymnasium", "pymunk", "numpy", "stable-baselines3", "torch")
 
 
+SYSTEM_TOOL_DIRS = ("/usr/local/sbin", "/usr/sbin", "/sbin")
+"""Where Debian puts system tools (kmod's ``insmod`` and ``modprobe``, iproute2's ``ip``): a non-root user's
+PATH often lacks them although they run for any user."""
+
+
+def system_tool(name: str) -> str | None:
+    """The path of the program ``name``: on PATH, else in :data:`SYSTEM_TOOL_DIRS`; None if in neither."""
+    return shutil.which(name) or shutil.which(name, path=os.pathsep.join(SYSTEM_TOOL_DIRS))
+
+
 def on_terminal() -> bool:
     """Whether progress bars are drawn: only when stderr is a terminal (a log or a pipe gets none)."""
     return sys.stderr.isatty()

@@ -2,18 +2,20 @@
 instruction timings.
 
 **Instructions** are counted, not estimated: QEMU runs the test image with ``-icount shift=0`` (virtual
-time advances 1 ns per guest instruction), so the MPS2 boards' 25 MHz timer ticks once per
-:data:`INSTRUCTIONS_PER_TICK` instructions; the image times a loop of ``policy_step`` over its test
-observations and the same loop around an empty function, and the difference over the count is the
-instructions of one inference (to 40 / count instructions).
+time advances 1 ns per guest instruction), so the board's timer ticks once per a fixed number of
+instructions (the target table's ``TICK``: 40 for the MPS2 boards' 25 MHz timer, 1 for the STM32F405's TIM2,
+which QEMU runs at 1 GHz); the image times a loop of ``policy_step`` over its test observations and the
+same loop around an empty function, and the difference over the count is the instructions of one inference
+(to ``TICK`` / count instructions).
 
 **Cycles** are estimated: one inference of the size probe (``policy.elf``) is traced instruction by
 instruction (``-singlestep -d exec``), each executed instruction is classed from the image's disassembly,
 and each class costs what the core's technical reference manual lists (:data:`CYCLE_MODELS`, with a taken
 branch told from the next traced address). The estimate's cycles per instruction times the measured
-instructions is the cycle estimate. Wait states of a real part's flash are not modelled (a part running from
-zero-wait-state memory, or with its flash accelerator hitting, matches the model best); :data:`ASSUMPTIONS`
-states what the estimate takes for granted, for the report.
+instructions is the cycle estimate. Wait states of a real part's flash are not modelled (the STM32F405
+at 168 MHz has 5 flash wait states at 3.3 V, RM0090 table 10, which its ART accelerator hides when it
+hits: a part running from zero-wait-state memory, or with its accelerator hitting, matches the model best);
+:data:`ASSUMPTIONS` states what the estimate takes for granted, for the report.
 """
 
 from __future__ import annotations
@@ -28,9 +30,6 @@ from typing import Any
 from embedrl.common import owned_temporary_folder
 from embedrl.export.errors import ExportError
 
-BOARD_CLOCK_HZ = 25_000_000
-INSTRUCTIONS_PER_TICK = 1e9 / BOARD_CLOCK_HZ
-"""Instructions per timer tick under ``-icount shift=0``."""
 ICOUNT = ("-icount", "shift=0")
 TRACE_TIMEOUT_S = 120
 CONDITIONS = {
@@ -91,7 +90,7 @@ CYCLE_MODELS = {
         "Cortex-M4 TRM (ARM DDI 0439B) table 3-1 and FPv4-SP timings (table 7-1): LDR/STR 2, "
         "LDM/STM/PUSH/POP 1+N, taken branch 1+P with P = 2, MUL 1, MLA 2, UMULL 1, SDIV 2-12 (7), "
         "VADD/VMUL 1, VMLA/VFMA 3, VDIV/VSQRT 14, VLDR/VSTR 2, VLDM/VPUSH 1+N, other data processing 1",
-        168_000_000, "STM32F407 at 168 MHz", dict(_M4),
+        168_000_000, "STM32F405 at 168 MHz", dict(_M4),
     ),
     "cortex-m3": CycleModel(
         "Cortex-M3 TRM (ARM DDI 0337H) table 18-1: LDR/STR 2, LDM/STM/PUSH/POP 1+N, taken branch 1+P with "
@@ -107,13 +106,13 @@ CYCLE_MODELS = {
 }  # fmt: skip
 
 
-def instructions_per_inference(report_lines: list[str]) -> float:
+def instructions_per_inference(report_lines: list[str], tick_instructions: float) -> float:
     """From the test image's ``TICKS <policy> <empty> <count>`` line (run under :data:`ICOUNT`)."""
     rows = [line.split() for line in report_lines if line.startswith("TICKS ")]
     if len(rows) != 1 or len(rows[0]) != 4:
         raise ExportError(f"the firmware printed no single TICKS line: {rows}")
     policy, empty, count = (int(v) for v in rows[0][1:])
-    return (policy - empty) * INSTRUCTIONS_PER_TICK / count
+    return (policy - empty) * tick_instructions / count
 
 
 FP_CLASSES: tuple[tuple[tuple[str, ...], str], ...] = (

@@ -233,7 +233,7 @@ def _transfer(mnemonic: str, operands: str) -> str:
     return ""
 
 
-NODE_INTERRUPTS = ("UART0RX_Handler", "SysTick_Handler")
+NODE_INTERRUPTS = ("LinkRx_Handler", "SysTick_Handler")
 """The firmware node's interrupt handlers (runtime_c/cortex_m/startup.c); they share one priority, so
 one never preempts another."""
 

@@ -39,6 +39,10 @@ class Target:
     ram_kib: int
     part: str
     cpu_flags: str
+    board: str
+    """The board file (``runtime_c/cortex_m/boards/<board>/board.h``)."""
+    tick_instructions: float
+    """Guest instructions per tick of the board's timer under ``-icount shift=0``."""
 
     @property
     def has_fpu(self) -> bool:
@@ -48,7 +52,7 @@ class Target:
 
 TARGET_TABLE = build.RUNTIME_C / "cortex_m" / "targets.mk"
 """The one table of targets, read by the Makefile too (which writes each linker script's memory from it)."""
-_ENTRY = re.compile(r"^([\w-]+)\.(CPU|FLASH|RAM|QEMU|PART)\s*:=\s*(.*?)\s*$")
+_ENTRY = re.compile(r"^([\w-]+)\.(CPU|BOARD|FLASH|FLASH_AT|RAM|QEMU|TICK|PART)\s*:=\s*(.*?)\s*$")
 
 
 def load_targets(table: Path = TARGET_TABLE) -> dict[str, Target]:
@@ -59,7 +63,9 @@ def load_targets(table: Path = TARGET_TABLE) -> dict[str, Target]:
         if match:
             entries.setdefault(match.group(1), {})[match.group(2)] = match.group(3)
     return {
-        name: Target(name, e["QEMU"], int(e["FLASH"]), int(e["RAM"]), e["PART"], e["CPU"])
+        name: Target(
+            name, e["QEMU"], int(e["FLASH"]), int(e["RAM"]), e["PART"], e["CPU"], e["BOARD"], float(e["TICK"])
+        )
         for name, e in entries.items()
     }
 
@@ -171,7 +177,7 @@ def run_qemu(target: Target, firmware: Path, count: int, act_dim: int) -> Target
         raise ExportError(
             f"{target.name}: the firmware printed {bits.shape[1]} actions per line, expected {act_dim}"
         )
-    instructions = cycles.instructions_per_inference(lines)
+    instructions = cycles.instructions_per_inference(lines, target.tick_instructions)
     return TargetRun(bits.view(np.float32), np.array([int(row[2]) for row in rows]), stack[0], instructions)
 
 

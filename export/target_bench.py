@@ -81,7 +81,7 @@ def measure(export_dir: Path, target_name: str, emx: Path, work: Path) -> dict[s
         raise ExportError(f"{t.name}: the peer's actions differ from embedrl's by {agreement:.3g}")
     peer_flash = _flash(out / "peer_probe.elf") - _flash(out / "empty.elf")
     peer = _figures(
-        t, cycles.instructions_per_inference(lines),
+        t, cycles.instructions_per_inference(lines, t.tick_instructions),
         cycles.profile(out / "peer_probe.elf", t.qemu_machine, t.name, function="peer"), peer_flash,
     )  # fmt: skip
     return {

@@ -1,14 +1,18 @@
 """``embedrl hil doctor``: every CAN sandbox provider on this machine, booted and self-tested.
 
-Prints the machine's CPU (whether it has AMX decides which UML kernels run) and one row per provider:
-works or not, boot time, and the reason (the self-test's result or the diagnosed failure).
+Prints the machine's CPU (whether it has AMX decides which UML kernels run), a line every
+:data:`PROGRESS_S` while a provider boots and self-tests (a QEMU guest under pure emulation takes minutes),
+and one row per provider: works or not, boot time, and the reason (the self-test's result or the diagnosed
+failure).
 """
 
 from __future__ import annotations
 
 import platform
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -17,6 +21,8 @@ from embedrl.common import owned_temporary_folder
 from embedrl.hil import sandbox
 
 CPUINFO = Path("/proc/cpuinfo")
+PROGRESS_S = 5.0
+"""While a provider boots and runs its self-test, a line every this many seconds says it still does."""
 
 
 def machine() -> dict[str, Any]:
@@ -43,9 +49,30 @@ def machine() -> dict[str, Any]:
     }
 
 
-def doctor(say: Callable[[str], None] = print, mode: str = "auto") -> dict[str, Any]:
+@contextmanager
+def _progress(say: Callable[[str], None], label: str, every_s: float) -> Iterator[None]:
+    """While the block runs, ``say`` every ``every_s`` that ``label`` is still booting or self-testing."""
+    done = threading.Event()
+    start = time.monotonic()
+
+    def tick() -> None:
+        while not done.wait(every_s):
+            say(f"  {label}: still booting or self-testing, {time.monotonic() - start:.0f} s")
+
+    thread = threading.Thread(target=tick, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+
+
+def doctor(
+    say: Callable[[str], None] = print, mode: str = "auto", progress_s: float = PROGRESS_S
+) -> dict[str, Any]:
     """Check every provider of ``mode`` (``auto``: all, in the order ``auto`` tries them); the report
-    with ``first_working`` (what ``--sandbox mode`` picks)."""
+    with ``first_working`` (what ``--sandbox mode`` picks). A line every ``progress_s`` while one boots."""
     info = machine()
     say(f"machine: {info['cpu']}, AMX {'yes' if info['amx'] else 'no'}, host kernel {info['host_kernel']}")
     checks = []
@@ -53,7 +80,8 @@ def doctor(say: Callable[[str], None] = print, mode: str = "auto") -> dict[str, 
         for provider in sandbox.providers(mode):
             say(f"checking {provider.label} ...")
             start = time.monotonic()
-            result = sandbox.check(provider, Path(tmp))
+            with _progress(say, provider.label, progress_s):
+                result = sandbox.check(provider, Path(tmp))
             checks.append({**asdict(result), "check_s": round(time.monotonic() - start, 2)})
     first = next((c["label"] for c in checks if c["works"]), None)
     return {"machine": info, "mode": mode, "providers": checks, "first_working": first}

@@ -28,7 +28,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, cast
 
 import numpy as np
 
-from embedrl.export.contract.layout import layout
+from embedrl.common import system_tool
+from embedrl.export.contract.layout import STATUS_PERIOD_MS, layout
 from embedrl.hil import e2e
 
 if TYPE_CHECKING:  # the command lists the injectors without loading the session's machinery
@@ -59,9 +60,16 @@ DELAY_FACTOR = 1.5
 """A delayed observation is held at least this many watchdog timeouts."""
 DELAY_MAX_FACTOR = 10.0
 """... and on, at most this many, until the node reports its timeout: the watchdog runs on the node's clock,
-and the firmware's (QEMU's instruction-counted time) can fall behind the host's on a loaded machine."""
+which on a loaded machine can fall behind the host's (a node on the simulation's clock is held exactly
+:data:`DELAY_FACTOR` timeouts of that time)."""
 DELAY_POLL_FACTOR = 0.1
 """While held on, the bus is read in slices of this many watchdog timeouts."""
+TIME_STEP_S = STATUS_PERIOD_MS / 1000
+"""While a fault keeps the bus quiet, the simulation's time passes for the node in steps of this: the
+resolution at which its reaction (the watchdog's safe action) is timed."""
+SETTLE_S = 0.02
+"""After a node on the simulation's clock acted on a time advance, what it sent is already on the bus: the
+simulator reads until the bus has been quiet this long."""
 CAN_ERR_CRTL, CAN_ERR_BUSOFF, CAN_ERR_RESTARTED = 0x04, 0x40, 0x100
 CAN_ERR_CRTL_RX_PASSIVE = 0x10
 """Error-frame classes and the controller byte's passive flag (linux/can/error.h)."""
@@ -194,6 +202,10 @@ class Delay(Injector):
 
     def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
         timeout_s = ctx.node_timeout_ms / 1000
+        if ctx.node.simulated_time:  # exactly the hold, in the node's (the simulation's) time
+            pass_time(ctx, DELAY_FACTOR * timeout_s)
+            ctx.link.send(frames)
+            return {"held_ms": round(DELAY_FACTOR * timeout_s * 1000, 1), "clock": "simulated"}
         start = time.monotonic()
         before = ctx.link.stats.last_status
         ctx.link.drain(DELAY_FACTOR * timeout_s)
@@ -201,7 +213,22 @@ class Delay(Injector):
         while not _timed_out_since(before, ctx.link.stats.last_status) and time.monotonic() < give_up:
             ctx.link.drain(DELAY_POLL_FACTOR * timeout_s)
         ctx.link.send(frames)
-        return {"held_ms": round((time.monotonic() - start) * 1000, 1)}
+        return {"held_ms": round((time.monotonic() - start) * 1000, 1), "clock": "real"}
+
+
+def pass_time(ctx: Context, seconds: float, until: Callable[[Any], bool] | None = None) -> float | None:
+    """For a node on the simulation's clock: let ``seconds`` of that time pass, a NodeStatus period
+    (:data:`TIME_STEP_S`) at a time, reading what the node sends after each; with ``until``, stop at the
+    first decoded frame it accepts and return the simulated seconds passed by then (None: never)."""
+    passed = 0.0
+    while passed < seconds:
+        part = min(TIME_STEP_S, seconds - passed)
+        ctx.node.advance(part)
+        passed += part
+        while (decoded := ctx.link.receive(SETTLE_S)) is not False:
+            if until is not None and until(decoded):
+                return passed
+    return None
 
 
 def _timed_out_since(before: Status | None, now: Status | None) -> bool:
@@ -369,25 +396,48 @@ class Silence(Injector):
     answered = False
 
     def apply(self, ctx: Context, frames: list[can.Message], obs: np.ndarray, step: int) -> dict[str, Any]:
-        from embedrl.hil.codec import Action
-
-        last_sent = time.monotonic()
-        deadline = last_sent + SILENCE_S
-        safe_after_ms, safe_seen = None, None
-        while (remaining := deadline - time.monotonic()) > 0:
-            decoded = ctx.link.receive(remaining)
-            if decoded is False:
-                break
-            if isinstance(decoded, Action) and is_safe(decoded.action, ctx.interface):
-                safe_after_ms = (time.monotonic() - last_sent) * 1000
-                safe_seen = decoded.action.tolist()
-                break
+        clock, listen = ("simulated", _safe_in_simulated_time) if ctx.node.simulated_time else ("real", _safe)
+        safe_after_s, safe_seen = listen(ctx)
         return {
-            "safe_action_after_ms": safe_after_ms,
+            "safe_action_after_ms": None if safe_after_s is None else round(safe_after_s * 1000, 3),
             "safe_action": safe_seen,
             "expected_safe_action": list(ctx.interface.safe_action),
             "node_timeout_ms": ctx.node_timeout_ms,
+            "clock": clock,
         }
+
+
+def _safe(ctx: Context) -> tuple[float | None, list[float] | None]:
+    """The node's first safe action within :data:`SILENCE_S` of real time: how long after the silence
+    began (seconds) and its values; (None, None) if none came."""
+    from embedrl.hil.codec import Action
+
+    last_sent = time.monotonic()
+    deadline = last_sent + SILENCE_S
+    while (remaining := deadline - time.monotonic()) > 0:
+        decoded = ctx.link.receive(remaining)
+        if decoded is False:
+            break
+        if isinstance(decoded, Action) and is_safe(decoded.action, ctx.interface):
+            return time.monotonic() - last_sent, decoded.action.tolist()
+    return None, None
+
+
+def _safe_in_simulated_time(ctx: Context) -> tuple[float | None, list[float] | None]:
+    """:func:`_safe` for a node on the simulation's clock: the simulation's time goes on without a frame
+    (:func:`pass_time`, at least two watchdog timeouts), measured from the last observation the node got
+    (the silent step's sample time has passed already)."""
+    from embedrl.hil.codec import Action
+
+    seen: list[list[float]] = []
+
+    def safe(decoded: Any) -> bool:
+        if isinstance(decoded, Action) and is_safe(decoded.action, ctx.interface):
+            seen.append(decoded.action.tolist())
+        return bool(seen)
+
+    after = pass_time(ctx, max(SILENCE_S, 2 * ctx.node_timeout_ms / 1000), safe)
+    return (None, None) if after is None else (after + ctx.interface.sample_time_s, seen[0])
 
 
 class LinkDownUp(Injector):
@@ -499,4 +549,4 @@ def _copy(frame: can.Message) -> can.Message:
 
 
 def _ip(*argv: str) -> None:
-    subprocess.run(["ip", *argv], check=True, capture_output=True, timeout=10)
+    subprocess.run([system_tool("ip") or "ip", *argv], check=True, capture_output=True, timeout=10)

@@ -9,8 +9,15 @@ sees the same frames, IDs and E2E fields as with the host node. It needs no kern
 runs wherever the host node runs (can-utils' ``slcand`` would need the guest's ``slcan`` driver and a
 gateway rule per direction).
 
+The firmware's clock is the simulation's (``runtime_c/cortex_m/clock_sim.c``): the session lets time pass
+for it with :meth:`FirmwareNode.advance`, a time line (``Y`` and the microseconds in hex) on the serial
+line before each step's observation and while a fault keeps the bus quiet; the firmware answers ``Y`` once
+it has acted on the new time. Its watchdog and status period therefore count simulated time: a slow or
+busy host delays the run, never its verdict.
+
 QEMU runs with ``-icount shift=0``: virtual time advances 1 ns per guest instruction, so the timer the
-firmware reads counts instructions (:data:`INSTRUCTIONS_PER_TICK` per tick at the boards' 25 MHz). The
+firmware reads counts instructions (the target's ``tick_instructions`` per tick: 1 on the STM32F405's TIM2,
+40 on the MPS2 boards' 25 MHz timer). The
 firmware writes one line per answered step on its diagnostics UART (UART1, a file here):
 ``S <step> <ticks>`` from the last observation frame in to the action frame out, and after each status
 frame ``X <overflows> <bad lines> <peak stack bytes>``.
@@ -44,14 +51,12 @@ import can
 import numpy as np
 from can.interfaces.slcan import slcanBus
 
+from embedrl.export.contract.layout import STATUS_PERIOD_MS
 from embedrl.hil.errors import HilError
 from embedrl.hil.nodes import Node
 
-BOARD_CLOCK_HZ = 25_000_000
-"""The MPS2 boards' timer clock (runtime_c/cortex_m/board.h)."""
 ICOUNT_SHIFT = 0
-INSTRUCTIONS_PER_TICK = 1e9 / BOARD_CLOCK_HZ / 2**ICOUNT_SHIFT
-"""Guest instructions per timer tick under ``-icount shift=0`` (1 ns of virtual time per instruction)."""
+"""1 ns of virtual time per guest instruction."""
 PTY_TIMEOUT_S = 30.0
 STOP_TIMEOUT_S = 5.0
 DIAG_QUIET_S = 0.2
@@ -60,6 +65,14 @@ just after that step's action frame, so the last line can trail the last answer)
 BRIDGE_POLL_S = 0.01
 REQUEST_POLL_S = 0.005
 """How often the host's QEMU server looks for the session's requests (and the session for the answers)."""
+TIME_LINE_MAX_US = 0xFFFFFFFF
+"""The largest advance one time line carries (8 hex digits); a longer one is sent in parts."""
+TIME_ANSWER_TIMEOUT_S = 10.0
+"""How long the bridge waits for the firmware to answer a time line while its QEMU runs (a loaded host
+may be slow; a QEMU that exits ends the wait at once)."""
+TIME_ANSWER = "Y"
+LISTEN_POLL_S = 0.2
+"""While the firmware starts, a time line of 0 us is sent this often until it answers."""
 _PTY = re.compile(r"char device redirected to (/dev/pts/\d+)")
 _STEP = re.compile(r"^S (\d+) (\d+)$")
 _STATUS = re.compile(r"^X (\d+) (\d+) (\d+)$")
@@ -281,7 +294,35 @@ class SerialLine(slcanBus):
 
     TERMINATORS = (slcanBus._OK[0], slcanBus._ERROR[0])
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._writing = threading.Lock()  # the bridge's thread and the session both write lines
+        self._answers = threading.Condition()
+        self._time_answers = 0
+        super().__init__(*args, **kwargs)
+
+    def tell_time(self, us: int, alive: Callable[[], bool], timeout_s: float = TIME_ANSWER_TIMEOUT_S) -> bool:
+        """Send the time line advancing the firmware's clock by ``us``; True once the firmware answered
+        (read by the bridge's thread: every frame the firmware sent before the answer is on the bus)."""
+        with self._answers:
+            wanted = self._time_answers + 1
+        self._write(f"{TIME_ANSWER}{us:X}")
+        deadline = time.monotonic() + timeout_s
+        with self._answers:
+            while self._time_answers < wanted:
+                if not alive() or time.monotonic() > deadline:
+                    return False
+                self._answers.wait(BRIDGE_POLL_S)
+        return True
+
     def _read(self, timeout: float | None) -> str | None:
+        line = self._read_line(timeout)
+        if line is not None and line.startswith(TIME_ANSWER):
+            with self._answers:
+                self._time_answers += 1
+                self._answers.notify_all()
+        return line
+
+    def _read_line(self, timeout: float | None) -> str | None:
         fd = self.serialPortOrig.fileno()
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
@@ -299,11 +340,15 @@ class SerialLine(slcanBus):
             self._buffer.extend(chunk)
 
     def _write(self, string: str) -> None:
-        self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
+        with self._writing:
+            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
 
 
 class FirmwareNode(Node):
-    """The firmware image on QEMU, bridged to ``iface`` (python-can interface ``bus``)."""
+    """The firmware image on QEMU, bridged to ``iface`` (python-can interface ``bus``); its clock is the
+    simulation's (:meth:`advance`)."""
+
+    simulated_time = True
 
     def __init__(
         self,
@@ -313,10 +358,13 @@ class FirmwareNode(Node):
         diag: Path,
         receive_ids: list[int],
         emulator: Emulator | None = None,
+        tick_instructions: float = 1.0,
     ) -> None:
         """``open_bus``: a new socket on the harness's bus (the bridge's side of it); ``receive_ids``: the
         node's observation IDs, the only frames the bridge carries to the firmware; ``emulator``: where
-        QEMU runs (None: :class:`LocalQemu`, beside the bridge)."""
+        QEMU runs (None: :class:`LocalQemu`, beside the bridge); ``tick_instructions``: guest instructions
+        per tick of the board's timer (the target's)."""
+        self.tick_instructions = tick_instructions
         self.elf, self.machine, self.open_bus, self.diag = elf, machine, open_bus, diag
         self.receive_ids = receive_ids
         self.emulator = emulator or LocalQemu(elf, machine)
@@ -340,6 +388,20 @@ class FirmwareNode(Node):
         ]
         for thread in self.threads:
             thread.start()
+        self._await_listening()
+        # Its first status went out before the bridge opened the serial channel (lost, counted as send
+        # failures): a status period of simulated time brings the next one, the sign that it is up.
+        self.advance(STATUS_PERIOD_MS / 1000)
+
+    def _await_listening(self) -> None:
+        """Wait until the firmware answers a time line of 0 us, then open its channel ('O') again: a UART
+        that the firmware has not enabled yet drops what arrives (the STM32's USART does), and the bridge's
+        first 'O' may have come that early."""
+        deadline = time.monotonic() + PTY_TIMEOUT_S
+        while not self.serial.tell_time(0, self.alive, LISTEN_POLL_S):
+            if not self.alive() or time.monotonic() > deadline:
+                return  # the first step then goes unanswered, and the session says why
+        self.serial.open()
 
     def _carry(self, source: can.BusABC, sink: can.BusABC) -> None:
         """Frames from ``source`` to ``sink`` until the node stops (a closed end ends the direction)."""
@@ -363,6 +425,18 @@ class FirmwareNode(Node):
 
     def alive(self) -> bool:
         return self.emulator.alive()
+
+    def advance(self, seconds: float) -> bool:
+        """Time lines for ``seconds`` of the simulation's time (in parts of at most
+        :data:`TIME_LINE_MAX_US`), each answered before the next goes out; False if one is not (the firmware
+        is gone or hung: the step it was for then goes unanswered)."""
+        left = round(seconds * 1e6)
+        while left > 0 and self.running:
+            part = min(left, TIME_LINE_MAX_US)
+            if not self.serial.tell_time(part, self.alive):
+                return False
+            left -= part
+        return self.running
 
     def exit_reason(self) -> str:
         return f"the firmware's QEMU exited with status {self.emulator.exit_status()}"
@@ -389,7 +463,7 @@ class FirmwareNode(Node):
                 for line in path.read_text(errors="replace").splitlines():
                     match = _STEP.match(line.strip())
                     if match:
-                        counts.append(int(match.group(2)) * INSTRUCTIONS_PER_TICK)
+                        counts.append(int(match.group(2)) * self.tick_instructions)
         return counts
 
     def stack_peak(self) -> int | None:
@@ -405,8 +479,9 @@ class FirmwareNode(Node):
         return max(peaks, default=None)
 
 
-def instruction_summary(counts: list[float]) -> dict[str, Any] | None:
-    """Mean, median, max and count of per-step instruction counts (None without any)."""
+def instruction_summary(counts: list[float], resolution: float) -> dict[str, Any] | None:
+    """Mean, median, max and count of per-step instruction counts, each read to ``resolution`` instructions
+    (None without any)."""
     if not counts:
         return None
     values = np.asarray(counts)
@@ -415,5 +490,5 @@ def instruction_summary(counts: list[float]) -> dict[str, Any] | None:
         "mean": float(values.mean()),
         "p50": float(np.median(values)),
         "max": float(values.max()),
-        "resolution": INSTRUCTIONS_PER_TICK,
+        "resolution": resolution,
     }

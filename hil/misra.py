@@ -33,9 +33,12 @@ from embedrl.train.interface import INTERFACE_FILE
 DEVIATIONS = RUNTIME_C / "misra_deviations.toml"
 FIRMWARE_SOURCES = (
     "node/node.c", "node/e2e.c", "cortex_m/node_main.c", "cortex_m/transport_uart.c", "cortex_m/slcan.c",
-    "cortex_m/clock_timer.c", "cortex_m/startup.c",
+    "cortex_m/timer.c", "cortex_m/clock_sim.c", "cortex_m/startup.c",
 )  # fmt: skip
-"""runtime_c's files of the firmware node (runtime_c/Makefile's FW_NODE_SRCS and STARTUP)."""
+"""runtime_c's files of the firmware node (runtime_c/Makefile's FW_NODE_SRCS with its default clock,
+NODE_CLOCK=sim, and STARTUP)."""
+MISRA_BOARD = "stm32f4"
+"""The board file checked with the node: the default target's (cortex-m4, the STM32F405)."""
 CPPCHECK = ("cppcheck", "--addon=misra", "--std=c99", "--platform=arm32-wchar_t4", "-D__ARM_FP=4", "-q")
 """A 32-bit Arm target with an FPU (the start-up code's FPU branch is analysed too)."""
 GENERATED_PREFIXES = ("c/", "can/")
@@ -159,7 +162,8 @@ def run_cppcheck(export_dir: Path) -> list[Finding]:
             *sorted(can.glob("*.c")),
             *sorted((export_dir / "c").glob("*.c")),
         ]
-        includes = [RUNTIME_C / "node", RUNTIME_C / "cortex_m", can, export_dir / "c"]
+        board = RUNTIME_C / "cortex_m" / "boards" / MISRA_BOARD
+        includes = [RUNTIME_C / "node", RUNTIME_C / "cortex_m", board, can, export_dir / "c"]
         result = subprocess.run(
             [*CPPCHECK, "--template={file}|{line}|{id}", *(f"-I{i}" for i in includes), *map(str, sources)],
             capture_output=True, text=True,

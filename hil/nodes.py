@@ -56,6 +56,15 @@ def action_ok(action: np.ndarray, interface: Interface) -> bool:
 class Node(ABC):
     """A running policy node."""
 
+    simulated_time: bool = False
+    """Whether the node's clock (its watchdog, its status period) runs in the simulation's time, moved only
+    by :meth:`advance` (the firmware node), rather than in real time (the C and the Python node)."""
+
+    def advance(self, seconds: float) -> bool:
+        """Let ``seconds`` of the simulation's time pass for the node; True once it has acted on them (every
+        frame the new time made it send is on the bus). A node on a real clock needs nothing: False."""
+        return False
+
     @abstractmethod
     def alive(self) -> bool: ...
 

@@ -29,6 +29,9 @@ class NodeKind:
     """Programs it needs on PATH, looked for before anything is built or booted."""
     refuses: Mapping[str, str] = field(default_factory=dict)
     """Options (:class:`RunOptions` fields) it cannot honour, each with the reason."""
+    simulated_time: bool = False
+    """Whether its clock is the simulation's (the firmware node): its watchdog is not stretched for a slow
+    sandbox, and must exceed the sample time, which passes for it at every step."""
     builds_c: bool = True
     """Whether the run compiles the export's C and runs it (on this machine's kernel in a sandbox that shares
     its files, or on QEMU with semihosting): only C that is the generator's output, unless ``--trust-c``."""
@@ -46,6 +49,7 @@ NODE_KINDS: dict[str, NodeKind] = {
             "nodes": ONE_BOARD,
             "kill_node": ONE_BOARD,
         },
+        simulated_time=True,
     ),
     "python": NodeKind(
         refuses={

@@ -299,6 +299,11 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> tuple[RunOpt
             f"--timeout-ms {timeout_ms} would trip the node's watchdog between real-time steps: "
             f"it must exceed the policy's sample time ({period_ms:.0f} ms)"
         )
+    if NODE_KINDS[options.node].simulated_time and timeout_ms <= period_ms:
+        raise HilError(
+            f"--timeout-ms {timeout_ms} would trip the {options.node} node's watchdog at every step: its "
+            f"clock is the simulation's, so it must exceed the policy's sample time ({period_ms:.0f} ms)"
+        )
     return options, interface
 
 
@@ -324,8 +329,8 @@ def _in_work_folder(options: RunOptions, interface: Interface, guest: Guest | No
 def session_config(
     options: RunOptions, interface: Interface, slowdown: float = 1.0, **where: Any
 ) -> SessionConfig:
-    """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the default
-    watchdog and the wait for an answer."""
+    """The session's settings; ``slowdown`` (the guest's, :attr:`Guest.slowdown`) stretches the wait for an
+    answer and the default watchdog of a node on a real clock."""
     from embedrl.export.reference import OBSERVATIONS_FILE
     from embedrl.hil.session import SessionConfig
 
@@ -346,6 +351,7 @@ def session_config(
         else "in lock-step"
     )
     injecting = f", injecting {', '.join(options.inject)}" if options.inject else ""
+    stretch = 1.0 if NODE_KINDS[options.node].simulated_time else slowdown  # simulated time is not slow
     print(f"running {options.episodes} episode(s) {nodes}{mode}{injecting}")
     return SessionConfig(
         onnx=str(onnx_of(export_dir)),
@@ -354,7 +360,7 @@ def session_config(
         node=options.node,
         episodes=options.episodes,
         seed=options.seed,
-        node_timeout_ms=round(options.timeout_ms or DEFAULT_TIMEOUT_MS * slowdown),
+        node_timeout_ms=round(options.timeout_ms or DEFAULT_TIMEOUT_MS * stretch),
         action_timeout_s=ACTION_TIMEOUT_S * slowdown,
         realtime=options.realtime,
         inject=options.inject,
@@ -427,7 +433,7 @@ def _guest_session(
     from embedrl.hil import sandbox
 
     with nullcontext(guest) if guest else sandbox.opened(options.sandbox_mode, work / "sandbox") as where:
-        if options.timeout_ms is None and where.slowdown > 1:
+        if options.timeout_ms is None and where.slowdown > 1 and not NODE_KINDS[options.node].simulated_time:
             print(
                 f"node watchdog {DEFAULT_TIMEOUT_MS * where.slowdown:.0f} ms: {where.provider} runs the "
                 f"simulator ~{where.slowdown:.0f}x slower than the host (--timeout-ms sets another)"
@@ -474,7 +480,13 @@ def _with_firmware(
     extra = {"TARGET": options.firmware_target, "NODE_TIMEOUT_MS": str(cfg.node_timeout_ms),
              "NODE_RECOVER": str(cfg.node_recover)}  # fmt: skip
     elf = make_node(options, interface, work, extra)
-    return replace(cfg, node_binary=str(elf), qemu_machine=TARGETS[options.firmware_target].qemu_machine)
+    target = TARGETS[options.firmware_target]
+    return replace(
+        cfg,
+        node_binary=str(elf),
+        qemu_machine=target.qemu_machine,
+        tick_instructions=target.tick_instructions,
+    )
 
 
 def _qemu_on_host(cfg: SessionConfig, link: socket.socket) -> AbstractContextManager[None]:

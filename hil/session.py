@@ -32,7 +32,13 @@ import gymnasium as gym
 import numpy as np
 
 from embedrl.export.contract.interface_file import load_interface
-from embedrl.export.contract.layout import STEP_MODULO, WATCHDOG_MS, episode_start_id, layout
+from embedrl.export.contract.layout import (
+    STATUS_PERIOD_MS,
+    STEP_MODULO,
+    WATCHDOG_MS,
+    episode_start_id,
+    layout,
+)
 from embedrl.export.reference import OnnxPolicy, reference_policy
 from embedrl.hil.codec import Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
@@ -54,6 +60,9 @@ OPEN_LOOP_STEPS = 100
 """Observations per open-loop episode."""
 SNAPSHOT_S = 1.0
 """How long to wait for the node's status after an injection, if none came while the episode ran."""
+LAST_STATUS_S = 0.3
+"""How long to wait for the node's last status when the session ends."""
+STATUS_PERIOD_S = STATUS_PERIOD_MS / 1000
 
 
 @dataclass(frozen=True)
@@ -70,7 +79,9 @@ class SessionConfig:
     """``c`` (the compiled node, a process), ``firmware`` (the Cortex-M image on QEMU, bridged over SLCAN)
     or ``python`` (the reference node, a thread)."""
     qemu_machine: str | None = None
-    """The board that runs the firmware image (``node="firmware"``), e.g. ``mps2-an386``."""
+    """The board that runs the firmware image (``node="firmware"``), e.g. ``netduinoplus2``."""
+    tick_instructions: float = 1.0
+    """Guest instructions per tick of the firmware board's timer (its target's)."""
     firmware_link: str | None = None
     """The firmware node's QEMU runs on the host (:class:`embedrl.hil.firmware.HostQemu`): the guest's
     serial line to its UART0, e.g. ``/dev/ttyS1``; None: QEMU runs beside the session."""
@@ -169,6 +180,7 @@ class BusPolicy:
         frames, decoded = self.link.codec.encode_observation(obs, self.step)
         if self.cfg.realtime:
             self._pace()
+        self.node.advance(self.interface.sample_time_s)  # a sample time passed since the last step
         start = time.monotonic_ns()  # one clock read per side of a step: under UML each is a system call
         scheduled = self.schedule.get((self.episode, self.in_episode))
         if scheduled is None:
@@ -181,6 +193,7 @@ class BusPolicy:
     def send(self, obs: np.ndarray) -> None:
         """The first half of a step in lock-step with other nodes: the observation goes out."""
         frames, decoded = self.link.codec.encode_observation(obs, self.step)
+        self.node.advance(self.interface.sample_time_s)
         self.sent = (frames, decoded, time.monotonic_ns())
         self.link.send(frames)
 
@@ -283,7 +296,10 @@ class BusPolicy:
         steps run (waiting for it here would leave the node without observations), or now."""
         for record, injector, extra, before, since in self.unresolved:
             later = [(st, dg) for t, st, dg in self.link.stats.snapshots if t >= since]
-            after = later[0] if later else (self.link.snapshot(SNAPSHOT_S) if self.node.alive() else None)
+            if later:
+                after: tuple[Status, Diag] | None = later[0]
+            else:
+                after = _next_snapshot(self.link, self.node) if self.node.alive() else None
             record["after"] = _counters(after)
             record["detected"] = _detected(injector, before, after, extra, self.node)
         self.unresolved = []
@@ -328,8 +344,8 @@ def _nodes_on_one_bus(
         for link in links:
             link.wait_status(NODE_BOOT_S)
         yield links, nodes, policies
-        for link in links:
-            link.wait_status(0.3)
+        for link, node in zip(links, nodes, strict=True):
+            _last_status(link, node)
     finally:
         for node in nodes:
             node.stop()
@@ -411,6 +427,19 @@ def _replay(policy: BusPolicy, observations: Any, index: int, seed: int, sample_
     return EpisodeResult(seed, "open-loop", OPEN_LOOP_STEPS, 0.0, OPEN_LOOP_STEPS * sample_time, None, [])
 
 
+def _next_snapshot(link: Link, node: Node) -> tuple[Status, Diag] | None:
+    """The node's next NodeStatus and NodeDiag (None if they do not come within :data:`SNAPSHOT_S`); a node
+    on the simulation's clock sends them once a status period of that time has passed."""
+    node.advance(STATUS_PERIOD_S)
+    return link.snapshot(SNAPSHOT_S)
+
+
+def _last_status(link: Link, node: Node) -> None:
+    """Take the node's status once more before the session ends (its final counters)."""
+    node.advance(STATUS_PERIOD_S)
+    link.wait_status(LAST_STATUS_S)
+
+
 def _counters(snapshot: tuple[Status, Diag] | None) -> dict[str, Any] | None:
     return None if snapshot is None else {**asdict(snapshot[0]), **asdict(snapshot[1])}
 
@@ -461,7 +490,7 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
             Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
             [frame_id for _, frame_id, _ in plan.observation]
             + ([episode_start_id(node_id)] if interface.state_size else []),
-            on_host,
+            on_host, cfg.tick_instructions,
         )  # fmt: skip
     return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
 
@@ -624,14 +653,15 @@ def run(cfg: SessionConfig, interface: Interface | None = None) -> dict[str, Any
             if row["fault"] and not node.alive():
                 break  # the node is gone: later episodes could only fail the same way
         loop_seconds = time.perf_counter() - loop_start
-        link.wait_status(0.3)
+        _last_status(link, node)
     results = _results(cfg, stats, episodes, policy.injections, interface.sample_time_s)
     results["loop_seconds"] = loop_seconds  # the episodes' wall-clock time, start-up and wind-down left out
     if isinstance(node, FirmwareNode):
         results["firmware"] = {
             "machine": cfg.qemu_machine,
             "starts": node.starts,
-            "instructions_per_step": instruction_summary(node.step_instructions()),
+            "instructions_per_step": instruction_summary(node.step_instructions(), node.tick_instructions),
+            "step_instructions": node.step_instructions(),
             "stack_peak_bytes": node.stack_peak(),
         }
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")

@@ -21,6 +21,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
 
+from embedrl.common import SYSTEM_TOOL_DIRS
 from embedrl.hil.errors import HilError
 from embedrl.hil.sandbox.console import Diagnosis, diagnose
 from embedrl.reaper import GroupReaper
@@ -282,6 +283,8 @@ def _guest_script(queue: Path, setup: str, shutdown: str) -> str:
     return f"""#!/bin/sh
 # Written by embedrl (hil/sandbox/base.py): set up (vcan0), then run the jobs the host puts in the queue.
 Q={q}
+PATH="${{PATH:+$PATH:}}{":".join(SYSTEM_TOOL_DIRS)}"
+export PATH
 {setup}
 uname -r > "$Q/ready.tmp" && mv "$Q/ready.tmp" "$Q/ready"
 while [ ! -e "$Q/stop" ]; do

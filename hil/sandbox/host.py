@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+from embedrl.common import system_tool
 from embedrl.hil.sandbox.base import IFACE, Guest, JobResult, Provider, SandboxError
 
 
@@ -37,13 +37,14 @@ class HostProvider(Provider):
     def missing(self) -> str | None:
         if Path(f"/sys/class/net/{IFACE}").exists():
             return None
-        if shutil.which("ip") is None:
+        ip = system_tool("ip")
+        if ip is None:
             return f"no {IFACE} on this host and no `ip` command to create it (Debian iproute2)"
-        created = subprocess.run(["ip", "link", "add", "dev", IFACE, "type", "vcan"], capture_output=True)
+        created = subprocess.run([ip, "link", "add", "dev", IFACE, "type", "vcan"], capture_output=True)
         if created.returncode != 0:
             said = created.stderr.decode(errors="replace").strip() or f"status {created.returncode}"
             return f"no {IFACE} on this host and it cannot be created (`ip link add ... type vcan`: {said})"
-        up = subprocess.run(["ip", "link", "set", "up", IFACE], capture_output=True)
+        up = subprocess.run([ip, "link", "set", "up", IFACE], capture_output=True)
         if up.returncode != 0:
             return (
                 f"{IFACE} was created but cannot be brought up: {up.stderr.decode(errors='replace').strip()}"

@@ -19,6 +19,7 @@ import subprocess
 from dataclasses import dataclass
 from pathlib import Path
 
+from embedrl.common import SYSTEM_TOOL_DIRS, system_tool
 from embedrl.hil.sandbox.base import VCAN_UP, Guest, Provider, SerialLink, VmGuest
 
 PACKAGED_BINARY = "linux.uml"
@@ -32,6 +33,8 @@ CAN_MODULES = (
     "drivers/net/can/vcan.ko",
 )
 """Loaded in this order inside the guest (vcan needs can-dev)."""
+GUEST_TOOLS = ("insmod", "ip")
+"""The host's programs the guest's set-up runs (its PATH includes :data:`SYSTEM_TOOL_DIRS`)."""
 MANIFEST = "manifest.json"
 LINK_LINE = 1
 """The guest's serial line ``ttyS1`` carries :attr:`Guest.link`: its host end is one end of a socket pair
@@ -66,8 +69,12 @@ class UmlProvider(Provider):
     def missing(self) -> str | None:
         if not self.kernel.binary.is_file():
             return f"no User-Mode Linux kernel at {self.kernel.binary} (`make deps` installs one)"
-        if shutil.which("insmod") is None or shutil.which("ip") is None:
-            return "the guest needs insmod and ip from the host (Debian kmod, iproute2)"
+        missing = [tool for tool in GUEST_TOOLS if system_tool(tool) is None]
+        if missing:
+            return (
+                f"the guest needs {' and '.join(missing)} from the host (Debian kmod, iproute2), found "
+                f"neither on PATH nor in {', '.join(SYSTEM_TOOL_DIRS)}"
+            )
         return None
 
     def boot(self, workdir: Path) -> Guest:

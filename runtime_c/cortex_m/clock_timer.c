@@ -1,26 +1,23 @@
 /*
- * The node's clock on bare metal (platform.h): TIMER0 counts down at BOARD_PCLK_HZ; clock_ms and
- * clock_us extend it past its 32-bit wrap in 64 bits (the node reads the clock at least every
- * watchdog period, far more often than the 171 s wrap).
+ * The node's clock in real time (platform.h), for a part on its own: the board's timer (timer.c),
+ * extended past its 32-bit wrap in 64 bits (the node reads the clock at least every watchdog period, far
+ * more often than the timer's wrap), and a 1 ms SysTick interrupt that wakes the idle loop's WFI.
  *
- * Under QEMU with -icount shift=N, virtual time advances 2^N ns per guest instruction, so a tick is
- * 40 / 2^N instructions (40 at shift=0): the harness turns tick counts into instruction counts. While the
- * core sleeps in WFI (clock_idle), QEMU's virtual time follows the host's, so the watchdog and the status
- * period run in real time between steps.
+ * Under QEMU, while the core sleeps in WFI, virtual time follows the host's, so the watchdog and the
+ * status period run in host time: a slow harness looks like a silent bus. Processor-in-the-loop runs use
+ * the simulation's time instead (clock_sim.c).
  */
 #include "board.h"
 #include "platform.h"
 
-#define TICKS_PER_US (BOARD_PCLK_HZ / 1000000u)
+#define TICKS_PER_US (BOARD_TIMER_HZ / 1000000u)
 
 static uint32_t last_ticks;
 static uint64_t total_ticks;
 
 void clock_init(void)
 {
-    TIMER_RELOAD(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_VALUE(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_CTRL(TIMER0_BASE) = TIMER_CTRL_ENABLE;
+    timer_start();
     last_ticks = 0u;
     total_ticks = 0u;
     SYST_RVR = BOARD_CPU_HZ / 1000u - 1u;
@@ -28,19 +25,10 @@ void clock_init(void)
     SYST_CSR = SYST_CSR_ENABLE_TICKINT_CORE;
 }
 
-void SysTick_Handler(void)
+bool clock_advance_us(uint32_t us)
 {
-    /* nothing to do: the interrupt only ends the idle loop's WFI */
-}
-
-void clock_idle(void)
-{
-    __asm__ volatile("wfi" ::: "memory");
-}
-
-uint32_t clock_ticks(void)
-{
-    return 0xFFFFFFFFu - TIMER_VALUE(TIMER0_BASE);
+    (void)us;
+    return false; /* a real-time clock takes no time from outside */
 }
 
 static uint64_t ticks64(void)

@@ -5,8 +5,9 @@
  *
  * Diagnostics line (UART1), one line each:
  *   READY                       the node runs (after its interface opened)
- *   S <step> <cycle>            a step answered: timer ticks from its observation's last frame in to its
- *                               action frame out (under QEMU -icount: instructions, see clock_timer.c)
+ *   S <step> <cycle>            a step answered: timer ticks from its observation's last frame in to the
+ *                               end of the last frame it sent (its action; under QEMU -icount: instructions,
+ *                               see timer.c)
  *   X <overflows> <bad_lines> <stack>
  *                               after each status frame: receive-ring overflows, refused lines and the
  *                               peak stack so far in bytes (the stack is painted at start: every word
@@ -99,7 +100,7 @@ int main(void)
             uint32_t answered = node.actions_sent;
             node_on_frame(&node, &frame, clock_ms());
             if (node.actions_sent != answered) {
-                uint32_t cycle = clock_ticks() - transport_frame_ticks();
+                uint32_t cycle = transport_sent_ticks() - transport_frame_ticks(); /* the last frame sent */
                 report_step(node.last_step, cycle);
             }
         }

@@ -4,7 +4,7 @@
  * times policy_step (export/cycles.py):
  *
  *   A <index> <hex>...           the action's IEEE-754 bits, one line per observation
- *   TICKS <peer> <empty> <count> TIMER0 ticks of a loop calling it on every observation, and of the same
+ *   TICKS <peer> <empty> <count> timer ticks (board.h) of a loop calling it on every observation, and of the same
  *                                loop around a function that does nothing
  *
  * With PROBE defined it only calls the peer once (the image traced for the cycle estimate).
@@ -31,11 +31,11 @@ static void __attribute__((noinline)) no_peer(int batch, const float obs[][POLIC
 
 static uint32_t timed_pass(volatile peer_fn fn, float act[1][POLICY_ACT_DIM])
 {
-    uint32_t start = TIMER_VALUE(TIMER0_BASE);
+    uint32_t start = board_timer_ticks();
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
         fn(1, &embedrl_test_obs[i], act);
     }
-    return start - TIMER_VALUE(TIMER0_BASE);
+    return board_timer_ticks() - start;
 }
 
 int main(void)
@@ -56,9 +56,7 @@ int main(void)
         }
         printf("\n");
     }
-    TIMER_RELOAD(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_VALUE(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_CTRL(TIMER0_BASE) = TIMER_CTRL_ENABLE;
+    board_timer_start();
     uint32_t peer_ticks = timed_pass(peer, act);
     uint32_t empty_ticks = timed_pass(no_peer, act);
     printf("TICKS %lu %lu %u\n", (unsigned long)peer_ticks, (unsigned long)empty_ticks, embedrl_test_count);

@@ -117,6 +117,24 @@ static uint8_t command(slcan_rx *rx, const char *line, uint32_t len)
     }
 }
 
+#define TIME_DIGITS_MAX 8u
+
+/* A time line ("Y" and 1-8 hex digits): its advance into *us; false if malformed. */
+static bool parse_time(const char *line, uint32_t len, uint32_t *us)
+{
+    bool ok = (len >= 2u) && (len <= (1u + TIME_DIGITS_MAX));
+    uint32_t value = 0u;
+    for (uint32_t i = 1u; ok && (i < len); ++i) {
+        int v = hex_value(line[i]);
+        ok = (v >= 0);
+        value = (value << 4) | (uint32_t)(ok ? v : 0);
+    }
+    if (ok) {
+        *us = value;
+    }
+    return ok;
+}
+
 slcan_event slcan_rx_poll(slcan_rx *rx, can_frame_t *frame, uint8_t *reply)
 {
     for (uint32_t budget = 0u; budget <= SLCAN_RING_BYTES; ++budget) {
@@ -156,6 +174,12 @@ slcan_event slcan_rx_poll(slcan_rx *rx, can_frame_t *frame, uint8_t *reply)
             rx->bad_lines += 1u;
             *reply = ERROR_REPLY;
             return SLCAN_REPLY;
+        }
+        if (rx->line[0] == 'Y') {
+            bool ok = parse_time(rx->line, len, &rx->advance_us);
+            rx->bad_lines += ok ? 0u : 1u;
+            *reply = ERROR_REPLY; /* the answer if refused; a taken line is answered by the transport */
+            return ok ? SLCAN_TIME : SLCAN_REPLY;
         }
         *reply = command(rx, rx->line, len);
         return SLCAN_REPLY;

@@ -7,6 +7,10 @@
  * as python-can's `slcan` interface and can-utils' `slcand` expect. Extended IDs, remote and CAN FD
  * frames are refused ('\a') and counted: the policy's database has none.
  *
+ * One line beyond Lawicel's, for processor-in-the-loop runs: 'Y' and 1-8 hex digits, "the simulation's
+ * time advanced by this many microseconds" (SLCAN_TIME). The firmware's simulated clock (clock_sim.c)
+ * takes it; the transport answers "Y\r" once the node has acted on the new time (transport_uart.c).
+ *
  * Bytes arrive through slcan_rx_push (from the UART's receive interrupt) into a ring buffer; a full
  * buffer drops the byte and counts it (the line it belonged to is then corrupt and dropped too).
  * No malloc; every loop is bounded by SLCAN_MAX_LINE or SLCAN_RING_BYTES.
@@ -27,6 +31,7 @@ typedef enum {
     SLCAN_NONE = 0,  /* no complete line yet */
     SLCAN_FRAME = 1, /* *frame holds a standard-ID data frame */
     SLCAN_REPLY = 2, /* a command: *reply is the byte to answer with ('\r' or '\a') */
+    SLCAN_TIME = 3,  /* a time line: rx->advance_us holds the microseconds it advances the clock by */
 } slcan_event;
 
 typedef struct {
@@ -41,6 +46,7 @@ typedef struct {
     bool line_broken; /* too long, or bytes of it were dropped: discarded at its terminator */
     uint32_t bad_lines;  /* lines that were neither a valid frame nor a known command */
     bool open;           /* after 'O' (or 'L'): frames are passed on */
+    uint32_t advance_us; /* the last time line's advance (valid after SLCAN_TIME) */
 } slcan_rx;
 
 void slcan_init(slcan_rx *rx);

@@ -7,17 +7,21 @@
 #include <stdint.h>
 #include <stdlib.h>
 
+#include "board.h"
+
 extern uint32_t _sidata[], _sdata[], _edata[], _sbss[], _ebss[], _estack[];
 int main(void);
 void Reset_Handler(void);
 void Default_Handler(void);
 
-/* The firmware node's UART receive interrupt (transport_uart.c); images without it never enable it. */
-void UART0RX_Handler(void) __attribute__((weak, alias("Default_Handler")));
+/* The firmware node's link receive interrupt (transport_uart.c); images without it never enable it. */
+void LinkRx_Handler(void) __attribute__((weak, alias("Default_Handler")));
 void SysTick_Handler(void) __attribute__((weak, alias("Default_Handler")));
 
-/* The initial stack pointer, reset, the fault handlers and external interrupt 0 (UART0 receive on the
- * MPS2 boards); nothing else is enabled. */
+#define CORE_VECTORS 16u
+
+/* The initial stack pointer, reset, the fault handlers and the board's link receive interrupt (external
+ * interrupt BOARD_LINK_IRQ); nothing else is enabled. */
 __attribute__((section(".isr_vector"), used)) const uintptr_t vector_table[] = {
     (uintptr_t)_estack,         /* initial stack pointer */
     (uintptr_t)Reset_Handler,   /* reset */
@@ -32,7 +36,7 @@ __attribute__((section(".isr_vector"), used)) const uintptr_t vector_table[] = {
     0u,                         /* reserved */
     (uintptr_t)Default_Handler, /* PendSV */
     (uintptr_t)SysTick_Handler, /* SysTick (the firmware node's idle wake-up) */
-    (uintptr_t)UART0RX_Handler, /* IRQ 0 */
+    [CORE_VECTORS + BOARD_LINK_IRQ] = (uintptr_t)LinkRx_Handler,
 };
 
 void Default_Handler(void)

@@ -5,9 +5,9 @@
  *   STACK <bytes>              peak stack of one policy_step, measured by stack painting
  *   A <index> <code> <hex>...  return code and the action's IEEE-754 bits, one line per observation
  *   TICKS <policy> <empty> <count>
- *                              TIMER0 ticks of a loop calling policy_step on every observation, and of the
+ *                              timer ticks (board.h) of a loop calling policy_step on every observation, and of the
  *                              same loop calling a function that does nothing (the loop's own cost);
- *                              under QEMU -icount shift=0 a tick is 40 instructions (export/cycles.py)
+ *                              under QEMU -icount shift=0 a tick is targets.mk's TICK instructions
  *   DONE <count>
  */
 #include <stdint.h>
@@ -33,11 +33,11 @@ static int __attribute__((noinline)) no_step(const float obs[POLICY_OBS_DIM], fl
 /* Ticks of one pass over the observations calling step (through a volatile pointer: the same call). */
 static uint32_t timed_pass(int (*volatile step)(const float *, float *), float act[POLICY_ACT_DIM])
 {
-    uint32_t start = TIMER_VALUE(TIMER0_BASE);
+    uint32_t start = board_timer_ticks();
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
         (void)step(embedrl_test_obs[i], act);
     }
-    return start - TIMER_VALUE(TIMER0_BASE); /* a down counter */
+    return board_timer_ticks() - start;
 }
 
 static uint32_t bits(float f)
@@ -77,9 +77,7 @@ int main(void)
         }
         printf("\n");
     }
-    TIMER_RELOAD(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_VALUE(TIMER0_BASE) = 0xFFFFFFFFu;
-    TIMER_CTRL(TIMER0_BASE) = TIMER_CTRL_ENABLE;
+    board_timer_start();
     uint32_t policy_ticks = timed_pass(policy_step, act);
     uint32_t empty_ticks = timed_pass(no_step, act);
     printf("TICKS %lu %lu %u\n", (unsigned long)policy_ticks, (unsigned long)empty_ticks, embedrl_test_count);

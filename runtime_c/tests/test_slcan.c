@@ -165,6 +165,23 @@ static void test_a_full_ring_counts_overflows_and_drops_the_damaged_line(void)
     CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_FRAME && frame.data[0] == 0xDDu);
 }
 
+static void test_time_lines_carry_the_simulations_advance(void)
+{
+    static slcan_rx rx;
+    slcan_init(&rx);
+    can_frame_t frame;
+    uint8_t reply = 0u;
+    push_text(&rx, "Y493E0\rYFFFFFFFF\ry1\r");
+    CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_TIME && rx.advance_us == 300000u);
+    CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_TIME && rx.advance_us == 0xFFFFFFFFu);
+    CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\a'); /* lower case: not ours */
+    push_text(&rx, "Y\rY123456789\rY12G\r"); /* no digits, nine digits, not hex: refused and counted */
+    for (int i = 0; i < 3; ++i) {
+        CHECK(slcan_rx_poll(&rx, &frame, &reply) == SLCAN_REPLY && reply == '\a');
+    }
+    CHECK(rx.bad_lines == 4u && rx.advance_us == 0xFFFFFFFFu); /* a refused line leaves the advance */
+}
+
 int main(void)
 {
     test_encode_is_the_lawicel_line();
@@ -175,6 +192,7 @@ int main(void)
     test_every_known_command_is_answered_and_a_bad_frame_line_counted();
     test_an_overlong_line_is_dropped_whole();
     test_a_full_ring_counts_overflows_and_drops_the_damaged_line();
+    test_time_lines_carry_the_simulations_advance();
     printf("slcan: %d checks, %d failures\n", checks, failures);
     return failures == 0 ? 0 : 1;
 }

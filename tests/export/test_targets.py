@@ -43,7 +43,7 @@ def study_export(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return report
 
 
-@pytest.mark.parametrize(("target", "machine"), [("cortex-m4", "mps2-an386"), ("cortex-m3", "mps2-an385")])
+@pytest.mark.parametrize(("target", "machine"), [("cortex-m4", "netduinoplus2"), ("cortex-m3", "mps2-an385")])
 def test_firmware_matches_onnxruntime_on_qemu(
     study_export: dict[str, Any], target: str, machine: str
 ) -> None:
@@ -130,7 +130,7 @@ def test_firmware_builds_by_hand_from_an_export(tmp_path: Path) -> None:
         [
             "qemu-system-arm",
             "-M",
-            "mps2-an386",
+            "netduinoplus2",
             "-nographic",
             "-monitor",
             "none",
@@ -209,6 +209,8 @@ def test_one_table_gives_the_linker_script_and_the_report_their_memory(tmp_path:
         )
         text = script.read_text()
         assert f"LENGTH = {t.flash_kib}K" in text and f"LENGTH = {t.ram_kib}K" in text and t.part in text
+        flash_at = "0x08000000" if t.board == "stm32f4" else "0x00000000"  # STM32 flash; MPS2 code memory
+        assert f"FLASH (rx) : ORIGIN = {flash_at}" in text
         flags = subprocess.run(
             ["make", "-s", "-C", str(build.RUNTIME_C), f"TARGET={name}", "flags"],
             check=True,

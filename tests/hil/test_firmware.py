@@ -8,10 +8,14 @@ interface alone (no kernel CAN), then lock-step episodes through ``vcan0`` in th
 
 from __future__ import annotations
 
+import os
 import re
 import socket
 import subprocess
+import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import can
@@ -22,21 +26,24 @@ from embedrl.cli import main
 from embedrl.export import cycles
 from embedrl.export.build import RUNTIME_C
 from embedrl.export.contract.interface_file import load_interface
+from embedrl.export.contract.layout import STATUS_PERIOD_MS, WATCHDOG_MS, layout
 from embedrl.export.reference import reference_policy
+from embedrl.export.target import TARGETS
 from embedrl.hil.codec import Action, Codec
 from embedrl.hil.firmware import (
-    INSTRUCTIONS_PER_TICK,
     FirmwareNode,
     HostQemu,
     instruction_summary,
     serve_qemu,
 )
+from embedrl.hil.link import Link, Stats
 from embedrl.hil.sandbox import Guest
 from tests.conftest import Exported
 from tests.hil.conftest import SHIPPED_TD3
 from tests.hil.helpers import hil
 
 TOLERANCE = 1e-5
+M4F_MACHINE = TARGETS["cortex-m4"].qemu_machine
 NODE_FAULTS = (
     "corrupt", "replay", "delay", "out-of-range", "kill-restart", "replay-fresh", "silent", "loss", "flood",
 )  # fmt: skip
@@ -45,18 +52,19 @@ NODE_FAULTS = (
 
 def test_instruction_figures_come_from_the_timer_lines(tmp_path: Path) -> None:
     assert cycles.instructions_per_inference(
-        ["STACK 52", "TICKS 298399 64 256", "DONE 256"]
+        ["STACK 52", "TICKS 298399 64 256", "DONE 256"], 40.0
     ) == pytest.approx((298399 - 64) * 40 / 256)
     with pytest.raises(Exception, match="TICKS"):
-        cycles.instructions_per_inference(["DONE 256"])
+        cycles.instructions_per_inference(["DONE 256"], 1.0)
     node = FirmwareNode.__new__(FirmwareNode)  # the diagnostics files only: no QEMU
-    node.diag, node.starts = tmp_path / "uart1.txt", 2
+    node.diag, node.starts, node.tick_instructions = tmp_path / "uart1.txt", 2, 40.0
     (tmp_path / "uart1-0.txt").write_text("READY\nS 1 1250\nX 0 0\nS 2 1260\ngarbage\n")
     (tmp_path / "uart1-1.txt").write_text("READY\nS 1 1240\n")
     assert node.step_instructions() == [1250 * 40.0, 1260 * 40.0, 1240 * 40.0]
-    summary = instruction_summary(node.step_instructions())
-    assert summary is not None and summary["steps"] == 3 and summary["max"] == 1260 * INSTRUCTIONS_PER_TICK
-    assert instruction_summary([]) is None
+    summary = instruction_summary(node.step_instructions(), 40.0)
+    assert summary is not None and summary["steps"] == 3 and summary["max"] == 1260 * 40.0
+    assert summary["resolution"] == 40.0 and instruction_summary([], 1.0) is None
+    assert TARGETS["cortex-m4"].tick_instructions == 1.0  # the STM32F405's TIM2: one tick per instruction
 
 
 @pytest.mark.parametrize(
@@ -100,7 +108,7 @@ def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
     random observations answered, each within the signals' resolution of the export's reference."""
     elf = _firmware(export_dir, "cortex-m4", tmp_path)
     qemu = subprocess.Popen(
-        ["qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none", "-semihosting", "-serial",
+        ["qemu-system-arm", "-M", M4F_MACHINE, "-nographic", "-monitor", "none", "-semihosting", "-serial",
          "pty", "-serial", f"file:{tmp_path / 'uart1.txt'}", "-icount", "shift=0", "-kernel", str(elf)],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
@@ -108,6 +116,7 @@ def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
         assert qemu.stdout is not None
         pty = re.search(r"/dev/pts/\d+", qemu.stdout.readline())
         assert pty is not None
+        _await_ready(tmp_path / "uart1.txt")  # its USART drops what comes before it is enabled
         bus = can.Bus(interface="slcan", channel=pty.group(0), sleep_after_open=0)
         interface = load_interface(export_dir / "interface.json")
         codec, reference = Codec(interface), reference_policy(export_dir)
@@ -151,10 +160,12 @@ def test_the_host_runs_the_firmware_at_the_guests_request(export_dir: Path, tmp_
     codec = Codec(interface)
     obs = np.array([(f.low + f.high) / 2 for f in interface.observation], np.float32)
     emulator = HostQemu(tmp_path / "control", "/dev/ttyS1")
-    with serve_qemu(str(elf), "mps2-an386", link, tmp_path / "control"):
+    with serve_qemu(str(elf), M4F_MACHINE, link, tmp_path / "control"):
         for start, in_order in enumerate((False, True)):
             guest_end.sendall(b"C\r" * 3)  # a closing bridge's lines, dropped before the next start
             assert emulator.start(tmp_path / f"uart1-{start}.txt") == "/dev/ttyS1" and emulator.alive()
+            _await_ready(tmp_path / f"uart1-{start}.txt")
+            codec.receivers.clear()  # a fresh image: its E2E counters start again
             frames, _ = codec.encode_observation(obs, 1)
             guest_end.sendall(b"O\r" + b"".join(_slcan(frame) for frame in frames))
             assert _answered_step(guest_end, codec) == 1
@@ -166,6 +177,60 @@ def test_the_host_runs_the_firmware_at_the_guests_request(export_dir: Path, tmp_
     assert _step_lines(tmp_path / "uart1-1.txt") == 1  # stopped in order: its last step's line written
     link.close()
     guest_end.close()
+
+
+@pytest.mark.slow
+def test_the_firmwares_watchdog_counts_the_simulations_time_not_the_hosts(
+    export_dir: Path, tmp_path: Path
+) -> None:
+    """Steps a second apart on the host's clock (twice the 500 ms watchdog) but a sample time apart in the
+    simulation's: every one answered, no timeout. Then the simulation's time goes on with no observation:
+    the safe action at exactly the watchdog (a status period at a time, counted from the last observation)
+    and one timeout in the node's status."""
+    elf = _firmware(export_dir, "cortex-m4", tmp_path)
+    interface = load_interface(export_dir / "interface.json")
+    codec = Codec(interface)
+    channel = f"pil-{tmp_path.name}"
+    observation_ids = [frame_id for _, frame_id, _ in layout(interface).observation]
+    harness = Link(
+        can.Bus(interface="virtual", channel=channel, receive_own_messages=False),
+        codec,
+        Stats(),
+        channel,
+        None,
+    )
+    node = FirmwareNode(
+        str(elf), M4F_MACHINE, lambda: can.Bus(interface="virtual", channel=channel),
+        tmp_path / "uart1.txt", observation_ids,
+    )  # fmt: skip
+    obs = np.array([(f.low + f.high) / 2 for f in interface.observation], np.float32)
+    try:
+        for step in range(3):
+            assert node.advance(interface.sample_time_s)
+            harness.send(codec.encode_observation(obs, step)[0])
+            assert harness.wait_action(step, time.monotonic() + 10.0) is not None, f"step {step} unanswered"
+            time.sleep(2 * WATCHDOG_MS / 1000)  # the host falls behind
+        quiet_ms, safe_at = 0, None
+        while safe_at is None and quiet_ms < 2 * WATCHDOG_MS:
+            assert node.advance(STATUS_PERIOD_MS / 1000)
+            quiet_ms += STATUS_PERIOD_MS
+            while (decoded := harness.receive(0.05)) is not False:
+                if isinstance(decoded, Action) and np.allclose(decoded.action, interface.safe_action):
+                    safe_at = quiet_ms
+        status = harness.stats.last_status
+    finally:
+        node.kill()
+        harness.close()
+    assert safe_at == WATCHDOG_MS
+    assert status is not None and status.timeouts == 1 and status.state == "SAFE"
+
+
+def _await_ready(diag: Path, timeout_s: float = 10.0) -> None:
+    """Wait for the firmware's READY line: its link UART is enabled from then on."""
+    deadline = time.monotonic() + timeout_s
+    while not (diag.is_file() and diag.read_text().startswith("READY")):
+        assert time.monotonic() < deadline, "the firmware never said READY"
+        time.sleep(0.02)
 
 
 def _slcan(frame: can.Message) -> bytes:
@@ -214,6 +279,7 @@ def test_three_lock_step_episodes_with_the_firmware_node_on_the_m4f(
     assert 40_000 < per_step["mean"] < 80_000 and per_step["max"] < 2 * per_step["mean"]
     timed = report["time_on_target"]  # the worst step at the modelled part's clock, against the sample time
     assert timed["clock"]["hz"] == 168_000_000 and timed["worst_step_instructions"] == per_step["max"]
+    assert "STM32F405" in timed["clock"]["part"] and per_step["resolution"] == 1.0  # the image's part
     assert 1.0 < timed["cycles_per_instruction"] < 3.0
     step_s = timed["estimated_step_us"] / 1e6
     assert timed["margin_s"] == pytest.approx(timed["sample_time_s"] - step_s, abs=1e-5)
@@ -244,6 +310,40 @@ def test_one_episode_with_the_firmware_node_on_the_m3(guest: Guest, export_dir: 
     assert report["firmware"]["stack_peak_bytes"] <= report["firmware"]["stack_bound"]["bytes"]
 
 
+@contextmanager
+def cpu_hogs() -> Iterator[None]:
+    """A busy loop per core (a process each, at normal priority) while the block runs."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 1)]
+    try:
+        yield
+    finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
+
+
+@pytest.mark.slow
+def test_a_busy_host_changes_neither_the_verdict_nor_the_firmwares_steps(
+    guest: Guest, export_dir: Path, tmp_path: Path
+) -> None:
+    """The firmware's clock is the simulation's: the same run on a quiet machine and with every core busy
+    gives the same trajectory, the same actions, the same instructions at every step (within the timer's
+    tick) and no watchdog timeout."""
+    argv = ("--node", "firmware", "--episodes", "1", "--seed", "2")
+    quiet = hil(guest, export_dir, tmp_path, *argv)
+    with cpu_hogs():
+        busy = hil(guest, export_dir, tmp_path, *argv)
+    for report in (quiet, busy):
+        assert report["successes"] == 1 and report["rx_timeouts"] == 0 and report["retries"] == 0
+        assert report["node_status"]["timeouts"] == 0 and report["node_status"]["state"] == "RUN"
+    assert busy["per_episode"] == quiet["per_episode"]  # trajectory, outcome, return
+    assert busy["action_diffs"] == quiet["action_diffs"]  # the same actions for the same observations
+    # Each step's count is read off the STM32F405's TIM2, one tick per instruction under QEMU: exact.
+    steps = quiet["firmware"]["step_instructions"]
+    assert len(steps) == quiet["steps"] > 5 and busy["firmware"]["step_instructions"] == steps
+    assert min(steps) > 40_000
+
+
 @pytest.mark.slow
 def test_the_node_side_faults_are_detected_on_the_firmware_as_on_the_host_node(
     guest: Guest, export_dir: Path, tmp_path: Path
@@ -266,6 +366,7 @@ def test_the_firmware_node_refuses_what_it_cannot_do_in_one_line(
         (["--nodes", "2"], "drop --nodes"),
         (["--kill-node", "1@0:3"], "drop --kill-node"),
         (["--inject", "link-down-up", "--allow-faults"], "only the C node has"),
+        (["--timeout-ms", "300"], "must exceed the policy's sample time (300 ms)"),  # simulated time
     ):
         assert main([*base, *extra]) == 2
         err = capsys.readouterr().err.strip()
