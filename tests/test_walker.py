@@ -1,0 +1,157 @@
+"""The deck's walking robot: its reward term by term against hand-computed values, the env's API, and the
+contract (spec -> env spaces, docstring tables, CAN database) derived from its scenario spec."""
+
+from __future__ import annotations
+
+import pickle
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from embedrl.hil import candb
+from embedrl.hil.codec import Codec
+from embedrl.train import deck_reward
+from embedrl.train.deck_reward import TERMS, VARIANTS, DeckReward
+from embedrl.train.scenarios import SCENARIOS, WALKER
+from embedrl.train.walker_env import EPISODE_S, FALL, DeckWalkerEnv
+from tests.test_interface import _table
+
+Ts, Tf = 0.008, 8.0
+
+
+def test_each_term_of_the_deck_reward_against_hand_computed_values() -> None:
+    u = np.array([0.5, -0.5, 0.0, 0.0, 1.0, 0.0])
+    terms = DeckReward().terms(v_x=0.7, y=0.2, z_hat=-0.1, previous_action=u, sample_time=Ts, episode_s=Tf)
+    # v_x; -3 * 0.2^2; -50 * 0.1^2; 25 * 0.008 / 8; -0.02 * (0.25 + 0.25 + 1)
+    expected = {"forward": 0.7, "path": -0.12, "height": -0.5, "survive": 0.025, "effort": -0.03}
+    assert terms.keys() == expected.keys() and tuple(terms) == TERMS
+    for term, value in expected.items():
+        assert terms[term] == pytest.approx(value, abs=1e-12), term
+
+
+@pytest.mark.parametrize(
+    ("name", "kept"),
+    [
+        ("velocity", {"forward"}),
+        ("upright", {"forward", "height", "survive"}),
+        ("effort", {"forward", "height", "survive", "effort"}),
+        ("deck", set(TERMS)),
+    ],
+)
+def test_the_four_shaping_stages_keep_the_deck_s_terms(name: str, kept: set[str]) -> None:
+    terms = VARIANTS[name].terms(1.0, 1.0, 1.0, np.ones(6), Ts, Tf)
+    assert {t for t, v in terms.items() if v != 0.0} == kept
+    assert list(VARIANTS) == ["velocity", "upright", "effort", "deck"]
+    with pytest.raises(ValueError, match="not one of velocity, upright, effort, deck"):
+        deck_reward.variant("thesis")
+
+
+def test_the_env_reward_is_the_deck_formula_on_the_simulation() -> None:
+    """Two steps by hand: v_x from the trunk's x over the step, z_hat from the height after reset, the
+    survive bonus 25 Ts/Tf, the effort on the previous action (none before the first)."""
+    env = DeckWalkerEnv()
+    env.reset(seed=5)
+    data = env._sim.unwrapped.data  # type: ignore[attr-defined]
+    x0, z0 = float(data.qpos[0]), float(data.qpos[1])
+    a1 = np.array([0.3, -0.2, 0.1, 0.0, 0.5, -0.4], dtype=np.float32)
+    a2 = np.array([-0.6, 0.2, 0.0, 0.9, 0.0, 0.1], dtype=np.float32)
+    _, r1, *_ = env.step(a1)
+    x1, z1 = float(data.qpos[0]), float(data.qpos[1])
+    assert r1 == pytest.approx((x1 - x0) / Ts - 50 * (z1 - z0) ** 2 + 25 * Ts / Tf, abs=1e-9)
+    _, r2, _, _, info = env.step(a2)
+    x2, z2 = float(data.qpos[0]), float(data.qpos[1])
+    effort = 0.02 * float(np.sum(a1.astype(np.float64) ** 2))
+    assert r2 == pytest.approx((x2 - x1) / Ts - 50 * (z2 - z0) ** 2 + 25 * Ts / Tf - effort, abs=1e-9)
+    assert info["reward_effort"] == pytest.approx(-effort) and info["reward_path"] == 0.0
+    assert info["study_return"] == pytest.approx(r1 + r2, abs=1e-12)
+    assert sum(info[f"episode_{t}"] for t in TERMS) == pytest.approx(r1 + r2, abs=1e-12)
+    assert info["distance"] == pytest.approx(x2 - x0) and Tf == EPISODE_S
+
+
+def test_a_fall_ends_the_episode_without_the_survive_bonus_and_counts_as_a_collision() -> None:
+    env = DeckWalkerEnv()
+    env.reset(seed=0)
+    path_terms, steps = [], 0
+    terminated = truncated = False
+    while not (terminated or truncated):  # no torque: the walker sinks
+        _, _, terminated, truncated, info = env.step(np.zeros(6, dtype=np.float32))
+        path_terms.append(info["reward_path"])
+        steps += 1
+    assert terminated and not truncated and steps < 300, steps
+    assert info["collided"] and info["collided_with"] == FALL and not info["is_success"]
+    assert info["reward_survive"] == 0.0 and info["episode_survive"] == pytest.approx(
+        25 * Ts / Tf * (steps - 1)
+    )
+    assert set(path_terms) == {0.0}  # the planar walker never leaves its line
+
+
+@pytest.mark.parametrize("reward", list(VARIANTS))
+def test_gymnasium_check_env_passes(reward: str) -> None:
+    env = gym.make(WALKER.env_id, reward=reward)
+    check_env(env.unwrapped, skip_render_check=True)  # rendering needs an OpenGL context
+
+
+def test_same_seed_same_episode_and_a_pickled_env_goes_on_the_same() -> None:
+    actions = np.random.default_rng(1).uniform(-1, 1, (30, 6)).astype(np.float32)
+    runs = []
+    for _ in range(2):
+        env = DeckWalkerEnv()
+        first, _ = env.reset(seed=11)
+        runs.append([first.tobytes(), *(env.step(a)[0].tobytes() for a in actions[:10])])
+    assert runs[0] == runs[1]
+    copy = pickle.loads(pickle.dumps(env))
+    assert [copy.step(a)[0].tobytes() for a in actions[10:]] == [
+        env.step(a)[0].tobytes() for a in actions[10:]
+    ]
+    with pytest.raises(ValueError, match="6 finite numbers"):
+        env.step(np.full(6, np.nan, dtype=np.float32))
+    with pytest.raises(RuntimeError, match="reset"):
+        DeckWalkerEnv().step(np.zeros(6, dtype=np.float32))
+
+
+def test_the_spec_matches_walker2d_v5_and_the_env() -> None:
+    env = gym.make(WALKER.env_id)
+    assert env.unwrapped._sim.unwrapped.dt == WALKER.sample_time_s  # type: ignore[attr-defined]
+    assert env.spec is not None and env.spec.max_episode_steps == WALKER.max_steps
+    assert SCENARIOS["walker"] is WALKER
+    np.testing.assert_array_equal(env.observation_space.low, WALKER.obs_low)  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(env.action_space.high, WALKER.act_high)  # type: ignore[attr-defined]
+    plain = gym.make("Walker2d-v5")
+    assert plain.observation_space.shape == (len(WALKER.observation),)
+    assert plain.action_space.shape == (len(WALKER.action),)
+    doc = DeckWalkerEnv.__doc__ or ""
+    rows = _table(doc, "Observation Space")
+    assert [(r[1], float(r[2]), float(r[3]), r[4]) for r in rows] == [
+        (f.description, f.low, f.high, f.unit) for f in WALKER.observation
+    ]
+    actions = _table(doc, "Action Space")
+    assert [(r[1], float(r[2]), float(r[3])) for r in actions] == [
+        (f.description, f.low, f.high) for f in WALKER.action
+    ]
+    assert f"{WALKER.max_steps} steps" in doc and f"({WALKER.sample_time_s} s)" in doc
+
+
+def test_the_can_database_carries_17_observations_in_9_frames_and_6_actions_in_3() -> None:
+    plan = candb.layout(WALKER)
+    assert [name for name, _, _ in plan.observation] == [f"Observation{c}" for c in "ABCDEFGHI"]
+    assert [name for name, _, _ in plan.action] == ["ActionA", "ActionB", "ActionC"]
+    assert [s.field.name for s in plan.observation_slots] == [f.name for f in WALKER.observation]
+    assert [s.field.name for s in plan.action_slots] == [f.name for f in WALKER.action]
+    db = candb.database(WALKER)
+    for slot in plan.observation_slots + plan.action_slots:
+        signal = db.get_message_by_name(slot.message).get_signal_by_name(slot.signal)
+        assert (signal.minimum, signal.maximum) == (slot.field.low, slot.field.high)
+    # velocities (+-10) need a coarser scale than the finest: 2^-15 (20 signed bits cover +-16)
+    assert {s.scale for s in plan.observation_slots if s.field.unit in ("m/s", "rad/s")} == {2.0**-15}
+    assert "#define POLICY_IO_OBS_FRAMES 9u" in candb.c_sources(WALKER)["policy_io.h"]
+    env = DeckWalkerEnv()
+    obs, _ = env.reset(seed=2)
+    codec = Codec(WALKER)
+    for a in np.random.default_rng(0).uniform(-1, 1, (20, 6)).astype(np.float32):
+        _, decoded = codec.encode_observation(obs, 1)
+        np.testing.assert_allclose(decoded, obs, atol=max(s.scale for s in plan.observation_slots) / 2)
+        obs, _, terminated, _, _ = env.step(a)
+        if terminated:
+            break
