@@ -4,6 +4,8 @@ contract (spec -> env spaces, docstring tables, CAN database) derived from its s
 from __future__ import annotations
 
 import pickle
+import re
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -155,3 +157,84 @@ def test_the_can_database_carries_17_observations_in_9_frames_and_6_actions_in_3
         obs, _, terminated, _, _ = env.step(a)
         if terminated:
             break
+
+
+def test_the_deck_preset_is_the_deck_s_ddpg_options_and_builds_them() -> None:
+    from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+
+    from embedrl.train.config import DDPGConfig, preset, with_overrides
+    from embedrl.train.study_agents import ClippedAdam, SeparateRatesDDPG
+    from embedrl.train.trainer import build_model, make_env
+
+    cfg = preset("ddpg", "deck", "walker")
+    assert isinstance(cfg, DDPGConfig)
+    deck = {"actor_learning_rate": 1e-4, "learning_rate": 1e-3, "gradient_threshold": 1.0, "l2": 1e-5,
+            "gamma": 0.99, "batch_size": 128, "buffer_size": 1_000_000, "tau": 1e-3, "noise_theta": 1.0,
+            "noise_sigma": 0.1, "noise_dt": WALKER.sample_time_s, "reward": "deck"}  # fmt: skip
+    assert {k: getattr(cfg, k) for k in deck} == deck
+    cfg = with_overrides(cfg, ["net_arch=8,8", "buffer_size=1000"])
+    model = build_model("ddpg", cfg, make_env(False, 0, "walker", cfg), 0, None)
+    assert isinstance(model, SeparateRatesDDPG)
+    for net, rate in ((model.actor, 1e-4), (model.critic, 1e-3)):
+        optimizer = net.optimizer
+        assert isinstance(optimizer, ClippedAdam) and optimizer.gradient_threshold == 1.0
+        assert optimizer.param_groups[0]["lr"] == rate and optimizer.param_groups[0]["weight_decay"] == 1e-5
+    noise = model.action_noise
+    assert isinstance(noise, OrnsteinUhlenbeckActionNoise)
+    assert (noise._theta, noise._dt, float(noise._sigma[0])) == (1.0, WALKER.sample_time_s, 0.1)
+    model.learn(100)  # learns: both optimizers step with clipped gradients
+    assert model._n_updates > 0
+
+
+@pytest.mark.parametrize(
+    ("algo", "name", "scenario", "said"),
+    [
+        ("td3", "deck", "walker", "the deck preset is DDPG's"),
+        ("ddpg", "deck", "static", "--scenario walker"),
+        ("ddpg", "thesis", "walker", "deck (DDPG) and tuned"),
+        ("ppo", "tuned", "walker", "no walker preset for ppo"),
+    ],
+)
+def test_presets_that_do_not_exist_are_refused(algo: str, name: str, scenario: str, said: str) -> None:
+    from embedrl.train.config import preset
+
+    with pytest.raises(ValueError, match=re.escape(said)):
+        preset(algo, name, scenario)
+
+
+def test_clipped_adam_scales_each_parameter_s_gradient_to_the_threshold() -> None:
+    import torch
+
+    from embedrl.train.study_agents import ClippedAdam
+
+    big, small = torch.nn.Parameter(torch.zeros(2)), torch.nn.Parameter(torch.zeros(2))
+    twin_big, twin_small = torch.nn.Parameter(torch.zeros(2)), torch.nn.Parameter(torch.zeros(2))
+    clipped = ClippedAdam([big, small], lr=0.1, gradient_threshold=1.0)
+    plain = torch.optim.Adam([twin_big, twin_small], lr=0.1)
+    big.grad, small.grad = torch.tensor([3.0, 4.0]), torch.tensor([0.3, 0.4])  # norms 5 and 0.5
+    twin_big.grad, twin_small.grad = torch.tensor([0.6, 0.8]), torch.tensor([0.3, 0.4])  # by hand: 5 -> 1
+    clipped.step()
+    plain.step()
+    assert torch.equal(big.grad, torch.tensor([0.6, 0.8])) and torch.equal(
+        small.grad, torch.tensor([0.3, 0.4])
+    )
+    assert torch.equal(big, twin_big) and torch.equal(small, twin_small)
+
+
+def test_the_walker_s_criterion_is_the_deck_s_250_episode_window(tmp_path: Path) -> None:
+    from embedrl.train.config import Budget
+    from embedrl.train.trainer import CRITERIA, CURVE_FIELDS, RunMonitor
+
+    criterion = CRITERIA["walker"]
+    assert (criterion.window, criterion.threshold, criterion.save_above) == (250, 1000.0, 500.0)
+    (tmp_path / "curve.csv").write_text(",".join(CURVE_FIELDS) + "\n")
+    monitor = RunMonitor(tmp_path, Budget(stop="study"), {}, lambda: None, lambda: (0.0, 0.0), False,
+                         criterion=criterion)  # fmt: skip
+    monitor.pending_q0 = 0.0
+    returns = [0.0] * 100 + [1200.0] * 300
+    for i, r in enumerate(returns):
+        monitor._episode(r, 1000, 1000 * (i + 1))
+        if monitor.stop_now():
+            break
+    # 100 zeros, then 1200s: the window of 250 first averages >= 1000 with 209 of them (1200 * 209 / 250)
+    assert monitor.state["criterion_episode"] == 309

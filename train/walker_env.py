@@ -103,6 +103,8 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
 
     SPEC = WALKER
     """The scenario spec: spaces, sample time, step limit."""
+    EPISODE_KEYS = EPISODE_KEYS
+    """The ``info`` keys a training run logs per episode (:data:`EPISODE_KEYS`)."""
     metadata = {"render_modes": ["rgb_array"], "render_fps": round(1 / WALKER.sample_time_s)}  # noqa: RUF012
 
     def __init__(self, render_mode: str | None = None, reward: str = deck_reward.DEFAULT_VARIANT) -> None:
