@@ -238,3 +238,18 @@ def test_the_walker_s_criterion_is_the_deck_s_250_episode_window(tmp_path: Path)
             break
     # 100 zeros, then 1200s: the window of 250 first averages >= 1000 with 209 of them (1200 * 209 / 250)
     assert monitor.state["criterion_episode"] == 309
+
+
+def test_an_evaluation_reports_distance_and_speed_per_episode_and_falls_as_collisions() -> None:
+    from embedrl.train.evaluate import evaluate
+
+    report = evaluate(lambda obs: np.zeros(6, dtype=np.float32), 2, 7, "no torque", env_id=WALKER.env_id,
+                      sample_time=WALKER.sample_time_s)  # fmt: skip
+    data = report.to_json()
+    assert data["collisions"] == 2 and data["sample_time_s"] == WALKER.sample_time_s
+    for row, result in zip(data["per_episode"], report.results, strict=True):
+        assert row["collided_with"] == FALL and row["distance"] == result.distance
+        assert result.speed == pytest.approx(row["distance"] / (row["steps"] * WALKER.sample_time_s))
+    assert data["mean_distance_m"] == pytest.approx(np.mean([r.distance for r in report.results]))
+    assert data["min_speed_m_s"] == pytest.approx(min(r.speed or 0.0 for r in report.results))
+    assert "distance mean / worst [m]" in report.table()

@@ -40,7 +40,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     policy = policy_from(args)
     name = args.controller or str(args.model)
-    report = evaluate(policy, args.episodes, args.seed, name, progress=on_terminal(), env_id=env_id_of(args))
+    from embedrl.train.scenarios import SCENARIOS
+
+    report = evaluate(
+        policy, args.episodes, args.seed, name, progress=on_terminal(), env_id=env_id_of(args),
+        sample_time=SCENARIOS[args.scenario].sample_time_s,
+    )  # fmt: skip
     print(report.table())
     if args.json:
         write_json(report.to_json(), args.json)
