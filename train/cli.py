@@ -417,7 +417,8 @@ def _register_train(sub: Any) -> None:
         "--stop",
         choices=STOP_RULES,
         help="what ends the run before --max-steps: validation (a validation evaluation reaches the target "
-        f"success), study (the study's criterion: 50-episode average >= 2) or budget {_default('stop')}",
+        f"success), study (the scenario's criterion: the study's 50-episode average >= 2; the walker's, the "
+        f"deck's 250-episode average >= 1000) or budget {_default('stop')}",
     )
     p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
