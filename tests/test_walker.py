@@ -253,3 +253,28 @@ def test_an_evaluation_reports_distance_and_speed_per_episode_and_falls_as_colli
     assert data["mean_distance_m"] == pytest.approx(np.mean([r.distance for r in report.results]))
     assert data["min_speed_m_s"] == pytest.approx(min(r.speed or 0.0 for r in report.results))
     assert "distance mean / worst [m]" in report.table()
+
+
+def test_agents_are_saved_after_episodes_at_or_above_the_threshold_and_sums_logged(tmp_path: Path) -> None:
+    from embedrl.train import trainer
+    from embedrl.train.trainer import EpisodeSums, SaveAboveThreshold
+
+    class Model:
+        def save(self, path: Path) -> None:
+            Path(path).write_bytes(b"model")
+
+    returns: list[float] = []
+    saver = SaveAboveThreshold(500.0, tmp_path / "saved", lambda: returns)
+    sums = EpisodeSums(tmp_path / "sums.csv", ("episode_forward", "distance"))
+    saver.model = sums.model = Model()  # type: ignore[assignment]
+    for i, ret in enumerate([499.0, 500.0, 10.0, 800.0]):
+        returns.append(ret)
+        info = {"episode": {"r": ret, "episode_forward": ret, "distance": i / 10}}
+        for callback in (saver, sums):
+            callback.locals = {"dones": [True], "infos": [info]}
+            callback.num_timesteps = 100 * (i + 1)
+            callback._on_step()
+    assert sorted(p.name for p in (tmp_path / "saved").iterdir()) == ["episode2.zip", "episode4.zip"]
+    rows = (tmp_path / "sums.csv").read_text().splitlines()
+    assert rows[0] == "steps,episode_forward,distance" and rows[2] == "200,500.000000,0.100000"
+    assert trainer.MAX_SAVED_AGENTS == 50
