@@ -3,6 +3,7 @@ reward."""
 
 from __future__ import annotations
 
+import os
 from typing import Any
 
 import gymnasium as gym
@@ -21,6 +22,8 @@ EPISODE_S = WALKER.max_steps * WALKER.sample_time_s
 """``Tf``, the episode length of the deck's survive bonus: 1,000 steps of 8 ms, 8 s."""
 FALL = "ground (fell)"
 """``info["collided_with"]`` of a fall: the evaluation reports count falls as collisions."""
+HEADLESS_GL = "egl"
+"""The OpenGL backend ``render()`` asks MuJoCo for when there is no display and ``MUJOCO_GL`` is not set."""
 EPISODE_KEYS = (*(f"episode_{term}" for term in TERMS), "distance")
 """What ``info`` sums over the episode so far (each reward term) and the distance walked: SB3's ``Monitor``
 records them at the end of an episode (``info_keywords``)."""
@@ -95,7 +98,8 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
 
     ## Arguments
     ``gymnasium.make("embedrl/DeckWalker-v0", render_mode="rgb_array", reward="deck")`` (``reward`` is one of
-    ``velocity``, ``upright``, ``effort``, ``deck``).
+    ``velocity``, ``upright``, ``effort``, ``deck``). Without a display and without ``MUJOCO_GL``,
+    ``render()`` uses EGL.
 
     ## Version History
     - v0: initial version.
@@ -186,6 +190,8 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
         if self.render_mode is None:
             gym.logger.warn("render() called without render_mode; use render_mode='rgb_array'")
             return None
+        if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+            os.environ["MUJOCO_GL"] = HEADLESS_GL  # without a display MuJoCo's default (GLFW) cannot render
         frame = self._sim.render()
         return None if frame is None else np.asarray(frame)
 
