@@ -103,11 +103,12 @@ def _controller(scenario: str, env_id: str) -> list[str]:
 
 
 def record() -> dict[str, dict[str, list[str]]]:
-    """Every scenario's digests: ``{scenario: {"random": [...], "potential-field": [...]}}``."""
-    from embedrl.train.scenarios import SCENARIOS, TWO_ROBOTS
+    """Every warehouse scenario's digests: ``{scenario: {"random": [...], "potential-field": [...]}}``."""
+    from embedrl.train.scenarios import SCENARIOS, TWO_ROBOTS, WAREHOUSE
 
     out = {}
-    for name, spec in SCENARIOS.items():
+    for name in WAREHOUSE:
+        spec = SCENARIOS[name]
         random = _random_pair() if spec is TWO_ROBOTS else _random_single(spec.env_id)
         out[name] = {"random": random, "potential-field": _controller(name, spec.env_id)}
     return out

@@ -40,7 +40,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     policy = policy_from(args)
     name = args.controller or str(args.model)
-    report = evaluate(policy, args.episodes, args.seed, name, progress=on_terminal(), env_id=env_id_of(args))
+    from embedrl.train.scenarios import SCENARIOS
+
+    report = evaluate(
+        policy, args.episodes, args.seed, name, progress=on_terminal(), env_id=env_id_of(args),
+        sample_time=SCENARIOS[args.scenario].sample_time_s,
+    )  # fmt: skip
     print(report.table())
     if args.json:
         write_json(report.to_json(), args.json)
@@ -58,8 +63,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     import numpy as np
 
     from embedrl.train.rendering import save_episode
-    from embedrl.train.robot import SAMPLE_TIME
+    from embedrl.train.scenarios import SCENARIOS
 
+    sample_time = SCENARIOS[args.scenario].sample_time_s
+    wheels = len(SCENARIOS[args.scenario].action) == 2  # the warehouse robots: caption the wheel forces
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
     policy = policy_from(args)
@@ -72,12 +79,12 @@ def cmd_render(args: argparse.Namespace) -> int:
         action = np.asarray(policy(obs), dtype=float).reshape(-1)
         obs, _, terminated, truncated, info = env.step(action)
         frames.append(env.unwrapped.render())  # type: ignore[arg-type]
-        forces = f"F_L {action[0]:+.2f}   F_R {action[1]:+.2f}"  # what drove the robot to this frame
-        captions.append(f"t = {len(captions) * SAMPLE_TIME:.1f} s   {forces}")
+        forces = f"   F_L {action[0]:+.2f}   F_R {action[1]:+.2f}" if wheels else ""  # what drove this frame
+        captions.append(f"t = {len(captions) * sample_time:.{1 if sample_time >= 0.1 else 2}f} s{forces}")
         if terminated or truncated:
             break
     env.close()
-    save_episode(frames, args.out, SAMPLE_TIME, captions)
+    save_episode(frames, args.out, sample_time, captions)
     outcome = "success" if info["is_success"] else "collision" if info["collided"] else "timeout"
     print(f"wrote {args.out}: {len(frames) - 1} steps, {outcome}")
     return 0
@@ -412,7 +419,8 @@ def _register_train(sub: Any) -> None:
         "--stop",
         choices=STOP_RULES,
         help="what ends the run before --max-steps: validation (a validation evaluation reaches the target "
-        f"success), study (the study's criterion: 50-episode average >= 2) or budget {_default('stop')}",
+        f"success), study (the scenario's criterion: the study's 50-episode average >= 2; the walker's, the "
+        f"deck's 250-episode average >= 1000) or budget {_default('stop')}",
     )
     p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)

@@ -17,13 +17,14 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, STATIC
+from embedrl.train.deck_reward import DEFAULT_VARIANT, VARIANTS
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, STATIC, WALKER
 
 STUDY_ALGOS = ("ddpg", "td3", "sac", "ppo")
 """The study's algorithms: what ``bench`` and ``shaping`` train unless told otherwise."""
 ALGOS = (*STUDY_ALGOS, "recurrent-ppo")
 """Every algorithm ``train`` knows: the study's and sb3-contrib's RecurrentPPO (an LSTM policy)."""
-PRESETS = ("thesis", "tuned")
+PRESETS = ("thesis", "tuned", "deck")
 NET_ARCH = (100, 100)
 
 
@@ -88,7 +89,7 @@ class OffPolicyConfig:
     reward: str = "thesis"
     """The env's reward: ``thesis`` (the study's eq. 19), ``potential-field`` (its contours at the four
     corners) or ``shaped`` (eq. 19 plus potential-based shaping at the agent's discount); see
-    :mod:`train.rewards`."""
+    :mod:`train.rewards`. The walker's: one of the deck's stages (:data:`train.deck_reward.VARIANTS`)."""
     success_bonus: float = 5.0
     """Reward for passing the goal line (the study's two-robot runs tried 5 and 20)."""
     shaping_gain: float = 1.0
@@ -105,6 +106,14 @@ class DDPGConfig(OffPolicyConfig):
     """Mean reversion rate of the OU noise."""
     actor_learning_rate: float = 1e-4
     """Adam step size of the actor (``learning_rate`` is the critic's)."""
+    noise_dt: float = 1e-2
+    """Time step of the OU noise process (SB3's default; the deck's preset uses the sample time, as MATLAB's
+    noise model does)."""
+    gradient_threshold: float = 0.0
+    """Each parameter's gradient is scaled down to this L2 norm at most (MATLAB's ``l2norm`` threshold; 0:
+    none, SB3's DDPG)."""
+    l2: float = 0.0
+    """L2 regularisation factor of actor and critic (Adam's ``weight_decay``)."""
 
 
 @dataclass(frozen=True)
@@ -251,10 +260,15 @@ def preset(algo: str, name: str, scenario: str = DEFAULT_SCENARIO) -> AlgoConfig
 
     In the moving-shelf and two-robot scenarios ``thesis`` trains on the study's potential-field reward
     (the reward of its changing and multi-agent experiments); ``tuned`` keeps the static scenario's
-    tuning, demonstrations from the scenario's potential-field controller included.
+    tuning, demonstrations from the scenario's potential-field controller included. The walker has its own
+    presets (:func:`walker_preset`).
     """
     if scenario not in SCENARIO_NAMES:
         raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIO_NAMES)}")
+    if scenario == WALKER.name:
+        return walker_preset(algo, name)
+    if name == "deck":
+        raise ValueError("the deck preset trains the walker scenario (--scenario walker)")
     config = _preset(algo, name)
     if name == "thesis" and scenario != STATIC.name:
         config = replace(config, reward="potential-field")
@@ -332,9 +346,61 @@ def _preset(algo: str, name: str) -> AlgoConfig:
     return tuned[algo]
 
 
+WALKER_NET_ARCH = (400, 300)
+"""The walker presets' hidden layers: RL Zoo's for Walker2d (the deck's option list does not fix them)."""
+
+
+def walker_preset(algo: str, name: str) -> AlgoConfig:
+    """The walker's presets, all on the deck's reward.
+
+    ``deck`` (DDPG only): the deck's DDPG options. Critic learning rate 1e-3, actor 1e-4 (SB3 has one rate:
+    :class:`~train.study_agents.SeparateRatesDDPG`); gradient threshold 1 and L2 factor 1e-5 (SB3's DDPG has
+    neither: :class:`~train.study_agents.ClippedAdam`, per parameter as MATLAB's ``l2norm`` method); discount
+    0.99, mini-batch 128, buffer 1e6, target smoothing 1e-3; Ornstein-Uhlenbeck noise with mean attraction
+    (theta) 1 and 0.1 as the factor of its random term over one sample time as time step (MATLAB's noise
+    model, whose option called ``Variance`` multiplies ``randn``: SB3's ``sigma``); the deck's MATLAB-style
+    critic (two branches). Its stop criterion and save threshold are the scenario's
+    (:data:`train.trainer.CRITERIA`).
+
+    ``tuned`` (DDPG, TD3, SAC): RL Zoo's Walker2d settings (10,000 random steps first, exploration noise 0.1:
+    Gaussian for TD3, DDPG keeps its OU noise; batch 256, SB3's standard networks).
+    """
+    if name == "deck":
+        if algo != "ddpg":
+            raise ValueError(
+                f"the deck preset is DDPG's (the deck trains DDPG); use --preset tuned for {algo}"
+            )
+        return DDPGConfig(
+            learning_rate=1e-3, actor_learning_rate=1e-4, gradient_threshold=1.0, l2=1e-5, gamma=0.99,
+            batch_size=128, buffer_size=1_000_000, tau=1e-3, noise_theta=1.0, noise_sigma=0.1,
+            noise_dt=WALKER.sample_time_s, net_arch=WALKER_NET_ARCH, reward=DEFAULT_VARIANT,
+        )  # fmt: skip
+    if name != "tuned":
+        raise ValueError(f"the walker's presets are deck (DDPG) and tuned (DDPG, TD3, SAC), not {name!r}")
+    arch, start, batch, reward = WALKER_NET_ARCH, 10_000, 256, DEFAULT_VARIANT
+    tuned: dict[str, AlgoConfig] = {
+        "ddpg": DDPGConfig(
+            learning_starts=start, batch_size=batch, net_arch=arch, two_branch_critic=False, reward=reward,
+            tau=5e-3, actor_learning_rate=1e-3, noise_sigma=0.1,
+        ),
+        "td3": TD3Config(
+            learning_starts=start, batch_size=batch, net_arch=arch, two_branch_critic=False, reward=reward,
+            tau=5e-3, noise_sigma=0.1,
+        ),
+        "sac": SACConfig(
+            learning_starts=start, batch_size=batch, net_arch=(256, 256), two_branch_critic=False,
+            reward=reward, learning_rate=3e-4, tau=5e-3, softplus_std=False,
+        ),
+    }  # fmt: skip
+    if algo not in tuned:
+        raise ValueError(f"no walker preset for {algo}; the walker trains with {', '.join(tuned)}")
+    return tuned[algo]
+
+
 RANGES: dict[str, tuple[float, float, str]] = {
     "learning_rate": (0.0, math.inf, "> 0"),
     "actor_learning_rate": (0.0, math.inf, "> 0"),
+    "noise_dt": (0.0, math.inf, "> 0"),
     "gamma": (0.0, 1.0, "in (0, 1]"),
     "tau": (0.0, 1.0, "in (0, 1]"),
     "gae_lambda": (0.0, 1.0, "in (0, 1]"),
@@ -342,7 +408,15 @@ RANGES: dict[str, tuple[float, float, str]] = {
     "target_success": (0.0, 1.0, "in (0, 1]"),
 }
 """Fields whose values must lie in ``(low, high]``, with the rule as the error states it."""
-NON_NEGATIVE = ("noise_sigma", "noise_theta", "target_policy_noise", "demonstration_noise", "ent_coef")
+NON_NEGATIVE = (
+    "noise_sigma",
+    "noise_theta",
+    "gradient_threshold",
+    "l2",
+    "target_policy_noise",
+    "demonstration_noise",
+    "ent_coef",
+)
 """Fields that may be zero but not negative."""
 AT_LEAST_ONE = (
     "batch_size",
@@ -395,8 +469,8 @@ def _check_range(key: str, value: Any) -> None:
 def _parse(key: str, raw: str, current: Any) -> Any:
     from embedrl.train.rewards import REWARDS
 
-    if key == "reward" and raw not in REWARDS:
-        raise ValueError(f"--set reward={raw}: choose from {', '.join(REWARDS)}")
+    if key == "reward" and raw not in (*REWARDS, *VARIANTS):
+        raise ValueError(f"--set reward={raw}: choose from {', '.join((*REWARDS, *VARIANTS))}")
     try:
         if isinstance(current, bool):
             if raw.lower() not in ("true", "false"):

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from embedrl.common import provenance, table
 from embedrl.train import ENV_ID
 from embedrl.train.robot import SAMPLE_TIME
-from embedrl.train.scenarios import TWO_ROBOTS
+from embedrl.train.scenarios import BY_ENV_ID, TWO_ROBOTS
 from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 
 Policy = Callable[[np.ndarray], np.ndarray]
@@ -63,6 +63,14 @@ class EpisodeResult:
     """Two robots: the other robots' paths."""
     robot_returns: tuple[float, ...] = ()
     """Two robots: each robot's return."""
+    distance: float | None = None
+    """How far forward the robot got since reset [m], for an env whose ``info`` says (the walker's
+    ``distance``); None otherwise."""
+
+    @property
+    def speed(self) -> float | None:
+        """Mean forward speed over the episode [m/s] (None without a distance)."""
+        return None if self.distance is None else self.distance / self.time_s
 
 
 @dataclass(frozen=True)
@@ -111,21 +119,41 @@ class EvalReport:
     def to_json(self, extra: dict[str, Any] | None = None) -> dict[str, Any]:
         """The report as JSON-ready data: summary keys, provenance, then one row per episode."""
         out: dict[str, Any] = {k: getattr(self, k) for k in REPORT_KEYS}
+        spec = BY_ENV_ID.get(self.env_id)
         out.update(
             std_return=self.std_return,
             mean_steps=self.mean_steps,
             seed=self.seed,
             policy=self.policy,
             env_id=self.env_id,
-            sample_time_s=SAMPLE_TIME,
+            sample_time_s=SAMPLE_TIME if spec is None else spec.sample_time_s,
+            **self.walking(),
             provenance=provenance(),
         )
         out.update(extra or {})
         out["per_episode"] = [
-            {k: v for k, v in asdict(r).items() if k not in ("trajectory", "other_trajectories")}
+            {
+                k: v
+                for k, v in asdict(r).items()
+                if k not in ("trajectory", "other_trajectories") and not (k == "distance" and v is None)
+            }
             for r in self.results
         ]
         return out
+
+    def walking(self) -> dict[str, float]:
+        """Distance and mean forward speed per episode, mean and worst, where the env reports a distance
+        (``mean_distance_m``, ``min_distance_m``, ``mean_speed_m_s``, ``min_speed_m_s``); else nothing."""
+        distances = [r.distance for r in self.results if r.distance is not None]
+        speeds = [r.speed for r in self.results if r.speed is not None]
+        if not distances:
+            return {}
+        return {
+            "mean_distance_m": float(np.mean(distances)),
+            "min_distance_m": float(np.min(distances)),
+            "mean_speed_m_s": float(np.mean(speeds)),
+            "min_speed_m_s": float(np.min(speeds)),
+        }
 
     def table(self) -> str:
         """A human-readable summary table."""
@@ -139,6 +167,20 @@ class EvalReport:
             ("mean time of successes [s]", mean_time),
             ("mean steps", f"{self.mean_steps:.1f}"),
         ]
+        walked = self.walking()
+        if walked:
+            rows.append(
+                (
+                    "distance mean / worst [m]",
+                    f"{walked['mean_distance_m']:.2f} / {walked['min_distance_m']:.2f}",
+                )
+            )
+            rows.append(
+                (
+                    "forward speed mean / worst [m/s]",
+                    f"{walked['mean_speed_m_s']:.3f} / {walked['min_speed_m_s']:.3f}",
+                )
+            )
         return table(rows)
 
 
@@ -188,9 +230,11 @@ def episode_result(
     else:
         outcome = "timeout"
     trajectory = list(getattr(env.unwrapped, "trajectory", []))
+    distance = info.get("distance")
     return EpisodeResult(
-        seed, outcome, steps, total, steps * sample_time, info.get("collided_with"), trajectory
-    )
+        seed, outcome, steps, total, steps * sample_time, info.get("collided_with"), trajectory,
+        distance=None if distance is None else float(distance),
+    )  # fmt: skip
 
 
 def run_two_robot_episode(env: WarehouseTwoRobotsEnv, policy: Policy, seed: int) -> EpisodeResult:

@@ -33,6 +33,7 @@ from embedrl.train.scenarios import (
     OTHER_ROBOT_FIELDS,
     SCENARIOS,
     SHELF_FIELDS,
+    WAREHOUSE,
     field_indices,
 )
 
@@ -96,8 +97,11 @@ class PotentialFieldController:
     """
 
     def __init__(self, gains: PotentialFieldGains | None = None, scenario: str = DEFAULT_SCENARIO) -> None:
-        if scenario not in SCENARIOS:
-            raise ValueError(f"unknown scenario {scenario!r}; choose from {', '.join(SCENARIOS)}")
+        if scenario not in WAREHOUSE:
+            raise ValueError(
+                f"the potential-field controller drives the warehouse scenarios ({', '.join(WAREHOUSE)}), "
+                f"not {scenario!r}"
+            )
         self.gains = gains or PotentialFieldGains()
         self.scenario = scenario
         spec = SCENARIOS[scenario]  # which terms apply follows from what the scenario observes

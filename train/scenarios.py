@@ -110,7 +110,57 @@ TWO_ROBOTS = Interface(
 """The study's two robots through one gap; this is one robot's interface (each robot runs its own copy of
 the policy, on its own node)."""
 
-SCENARIOS = {spec.name: spec for spec in (STATIC, MOVING_SHELF, TWO_ROBOTS, MOVING_SHELF_PARTIAL)}
+WALKER_ENV_ID = "embedrl/DeckWalker-v0"
+MUJOCO_TIMESTEP = 0.002
+"""The physics step of gymnasium's ``walker2d_v5.xml`` [s]."""
+WALKER_FRAME_SKIP = 4
+"""Physics steps per control step (gymnasium's default for Walker2d-v5)."""
+WALKER_SAMPLE_TIME = WALKER_FRAME_SKIP * MUJOCO_TIMESTEP
+"""The walker's control period, 8 ms (a test ties it to the env's ``dt``)."""
+WALKER_MAX_STEPS = 1000
+"""Gymnasium's Walker2d-v5 episode: 1,000 steps, 8 s."""
+HIP_KNEE_OBSERVED = (-3.2, 0.6)
+"""The observed range of the thigh and knee angles [rad]: the model's limits (-150 to 0 degrees, -2.618 to 0
+rad) with at least 0.5 rad to spare on each side, MuJoCo's joint limits being soft."""
+FOOT_OBSERVED = (-1.3, 1.3)
+"""The observed range of the foot angles [rad]: the model's limits (+-45 degrees) with 0.5 rad to spare."""
+WALKER_SPEED_LIMIT = 10.0
+"""Walker2d-v5 clips every velocity it observes to +-10 (m/s, rad/s)."""
+_JOINTS = (("thigh", "right thigh"), ("leg", "right knee"), ("foot", "right foot"),
+           ("thigh_left", "left thigh"), ("leg_left", "left knee"), ("foot_left", "left foot"))  # fmt: skip
+
+
+def _joint_angle(name: str, text: str) -> Field:
+    low, high = FOOT_OBSERVED if name.startswith("foot") else HIP_KNEE_OBSERVED
+    return Field(f"{name}_angle", f"{text} joint angle", low, high, "rad")
+
+
+def _rate(name: str, text: str, unit: str = "rad/s") -> Field:
+    return Field(name, text, -WALKER_SPEED_LIMIT, WALKER_SPEED_LIMIT, unit)
+
+
+WALKER = Interface(
+    name="walker",
+    env_id=WALKER_ENV_ID,
+    observation=(
+        Field("torso_z", "trunk height", 0.0, 2.5, "m"),
+        Field("torso_angle", "trunk pitch (0 = upright)", -2.0, 2.0, "rad"),
+        *(_joint_angle(name, text) for name, text in _JOINTS),
+        _rate("vel_x", "trunk forward velocity", "m/s"),
+        _rate("vel_z", "trunk vertical velocity", "m/s"),
+        _rate("torso_rate", "trunk pitch rate"),
+        *(_rate(f"{name}_rate", f"{text} joint rate") for name, text in _JOINTS),
+    ),
+    action=tuple(Field(f"{name}_torque", f"{text} motor torque", -1.0, 1.0) for name, text in _JOINTS),
+    sample_time_s=WALKER_SAMPLE_TIME,
+    safe_action=(0.0,) * len(_JOINTS),
+    max_steps=WALKER_MAX_STEPS,
+)
+"""The slide deck's walking robot: gymnasium's MuJoCo Walker2d-v5 (planar, six actuated joints) with the
+deck's reward (``embedrl/DeckWalker-v0``). The safe action is no torque: the walker then sinks to the
+ground."""
+
+SCENARIOS = {spec.name: spec for spec in (STATIC, MOVING_SHELF, TWO_ROBOTS, MOVING_SHELF_PARTIAL, WALKER)}
 """Every scenario by name, the first the default; names, observation sizes and help come from here."""
 BY_ENV_ID = {spec.env_id: spec for spec in SCENARIOS.values()}
 DEFAULT_SCENARIO = STATIC.name
@@ -119,6 +169,7 @@ SUMMARIES = {
     MOVING_SHELF.name: "the upper shelf moves along the aisle",
     TWO_ROBOTS.name: "two robots through one gap, one policy drives both",
     MOVING_SHELF_PARTIAL.name: "the moving shelf seen without its velocity (memory needed)",
+    WALKER.name: "the deck's walking robot (MuJoCo Walker2d-v5, the deck's reward)",
 }
 """One line per scenario, for help texts and plot titles (a test ties the keys to :data:`SCENARIOS`)."""
 
@@ -131,6 +182,8 @@ TEACHERS = {MOVING_SHELF_PARTIAL.name: MOVING_SHELF.name}
 """Scenarios whose potential-field demonstrations see more than the learner: the controller of the named
 scenario drives on the env's full observation (:meth:`~train.moving_shelf_env.WarehouseMovingShelfEnv.
 full_observation`), the learner records its own."""
+WAREHOUSE = (STATIC.name, MOVING_SHELF.name, TWO_ROBOTS.name, MOVING_SHELF_PARTIAL.name)
+"""The warehouse scenarios: the potential-field controller drives them, its demonstrations teach them."""
 OTHER_ROBOT_FIELDS = ("other_dx", "other_dy", "other_present")
 """A scenario whose observation has these fields has a second robot, driven by its own copy of the policy."""
 

@@ -13,6 +13,10 @@ from SB3's ``MlpPolicy`` in three places; the ``thesis`` preset uses the classes
   log-std parameter. The logarithm is clamped to SB3's bounds [-20, 2] in both, for numerical safety.
 - **Separate learning rates** (:class:`SeparateRatesDDPG`): the actor's Adam steps at
   ``actor_learning_rate``, the critic's at the algorithm's ``learning_rate`` (SB3 gives both the same).
+- **Gradient threshold and L2 regularisation** (:class:`ClippedAdam`, used by :class:`SeparateRatesDDPG` when
+  asked): MATLAB's ``GradientThreshold`` with its default method ``l2norm`` scales each learnable parameter's
+  gradient down to that L2 norm; its ``L2RegularizationFactor`` adds ``factor * w`` to the gradient. SB3's
+  DDPG has neither (its off-policy algorithms never clip gradients).
 
 The deterministic action (the mean) is computed exactly as in SB3's classes, so export, evaluation and
 the C runtime treat these policies like SB3's own.
@@ -211,12 +215,47 @@ class SoftplusActorCriticPolicy(ActorCriticPolicy):
         return dist.proba_distribution(mean_actions, _softplus_log_std(self.std_net(latent_pi)))
 
 
-class SeparateRatesDDPG(DDPG):
-    """DDPG whose actor learns at ``actor_learning_rate`` and critic at ``learning_rate``."""
+class ClippedAdam(th.optim.Adam):
+    """Adam whose step first scales each parameter's gradient down to an L2 norm of at most
+    ``gradient_threshold`` (0: no limit), MATLAB's ``l2norm`` gradient threshold. ``weight_decay`` is torch's
+    L2 term, added to the (clipped) gradient inside Adam's step."""
 
-    def __init__(self, *args: Any, actor_learning_rate: float | None = None, **kwargs: Any) -> None:
+    def __init__(
+        self, params: Any, lr: float, weight_decay: float = 0.0, gradient_threshold: float = 0.0
+    ) -> None:
+        super().__init__(params, lr=lr, weight_decay=weight_decay)
+        self.gradient_threshold = gradient_threshold
+
+    @th.no_grad()
+    def step(self, closure: Any = None) -> Any:
+        if self.gradient_threshold > 0:
+            for group in self.param_groups:
+                for p in group["params"]:
+                    if p.grad is not None:
+                        norm = th.linalg.vector_norm(p.grad)
+                        if norm > self.gradient_threshold:
+                            p.grad.mul_(self.gradient_threshold / norm)
+        return super().step(closure)
+
+
+class SeparateRatesDDPG(DDPG):
+    """DDPG whose actor learns at ``actor_learning_rate`` and critic at ``learning_rate``; with a
+    ``gradient_threshold`` or an ``l2`` factor both learn with :class:`ClippedAdam`."""
+
+    def __init__(
+        self,
+        *args: Any,
+        actor_learning_rate: float | None = None,
+        gradient_threshold: float = 0.0,
+        l2: float = 0.0,
+        **kwargs: Any,
+    ) -> None:
         self.actor_learning_rate = actor_learning_rate
         """The actor's Adam step size (None: ``learning_rate``, as in SB3)."""
+        self.gradient_threshold = gradient_threshold
+        """Each parameter's gradient is scaled down to this L2 norm at most (0: no limit)."""
+        self.l2 = l2
+        """L2 regularisation factor of both networks (Adam's ``weight_decay``)."""
         super().__init__(*args, **kwargs)
 
     def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
@@ -227,5 +266,9 @@ class SeparateRatesDDPG(DDPG):
 
     def _setup_model(self) -> None:
         super()._setup_model()
+        if self.gradient_threshold or self.l2:
+            for net in (self.actor, self.critic):
+                rate = net.optimizer.param_groups[0]["lr"]
+                net.optimizer = ClippedAdam(net.parameters(), rate, self.l2, self.gradient_threshold)
         if self.actor_learning_rate is not None:  # from the first update on
             update_learning_rate(self.actor.optimizer, self.actor_learning_rate)

@@ -32,6 +32,7 @@ import random
 import shutil
 import time
 from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +42,7 @@ import torch
 from sb3_contrib import RecurrentPPO
 from stable_baselines3 import PPO, SAC, TD3
 from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
@@ -49,6 +50,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 from tqdm import tqdm
 
 from embedrl.common import DEMONSTRATION_SEED, VALIDATION_SEED, atomic_write, provenance, read_json
+from embedrl.train import deck_reward
 from embedrl.train.config import (
     ALGOS,
     Budget,
@@ -64,12 +66,13 @@ from embedrl.train.config import (
     warmup_steps,
     with_overrides,
 )
+from embedrl.train.deck_reward import VARIANTS
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
 from embedrl.train.portable import machine
 from embedrl.train.rewards import SHAPING_GAIN, SUCCESS_BONUS, check_options
-from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TEACHERS, TWO_ROBOTS
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TEACHERS, TWO_ROBOTS, WALKER
 from embedrl.train.study_agents import (
     SeparateRatesDDPG,
     SoftplusActorCriticPolicy,
@@ -87,6 +90,37 @@ STOP_WINDOW = 50
 """The study's stop criterion: mean return of the last 50 training episodes..."""
 STOP_THRESHOLD = 2.0
 """... at least 2 (MATLAB's AverageReward)."""
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """A scenario's training criteria on the training episodes' returns (MATLAB's training options)."""
+
+    window: int = STOP_WINDOW
+    """Episodes averaged (``ScoreAveragingWindowLength``)."""
+    threshold: float = STOP_THRESHOLD
+    """The stop criterion: the window's mean return reaches this (``StopTrainingValue``, AverageReward)."""
+    save_above: float | None = None
+    """Agents of episodes whose return reaches this are saved (``SaveAgentValue``, EpisodeReward)."""
+
+
+WALKER_TARGET_SPEED = 1.0
+"""The walker's target: 1 m/s, the deck's walking speed [m/s]."""
+CRITERIA = {
+    WALKER.name: Criterion(
+        window=250,
+        threshold=WALKER_TARGET_SPEED * WALKER.max_steps,
+        save_above=0.5 * WALKER_TARGET_SPEED * WALKER.max_steps,
+    )
+}
+"""The scenarios whose criteria are not the study's (:class:`Criterion`'s defaults). The walker's: the deck's
+250-episode window; a return of ``v * 1000`` is the forward term of a whole episode at mean speed ``v``, so
+the stop value is the target speed kept for a whole episode (its survive bonus, 25, about pays for the
+effort and height terms), and agents are saved from half of it on."""
+SAVED_AGENTS = "saved_agents"
+"""The folder of a run's agents saved above the save threshold (``episode<N>.zip``)."""
+MAX_SAVED_AGENTS = 50
+"""At most this many agents are saved above the threshold (the first ones: MATLAB saves each, without end)."""
 CLASSES: dict[str, type[BaseAlgorithm]] = {
     "ddpg": SeparateRatesDDPG,
     "td3": TD3,
@@ -114,7 +148,12 @@ def make_env(normalize: bool, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: 
         env = SharedPolicyVecEnv(WarehouseTwoRobotsEnv(**kwargs))
     else:
         env_id = SCENARIOS[scenario].env_id
-        env = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kwargs))])
+
+        def monitored() -> gym.Env[Any, Any]:
+            inner = gym.make(env_id, **kwargs)  # an env's per-episode sums (the walker's reward terms) logged
+            return Monitor(inner, info_keywords=tuple(getattr(inner.unwrapped, "EPISODE_KEYS", ())))
+
+        env = DummyVecEnv([monitored])
     env.seed(seed)
     if normalize:
         env = VecNormalize(env, norm_obs=True, norm_reward=False)
@@ -123,7 +162,10 @@ def make_env(normalize: bool, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: 
 
 def env_kwargs(cfg: Any) -> dict[str, Any]:
     """The env arguments a run's hyperparameters set (the reward, and the success bonus where it is not
-    the default, so envs without that argument keep working)."""
+    the default, so envs without that argument keep working; the walker's reward, one of the deck's stages,
+    whose names differ from the warehouse rewards')."""
+    if cfg is not None and cfg.reward in VARIANTS:
+        return {"reward": cfg.reward}
     if cfg is None or (cfg.reward == "thesis" and cfg.success_bonus == SUCCESS_BONUS):
         return {}
     out: dict[str, Any] = {"reward": cfg.reward}
@@ -186,12 +228,16 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
         deterministic_policy = StudyTD3Policy
         policy_kwargs["two_branch_critic"] = True
     if isinstance(cfg, DDPGConfig):
-        ou = OrnsteinUhlenbeckActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n), theta=cfg.noise_theta)
+        ou = OrnsteinUhlenbeckActionNoise(
+            np.zeros(n), cfg.noise_sigma * np.ones(n), theta=cfg.noise_theta, dt=cfg.noise_dt
+        )
         return SeparateRatesDDPG(
             deterministic_policy,
             env,
             action_noise=ou,
             actor_learning_rate=cfg.actor_learning_rate,
+            gradient_threshold=cfg.gradient_threshold,
+            l2=cfg.l2,
             **off,
             **common,
         )
@@ -403,6 +449,47 @@ def stop_rule_fired(rule: str, state: dict[str, Any]) -> int | None:
     return None if key is None else state.get(key)
 
 
+class SaveAboveThreshold(BaseCallback):
+    """Saves the agent after each training episode whose return reaches ``threshold`` (MATLAB's
+    ``SaveAgentCriteria`` EpisodeReward) as ``folder/episode<N>.zip``, at most :data:`MAX_SAVED_AGENTS`;
+    ``returns`` is the run's episode log (its length numbers the episodes)."""
+
+    def __init__(self, threshold: float, folder: Path, returns: Callable[[], list[float]]) -> None:
+        super().__init__()
+        self.threshold, self.folder, self.returns = threshold, folder, returns
+
+    def _on_step(self) -> bool:
+        for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
+            returns = self.returns()
+            if done and "episode" in info and returns and returns[-1] >= self.threshold:
+                saved = list(self.folder.glob("episode*.zip")) if self.folder.is_dir() else []
+                if len(saved) < MAX_SAVED_AGENTS:
+                    self.folder.mkdir(exist_ok=True)
+                    self.model.save(self.folder / f"episode{len(returns)}.zip")
+        return True
+
+
+class EpisodeSums(BaseCallback):
+    """Appends what ``Monitor`` recorded of an env's ``EPISODE_KEYS`` (the walker's reward terms summed per
+    episode, the distance walked) to ``path``, one row per training episode."""
+
+    def __init__(self, path: Path, keys: Sequence[str]) -> None:
+        super().__init__()
+        self.path, self.keys = path, tuple(keys)
+
+    def _on_step(self) -> bool:
+        for done, info in zip(self.locals["dones"], self.locals["infos"], strict=True):
+            if done and "episode" in info:
+                new = not self.path.exists()
+                with self.path.open("a", newline="") as f:
+                    writer = csv.writer(f)
+                    if new:
+                        writer.writerow(("steps", *self.keys))
+                    values = (f"{float(info['episode'][k]):.6f}" for k in self.keys)
+                    writer.writerow((self.num_timesteps, *values))
+        return True
+
+
 class RunMonitor(BaseCallback):
     """Episode log, stop criterion, deterministic evaluations, checkpoints and the progress bar."""
 
@@ -416,9 +503,11 @@ class RunMonitor(BaseCallback):
         progress: bool,
         save_best: Callable[[], None] = lambda: None,
         trained: Callable[[], bool] = lambda: True,
+        criterion: Criterion | None = None,
     ) -> None:
         super().__init__()
         self.run, self.budget, self.state = run, budget, state
+        self.criterion = criterion or Criterion()
         self.save, self.validate, self.save_best = save, validate, save_best
         self.trained = trained
         self.returns: list[float] = list(state.get("returns", []))
@@ -495,7 +584,8 @@ class RunMonitor(BaseCallback):
             if new_file:
                 writer.writerow(EVALUATION_FIELDS)
             writer.writerow([steps, f"{success:.6f}", f"{mean_return:.6f}"])
-        if self.state.get("first_deterministic_criterion_step") is None and mean_return >= STOP_THRESHOLD:
+        threshold = self.criterion.threshold
+        if self.state.get("first_deterministic_criterion_step") is None and mean_return >= threshold:
             self.state["first_deterministic_criterion_step"] = steps
         best = self.state.get("best")
         trained = self.trained()
@@ -516,8 +606,8 @@ class RunMonitor(BaseCallback):
 
     def _episode(self, ret: float, length: int, steps: int, success: bool = False, robot: int = 0) -> None:
         self.returns.append(ret)
-        window = self.returns[-STOP_WINDOW:]
-        average = float(np.mean(window))
+        average = float(np.mean(self.returns[-STOP_WINDOW:]))
+        window = self.returns[-self.criterion.window :]
         with (self.run / "curve.csv").open("a", newline="") as f:
             csv.writer(f).writerow(
                 [
@@ -532,8 +622,8 @@ class RunMonitor(BaseCallback):
                 ]
             )
         if (
-            len(window) == STOP_WINDOW
-            and average >= STOP_THRESHOLD
+            len(window) == self.criterion.window
+            and float(np.mean(window)) >= self.criterion.threshold
             and self.state.get("criterion_step") is None
         ):
             self.state.update(criterion_step=steps, criterion_episode=len(self.returns))
@@ -580,7 +670,10 @@ def train(
         )
     try:
         cfg = with_overrides(preset(algo, preset_name, scenario), overrides)
-        check_options(cfg.reward, cfg.success_bonus, cfg.shaping_gain)
+        if scenario == WALKER.name:
+            deck_reward.variant(cfg.reward)
+        else:
+            check_options(cfg.reward, cfg.success_bonus, cfg.shaping_gain)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     idle = untrained_budget(cfg, budget.max_steps)
@@ -593,6 +686,7 @@ def train(
     ), cfg, budget, resume)  # fmt: skip
     if not resume and isinstance(cfg, PPOConfig) and cfg.warm_start_demonstrations:
         run.save_model(WARM_START_MODEL)  # behaviour cloning alone, before any PPO update
+    criterion = CRITERIA.get(scenario, Criterion())
     monitor = RunMonitor(
         out,
         budget,
@@ -602,14 +696,34 @@ def train(
         progress,
         lambda: run.save_model(BEST_MODEL),
         run.trained,
+        criterion,
     )
     remaining = budget.max_steps - int(run.state.get("steps", 0))
     if resume:
         _restore_random(run.generators, run.model)  # last: loading the model drew from them
     if remaining > 0:
-        run.model.learn(remaining, callback=monitor, reset_num_timesteps=not resume, tb_log_name="run")
+        callbacks = CallbackList([monitor, *_episode_callbacks(out, run, criterion, monitor)])
+        run.model.learn(remaining, callback=callbacks, reset_num_timesteps=not resume, tb_log_name="run")
     monitor.checkpoint()
     return run.finish(monitor.returns)
+
+
+EPISODE_SUMS_FILE = "episode_sums.csv"
+"""A run's per-episode sums of an env's ``EPISODE_KEYS`` (the walker's reward terms and distance)."""
+
+
+def _episode_callbacks(out: Path, run: _Run, criterion: Criterion, monitor: RunMonitor) -> list[BaseCallback]:
+    """The callbacks of a scenario's criteria and logs beyond :class:`RunMonitor`'s: saving agents above the
+    save threshold, and the env's per-episode sums."""
+    out_callbacks: list[BaseCallback] = []
+    if criterion.save_above is not None:
+        out_callbacks.append(
+            SaveAboveThreshold(criterion.save_above, out / SAVED_AGENTS, lambda: monitor.returns)
+        )
+    keys = run.env.get_attr("EPISODE_KEYS")[0] if run.env.has_attr("EPISODE_KEYS") else ()
+    if keys:
+        out_callbacks.append(EpisodeSums(out / EPISODE_SUMS_FILE, keys))
+    return out_callbacks
 
 
 class _Run:
@@ -629,6 +743,8 @@ class _Run:
             _truncate_curve(out / "curve.csv", len(self.state.get("returns", [])))
             if (out / EVALUATIONS_FILE).exists():
                 _truncate_curve(out / EVALUATIONS_FILE, self.state.get("evaluations", 0))
+            if (out / EPISODE_SUMS_FILE).exists():
+                _truncate_curve(out / EPISODE_SUMS_FILE, len(self.state.get("returns", [])))
         else:
             self._start()
         self.state.setdefault("wall_clock_s", 0.0)
@@ -673,6 +789,7 @@ class _Run:
             VALIDATION_SEED,
             "validation",
             env_id=SCENARIOS[self.scenario].env_id,
+            sample_time=SCENARIOS[self.scenario].sample_time_s,
             env_kwargs=env_kwargs(self.cfg),
         )
         return report.success_rate, report.mean_return
