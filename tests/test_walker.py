@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from embedrl.hil import candb
+from embedrl.export.contract.dbc import database
+from embedrl.export.contract.layout import layout
+from embedrl.export.contract.sources import c_sources
 from embedrl.hil.codec import Codec
 from embedrl.train import deck_reward
 from embedrl.train.deck_reward import TERMS, VARIANTS, DeckReward
@@ -136,18 +138,18 @@ def test_the_spec_matches_walker2d_v5_and_the_env() -> None:
 
 
 def test_the_can_database_carries_17_observations_in_9_frames_and_6_actions_in_3() -> None:
-    plan = candb.layout(WALKER)
+    plan = layout(WALKER)
     assert [name for name, _, _ in plan.observation] == [f"Observation{c}" for c in "ABCDEFGHI"]
     assert [name for name, _, _ in plan.action] == ["ActionA", "ActionB", "ActionC"]
     assert [s.field.name for s in plan.observation_slots] == [f.name for f in WALKER.observation]
     assert [s.field.name for s in plan.action_slots] == [f.name for f in WALKER.action]
-    db = candb.database(WALKER)
+    db = database(WALKER)
     for slot in plan.observation_slots + plan.action_slots:
         signal = db.get_message_by_name(slot.message).get_signal_by_name(slot.signal)
         assert (signal.minimum, signal.maximum) == (slot.field.low, slot.field.high)
     # velocities (+-10) need a coarser scale than the finest: 2^-15 (20 signed bits cover +-16)
     assert {s.scale for s in plan.observation_slots if s.field.unit in ("m/s", "rad/s")} == {2.0**-15}
-    assert "#define POLICY_IO_OBS_FRAMES 9u" in candb.c_sources(WALKER)["policy_io.h"]
+    assert "#define POLICY_IO_OBS_FRAMES 9u" in c_sources(WALKER)["policy_io.h"]
     env = DeckWalkerEnv()
     obs, _ = env.reset(seed=2)
     codec = Codec(WALKER)

@@ -15,7 +15,7 @@ import torch
 from stable_baselines3 import TD3
 
 from embedrl.cli import main
-from embedrl.hil import candb
+from embedrl.export.contract.layout import layout
 from embedrl.hil.sandbox import Guest
 from embedrl.train.scenarios import WALKER
 from tests.hil.helpers import hil
@@ -43,7 +43,7 @@ def walker_export(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def _check_lock_step(report: dict[str, Any], episodes: int) -> None:
-    assert len(candb.layout(WALKER).observation) == OBSERVATION_FRAMES
+    assert len(layout(WALKER).observation) == OBSERVATION_FRAMES
     assert report["episodes"] == episodes and report["faults"] == 0 and report["steps"] > episodes
     assert report["outcomes_differing_from_simulation"] == []
     assert report["max_action_abs_diff"] <= 1e-5
