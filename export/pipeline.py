@@ -227,9 +227,11 @@ def _verify_target(
     act_dim: int,
     quantized: str | None,
     sample_time_s: float | None,
+    tolerance: float,
 ) -> dict[str, Any]:
-    """Build and run one target's firmware: float actions must match onnxruntime within tolerance,
-    quantised ones the Python model bit for bit; its instructions and estimated cycles per inference."""
+    """Build and run one target's firmware: float actions must match onnxruntime within ``tolerance`` (the
+    export's rule, as on the host), quantised ones the Python model bit for bit; its instructions and
+    estimated cycles per inference."""
     out = target.build_firmware(t, c_dir, vectors_path, build_dir)
     run = target.run_qemu(t, out / "firmware.elf", len(vectors), act_dim)
     if np.any(run.codes != 0):
@@ -244,10 +246,12 @@ def _verify_target(
                 f"{t.name}: the {quantized} firmware differs from the Python model "
                 f"on {mismatches} observations"
             )
-    elif err > verify.TOLERANCE:
-        raise VerificationError(
-            f"{t.name}: the firmware differs from onnxruntime by {err:.3g} > {verify.TOLERANCE}"
+    else:
+        failure = verify.tolerance_failure(
+            run.actions, expected, vectors, tolerance, f"{t.name}: the firmware differs from onnxruntime"
         )
+        if failure:
+            raise VerificationError(failure)
     traced = cycles.profile(out / "policy.elf", t.qemu_machine, t.name)
     return {
         "stack_bound": stack.policy_bound(out / "firmware.elf"),
@@ -626,7 +630,7 @@ def _verify(
         targets[name] = _verify_target(
             target.TARGETS[name], generated.c_dir, vectors_path, vectors, expected, built.build_dir,
             lowered.graph.size(lowered.graph.output), opts.quantize,
-            lowered.interface.sample_time_s if lowered.interface else None,
+            lowered.interface.sample_time_s if lowered.interface else None, opts.tolerance,
         )  # fmt: skip
     checks["non_finite_observation"] = _safe_on_nan(built.compiled, lowered.graph.size(lowered.graph.input))
     log("[4/5] NaN propagation: each op with a NaN at each input position, C vs ONNX")
