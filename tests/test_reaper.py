@@ -34,6 +34,17 @@ def group_alive(pgid: int) -> bool:
     return True
 
 
+def ended_within_deadline(pgid: int) -> bool:
+    """Whether process group ``pgid`` ends within :data:`DEADLINE_S`; one that does not is killed."""
+    deadline = time.monotonic() + DEADLINE_S
+    while group_alive(pgid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    alive = group_alive(pgid)
+    if alive:
+        os.killpg(pgid, signal.SIGKILL)
+    return not alive
+
+
 def start_owner(mode: str, tmp_path: Path) -> tuple[subprocess.Popen[str], int]:
     script = tmp_path / "owner.py"
     script.write_text(OWNER)
@@ -48,13 +59,7 @@ def test_a_guarded_group_ends_when_its_owner_is_killed(tmp_path: Path) -> None:
     owner, pgid = start_owner("guard", tmp_path)
     owner.send_signal(signal.SIGKILL)
     owner.wait()
-    deadline = time.monotonic() + DEADLINE_S
-    while group_alive(pgid) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    alive = group_alive(pgid)
-    if alive:
-        os.killpg(pgid, signal.SIGKILL)
-    assert not alive, "the group outlived its killed owner"
+    assert ended_within_deadline(pgid), "the group outlived its killed owner"
 
 
 def test_a_released_group_is_left_alone(tmp_path: Path) -> None:

@@ -11,7 +11,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import embedrl.hil.sandbox as sandbox
 from embedrl.hil.sandbox import Guest, Provider
 from tests.conftest import marks_its_users
 from tests.hil.helpers import boot_or_skip, hil
-from tests.test_reaper import DEADLINE_S, group_alive
+from tests.test_reaper import ended_within_deadline
 
 pytestmark = pytest.mark.slow
 CANDIDATES = sandbox.providers("auto")
@@ -83,10 +82,4 @@ def test_a_guest_ends_with_the_process_that_booted_it_even_on_sigkill(tmp_path: 
     os.killpg(pgid, 0)
     owner.send_signal(signal.SIGKILL)
     owner.wait()
-    deadline = time.monotonic() + DEADLINE_S
-    while group_alive(pgid) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    alive = group_alive(pgid)
-    if alive:
-        os.killpg(pgid, signal.SIGKILL)
-    assert not alive, "the guest outlived the killed process that booted it"
+    assert ended_within_deadline(pgid), "the guest outlived the killed process that booted it"
