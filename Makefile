@@ -81,12 +81,15 @@ policies: $(STAMP) ## train the shipped policies again (hours), each shipped onl
 
 # The suite in tiers (markers in pyproject.toml, set by the fixtures a test uses: tests/conftest.py). pytest is
 # exec'd, so that make's SIGTERM (timeout, CI cancelling) reaches it and the session stops, guests closed.
+# Both run on TEST_WORKERS pytest-xdist workers, a test file per worker at a time (tests/conftest.py).
+TEST_WORKERS ?= 2
+SIDE_BY_SIDE = -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 FAST_TIER := not slow and not sandbox and not qemu and not training
 test: deps $(STAMP) ## the whole test suite, then its 25 slowest tests
-	exec $(PY) -m pytest --durations=25
+	exec $(PY) -m pytest $(SIDE_BY_SIDE) --durations=25
 
 test-fast: $(STAMP) ## the tests that are not slow, boot no sandbox, run no QEMU and train nothing (minutes)
-	exec $(PY) -m pytest -m "$(FAST_TIER)"
+	exec $(PY) -m pytest $(SIDE_BY_SIDE) -m "$(FAST_TIER)"
 
 lint: $(STAMP) ## ruff check and ruff format --check
 	$(VENV)/bin/ruff check .
@@ -106,8 +109,12 @@ $(EMX):
 	$(PYTHON) -m venv tools/emx
 	tools/emx/bin/pip install --quiet emx-onnx-cgen==1.4.0
 
+# How long make bench measures: env steps, HIL lock-step episodes and floor exchanges (smaller: quicker, noisier).
+BENCH_ENV_STEPS ?= 50000
+BENCH_HIL_EPISODES ?= 60
+BENCH_HIL_EXCHANGES ?= 6000
 bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/bench
-	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
+	$(VENV)/bin/embedrl bench-env --steps $(BENCH_ENV_STEPS) --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
 	for q in int8 q15; do \
 	    $(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-$$q --force --episodes 0 \
@@ -115,7 +122,8 @@ bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/be
 	        --json $(OUT)/bench/export-$$q.json || exit 1; \
 	done
 	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
-	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes 60 --exchanges 6000 --json $(OUT)/bench/hil.json
+	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes $(BENCH_HIL_EPISODES) \
+	    --exchanges $(BENCH_HIL_EXCHANGES) --json $(OUT)/bench/hil.json
 
 # Instructions and estimated cycles per inference on the Cortex-M cores: embedrl's C against emx-onnx-cgen's
 # C of the same shipped policy, both on QEMU in one run.
