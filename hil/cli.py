@@ -36,8 +36,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     written = [str(p) for p in (args.json, args.log, *pictures) if p]
     if folder is not None:
         record = data["coverage"]
-        unreadable = f", {len(record['unreadable'])} unreadable left out" if record["unreadable"] else ""
-        written.append(f"{folder} ({len(record['profiles'])} profile(s) of the node{unreadable})")
+        left = len(record["unreadable"])
+        left_out = f"; {left} empty or cut short (a process killed), left out" if left else ""
+        written.append(f"{folder} ({len(record['profiles'])} profile(s) of the node{left_out})")
     chained = args.json and (args.export_dir / chain.MANIFEST).is_file()
     if chained and args.log and args.log.is_file():  # the bundle keeps the frames beside the report
         data["log"] = {"file": bundle_path(args.export_dir, args.log), "sha256": sha256(args.log)}

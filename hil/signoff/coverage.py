@@ -79,6 +79,8 @@ class HilProfile:
     report: str
     binary: Path
     profiles: tuple[Path, ...]
+    left_out: int = 0
+    """Profiles the run found empty or cut short (a node process killed by SIGKILL) and did not keep."""
 
 
 @dataclass(frozen=True)
@@ -134,7 +136,7 @@ def measure(
                  if line.startswith("A ")]  # fmt: skip
     summary["compiler"] = _version(CLANG)
     summary["sources"] = [{"source": s, "profiles": 1} for s in UNIT_SOURCES] + [
-        {"source": f"HIL run {h.report}", "profiles": len(h.profiles)} for h in hil
+        {"source": f"HIL run {h.report}", "profiles": len(h.profiles), "left_out": h.left_out} for h in hil
     ]
     summary["probes"] = {"rows": len(rows), "verification_rows": len(observations),
                          "codes": {str(c): codes.count(c) for c in sorted(set(codes))}}  # fmt: skip
@@ -325,7 +327,13 @@ def _gaps(f: dict[str, Any], text: list[str], not_run: list[int]) -> list[dict[s
 
 def merged_from(summary: dict[str, Any]) -> str:
     """Which sources the coverage merges, and each HIL report it does not merge with why."""
-    hil = [s["source"] for s in summary["sources"] if s["source"].startswith("HIL run")]
+    hil = [
+        f"{s['source']} ({s['profiles']} node process profile(s)"
+        + (f"; {s['left_out']} empty, its process killed" if s["left_out"] else "")
+        + ")"
+        for s in summary.get("sources", [])
+        if s["source"].startswith("HIL run")
+    ]
     text = "merged from the verification vectors, the C tests" + (f" and {', '.join(hil)}" if hil else "")
     if not hil:
         text += " (no HIL run with coverage)"

@@ -206,7 +206,8 @@ def coverage(
         except HilError as exc:
             not_merged.append({"report": name, "why": str(exc), "failed": bool(data.get("coverage"))})
             continue
-        merged.append(measured.HilProfile(name, binary, tuple(profiles)))
+        left_out = len(data["coverage"].get("unreadable", []))
+        merged.append(measured.HilProfile(name, binary, tuple(profiles), left_out))
     try:
         summary = measured.measure(export_dir / "c", export["name"], observations, tuple(merged))
     except BuildError as exc:
