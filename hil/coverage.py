@@ -34,12 +34,19 @@ def folder_of(report: Path) -> Path:
     return report.with_suffix(FOLDER_SUFFIX)
 
 
+def is_coverage_file(path: Path) -> bool:
+    """Whether a file is one :func:`keep` writes (a raw profile or the binary)."""
+    return path.is_file() and (path.suffix == ".profraw" or path.name == BINARY)
+
+
 def keep(written: Path, binary: Path, folder: Path) -> dict[str, Any]:
     """Copy the readable raw profiles in ``written`` and the instrumented ``binary`` into ``folder``; the
     record the HIL report keeps (file names relative to ``folder``, their digests, the unreadable ones)."""
     profiles = sorted(written.glob("*.profraw")) if written.is_dir() else []
     readable = [p for p in profiles if _readable(p)]
     folder.mkdir(parents=True, exist_ok=True)
+    for earlier in folder.glob("*.profraw"):  # an earlier run's, whose report this run's replaces
+        earlier.unlink()
     for file in [*readable, binary]:
         shutil.copyfile(file, folder / (BINARY if file == binary else file.name))
     return {

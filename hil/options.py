@@ -102,9 +102,10 @@ class RunOptions:
     trust_c: bool = False
     """Build and run the export's C even if it is not what embedrl generates from its ONNX (hand-edited)."""
     coverage: Path | None = None
-    """A new folder for the node's coverage: the C node is built with clang's coverage flags (``make
-    coverage-node``), runs in the sandbox as the plain node does, and each of its processes writes its raw
-    profile when it exits; the profiles and the instrumented binary are kept here. None: a plain node."""
+    """A folder for the node's coverage (new, or an earlier coverage run's, replaced): the C node is built
+    with clang's coverage flags (``make coverage-node``), runs in the sandbox as the plain node does, and
+    each of its processes writes its raw profile when it exits; the profiles and the instrumented binary are
+    kept here. None: a plain node."""
 
     @property
     def sandbox_mode(self) -> str:

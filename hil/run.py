@@ -90,7 +90,9 @@ def check(options: RunOptions) -> list[Scheduled]:
 
 
 def _check_coverage(folder: Path) -> None:
-    """``--coverage``: its tools on PATH and a folder of this run's profiles only (new or empty)."""
+    """``--coverage``: its tools on PATH and a folder that is new or holds an earlier coverage run's files
+    only (replaced once this run has its own: a report written again gets its coverage folder anew)."""
+    from embedrl.hil.coverage import is_coverage_file
     from embedrl.hil.options import COVERAGE_TOOLS
 
     missing = [tool for tool in COVERAGE_TOOLS if shutil.which(tool) is None]
@@ -99,8 +101,11 @@ def _check_coverage(folder: Path) -> None:
             f"--coverage needs {' and '.join(missing)}, not found on PATH (Debian: apt-get install clang-19 "
             "llvm-19)"
         )
-    if folder.exists() and (not folder.is_dir() or any(folder.iterdir())):
-        raise HilError(f"--coverage: {folder} exists and is not an empty folder (a run's profiles only)")
+    if folder.exists() and (not folder.is_dir() or not all(map(is_coverage_file, folder.iterdir()))):
+        raise HilError(
+            f"--coverage: {folder} holds other files than a coverage run's (*.profraw, policy_node); "
+            "move them"
+        )
 
 
 def _check_node_kind(options: RunOptions) -> None:

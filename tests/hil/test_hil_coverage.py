@@ -148,10 +148,10 @@ def test_coverage_without_its_tools_or_without_a_report_is_refused_in_one_line(t
         "error: --coverage keeps the node's profiles beside the report: give --json REPORT.json"
     ]
     (tmp_path / "hil.coverage").mkdir()
-    (tmp_path / "hil.coverage" / "old.profraw").write_bytes(b"")
+    (tmp_path / "hil.coverage" / "notes.txt").write_bytes(b"")
     result = _hil_run("--export-dir", str(tmp_path), "--coverage", "--json", str(json))
     assert result.returncode == 2 and result.stderr.splitlines() == [
-        f"error: --coverage: {tmp_path / 'hil.coverage'} exists and is not an empty folder (a run's profiles "
-        "only)"
+        f"error: --coverage: {tmp_path / 'hil.coverage'} holds other files than a coverage run's (*.profraw, "
+        "policy_node); move them"
     ]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["hil.coverage"]
