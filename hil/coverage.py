@@ -67,6 +67,8 @@ def sources(report: Path, data: dict[str, Any]) -> tuple[Path, list[Path]]:
     """The instrumented binary and the raw profiles a HIL report records, found in its coverage folder
     (:func:`folder_of`) with the recorded digests; HilError (one line) naming what is missing or changed."""
     record = data.get("coverage")
+    if data.get("node") not in (None, "c"):
+        raise HilError(f"{report.name}: a {data['node']} node run (coverage measures the C node: --node c)")
     if not isinstance(record, dict) or not isinstance(record.get("profiles"), list):
         raise HilError(f"{report.name}: a run without coverage (embedrl hil run --coverage)")
     folder = folder_of(report)

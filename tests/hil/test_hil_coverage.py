@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 
 from embedrl.common import sha256, write_json
+from embedrl.export import chain
 from embedrl.hil import coverage as recorded
 from embedrl.hil.errors import HilError
 from embedrl.hil.options import RunOptions
@@ -98,10 +99,40 @@ def test_the_report_names_the_hil_run_among_the_sources_it_merged(fault_run: dic
     assert "HIL run hil/hil.json" in page
 
 
+def test_verify_chain_names_a_changed_or_missing_coverage_file(
+    fault_run: dict[str, Any], tmp_path: Path
+) -> None:
+    copy = tmp_path / "copy"
+    shutil.copytree(fault_run["export"], copy)
+    assert all(c.ok for c in chain.verify(copy))
+    profile = next((copy / "hil" / "hil.coverage").glob("*.profraw"))
+    recorded = sha256(profile)
+    profile.write_bytes(profile.read_bytes() + b"x")
+    said = f"hil/hil.json records hil.coverage/{profile.name} (sha256 {recorded[:12]}...), which "
+    now = sha256(profile)
+    assert [c.detail for c in chain.verify(copy) if not c.ok] == [f"{said}changed (sha256 {now[:12]}...)"]
+    profile.unlink()
+    assert [c.detail for c in chain.verify(copy) if not c.ok] == [f"{said}is missing"]
+
+
+def test_a_coverage_record_naming_a_folder_elsewhere_is_refused() -> None:
+    entry = {"file": "policy_node", "sha256": "0" * 64}
+    with pytest.raises(ValueError, match=re.escape("its coverage folder '../x' is not one name beside the")):
+        chain.recorded_coverage({"coverage": {"folder": "../x", "binary": entry, "profiles": []}})
+    with pytest.raises(ValueError, match="is not an object of a file name and its sha256"):
+        outside = {**entry, "file": "../p"}
+        chain.recorded_coverage({"coverage": {"folder": "x", "binary": outside, "profiles": []}})
+    assert chain.recorded_coverage({"coverage": {"folder": "x", "binary": entry, "profiles": [entry]}}) == {
+        "x/policy_node": "0" * 64
+    }
+
+
 def test_a_hil_report_without_its_coverage_is_named_and_a_changed_profile_fails(tmp_path: Path) -> None:
     report = tmp_path / "hil.json"
     with pytest.raises(HilError, match=r"^hil.json: a run without coverage \(embedrl hil run --coverage\)$"):
         recorded.sources(report, {"coverage": None})
+    with pytest.raises(HilError, match=r"^hil.json: a firmware node run \(coverage measures the C node"):
+        recorded.sources(report, {"coverage": None, "node": "firmware"})
     folder = recorded.folder_of(report)
     folder.mkdir()
     (folder / "policy_node").write_bytes(b"binary")
