@@ -53,7 +53,7 @@ demo: deps $(STAMP) ## the whole chain: baseline, export, HIL (host and firmware
 	    $(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export-$$q --force --quantize $$q --episodes 0 \
 	        || exit 1; \
 	done
-	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 \
+	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 --coverage \
 	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
 	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 3 --seed 0 --node firmware \
 	    --target cortex-m4 --json $(OUT)/demo/hil-firmware.json
@@ -61,7 +61,7 @@ demo: deps $(STAMP) ## the whole chain: baseline, export, HIL (host and firmware
 	$(VENV)/bin/embedrl report $(OUT)/demo/export --hil $(OUT)/demo/hil.json --hil $(OUT)/demo/hil-firmware.json \
 	    --also $(OUT)/demo/export-int8 --also $(OUT)/demo/export-q15 --out $(OUT)/demo/report.html
 	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, export-int8/, export-q15/, \
-	hil.json, hil-firmware.json, frames.log, hil_*.png, report.html)"
+	hil.json, hil.coverage/, hil-firmware.json, frames.log, hil_*.png, report.html)"
 
 # How the shipped policies were made, each shipped only if it succeeds in >= 95% of 200 episodes on seeds
 # training never used (train/ship.py). policies/static/{ddpg,td3,sac,ppo}.zip were trained past the stop

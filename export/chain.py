@@ -352,8 +352,14 @@ def _check(export_dir: Path, k: Link, by_name: dict[str, Link], declared: set[st
         return Check(k, False, f"{k.path} changed: sha256 {now[:12]}..., the chain says {k.sha256[:12]}...")
     try:
         parents = _recorded_parents(path, k)
+        beside = recorded_coverage(read_json(path)) if k.name.startswith("HIL report") else {}
     except ValueError as exc:
         return Check(k, False, f"{k.path}: cannot read the hashes it records of its parents ({exc})")
+    for name, recorded in beside.items():  # the node's coverage profiles and binary, beside the report
+        file = path.parent / name
+        if not file.is_file() or sha256(file) != recorded:
+            said = "is missing" if not file.is_file() else f"changed (sha256 {sha256(file)[:12]}...)"
+            return Check(k, False, f"{k.path} records {name} (sha256 {recorded[:12]}...), which {said}")
     for parent, recorded in parents.items():
         if parent in by_name and by_name[parent].sha256 != recorded:
             said = (
@@ -390,6 +396,26 @@ def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
             records[f"file {log[0]}"] = log[1]
         return records
     return {}
+
+
+def recorded_coverage(data: Any) -> dict[str, str]:
+    """The coverage files a HIL report records (``hil run --coverage``), each as a path relative to the
+    report's folder with its sha256; none for a run without coverage. ValueError for a record of another
+    form, or a folder that is not one name beside the report."""
+    record = data.get("coverage") if isinstance(data, dict) else None
+    if record is None:
+        return {}
+    folder = record.get("folder") if isinstance(record, dict) else None
+    if not isinstance(folder, str) or folder in ("", ".", "..") or "/" in folder or "\\" in folder:
+        raise ValueError(f"its coverage folder {folder!r} is not one name beside the report")
+    entries = [record.get("binary"), *(record.get("profiles") or [])]
+    out = {}
+    for entry in entries:
+        file, digest = (entry.get("file"), entry.get("sha256")) if isinstance(entry, dict) else (None, None)
+        if not isinstance(file, str) or not isinstance(digest, str) or "/" in file or file in ("", ".", ".."):
+            raise ValueError(f"its coverage file {entry!r} is not an object of a file name and its sha256")
+        out[f"{folder}/{file}"] = digest
+    return out
 
 
 def recorded_log(data: Any) -> tuple[str, str] | None:

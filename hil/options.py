@@ -38,6 +38,9 @@ class NodeKind:
 
 
 ONE_BOARD = "the firmware node runs one robot on one emulated board"
+COVERAGE_TOOLS = ("clang-19", "llvm-profdata-19")
+"""What ``--coverage`` needs on PATH: the compiler of the instrumented node (``make coverage-node``) and the
+tool that checks its raw profiles (Debian: clang-19, llvm-19)."""
 NODE_KINDS: dict[str, NodeKind] = {
     "c": NodeKind(
         refuses={"target": "the C node runs on this machine; --target picks the firmware node's core"}
@@ -48,6 +51,8 @@ NODE_KINDS: dict[str, NodeKind] = {
             "fd": "the firmware node speaks classic CAN over its serial line (SLCAN)",
             "nodes": ONE_BOARD,
             "kill_node": ONE_BOARD,
+            "coverage": "the firmware image is built by arm-none-eabi-gcc and runs on QEMU; clang's coverage "
+            "measures the C node (--node c)",
         },
         simulated_time=True,
     ),
@@ -56,6 +61,7 @@ NODE_KINDS: dict[str, NodeKind] = {
             "sandbox": "the Python node runs in this process on python-can's virtual bus, in no sandbox",
             "target": "the Python node runs in this process; --target picks the firmware node's core",
             "trust_c": "the Python node runs the export's ONNX, no C",
+            "coverage": "the Python node runs the export's ONNX, no C",
         },
         builds_c=False,
     ),
@@ -95,6 +101,11 @@ class RunOptions:
     None: :data:`DEFAULT_TARGET`."""
     trust_c: bool = False
     """Build and run the export's C even if it is not what embedrl generates from its ONNX (hand-edited)."""
+    coverage: Path | None = None
+    """A folder for the node's coverage (new, or an earlier coverage run's, replaced): the C node is built
+    with clang's coverage flags (``make coverage-node``), runs in the sandbox as the plain node does, and
+    each of its processes writes its raw profile when it exits; the profiles and the instrumented binary are
+    kept here. None: a plain node."""
 
     @property
     def sandbox_mode(self) -> str:

@@ -113,6 +113,9 @@ class SessionConfig:
     kill_node: tuple[int, int, int] | None = None
     """Several nodes: ``(node, episode, step)`` at which that node's process is killed (its robot then
     stops, the safe action; the other nodes go on)."""
+    coverage_profile: str | None = None
+    """The C node's ``LLVM_PROFILE_FILE`` (a node built for coverage writes its raw profile there when it
+    exits); None: the environment's."""
 
 
 def _session_policy(cfg: SessionConfig) -> Callable[[np.ndarray], np.ndarray]:
@@ -492,7 +495,9 @@ def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> N
             + ([episode_start_id(node_id)] if interface.state_size else []),
             on_host, cfg.tick_instructions,
         )  # fmt: skip
-    return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
+    return CNode(
+        cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.coverage_profile
+    )
 
 
 def open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
