@@ -126,13 +126,12 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
     from embedrl.hil import sandbox
     from embedrl.hil.errors import HilError
     from embedrl.hil.run import REPO, SESSION_TIMEOUT_S, check, check_export, make_node, session_config
-    from embedrl.train.scenarios import TWO_ROBOTS
 
     options, interface = check_export(options, check(options))
-    if interface.env_id == TWO_ROBOTS.env_id:
+    if interface.robots > 1:
         raise HilError(
             f"{options.export_dir}: hil bench measures one node on one robot; this export runs one node per "
-            "robot of the two-robot scenario (export a one-robot policy)"
+            f"robot of the {interface.name} scenario (export a one-robot policy)"
         )
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-bench-"))
     try:

@@ -180,12 +180,13 @@ def _add_node_arguments(r: Any) -> None:
 def cmd_scope(args: argparse.Namespace) -> int:
     from embedrl.hil import scope
     from embedrl.train.arguments import policy_from
-    from embedrl.train.scenarios import TWO_ROBOTS
+    from embedrl.train.scenarios import SCENARIOS
 
     if args.out.suffix.lower() != ".png":
         raise HilError(f"cannot write {args.out}: the scope view is a .png file")
     policy = policy_from(args)
-    extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
+    robots = SCENARIOS[args.scenario].robots
+    extra = {"partner": policy} if robots > 1 else {}  # one policy drives every robot
     episode = scope.record(policy, args.scenario, args.seed, extra)
     scope.plot(episode, args.out, args.controller or args.model.name)
     print(f"wrote {args.out}: {len(episode['actions'])} steps, {episode['outcome']}")

@@ -16,7 +16,6 @@ from embedrl.common import owned_temporary_folder
 from embedrl.export.contract.layout import rounding_errors
 from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
 from embedrl.train.interface import NO_ENV, Interface
-from embedrl.train.scenarios import TWO_ROBOTS
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -118,7 +117,7 @@ def _simulation(
     if interface.env_id == NO_ENV:
         return None, None
     simulated = _simulated_policy(options, interface)
-    if interface.env_id == TWO_ROBOTS.env_id:
+    if interface.robots > 1:
         return _two_robot_simulation(options, interface, results, episodes, simulated)
     from embedrl.hil.session import NODE_SEED_STRIDE
 

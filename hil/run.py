@@ -34,7 +34,6 @@ from embedrl.hil.options import (
 )
 from embedrl.hil.progress import episode_bar
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
-from embedrl.train.scenarios import TWO_ROBOTS
 
 if TYPE_CHECKING:
     from embedrl.hil.sandbox import Guest
@@ -45,8 +44,10 @@ SESSION_TIMEOUT_S = 3600.0
 """A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
 ACTION_TIMEOUT_S = 2.0
 """How long the simulator waits for the node's answer to a step (on the host; stretched in slow guests)."""
-TWO_ROBOT_NODES = 2
-"""The two-robot scenario runs one node per robot."""
+
+
+NUMBER_WORDS = {2: "two", 3: "three", 4: "four"}
+"""Counts of robots and nodes as messages spell them."""
 
 
 def check(options: RunOptions) -> list[Scheduled]:
@@ -255,9 +256,33 @@ def _export_interface(export_dir: Path) -> Interface:
         raise HilError(str(exc)) from None
 
 
+def _one_node_per_robot(options: RunOptions, interface: Interface) -> RunOptions:
+    """The options of a scenario with several robots: one node per robot, in lock-step."""
+    scenario, robots = interface.name, interface.robots
+    if options.node == "firmware":
+        raise HilError(
+            f"the {scenario} scenario needs {_count(robots)} nodes; the firmware node runs one: use --node c"
+        )
+    if robots > MAX_NODES:
+        raise HilError(f"the {scenario} scenario has {robots} robots, one node each: at most {MAX_NODES}")
+    if options.nodes not in (1, robots):
+        raise HilError(f"the {scenario} scenario runs one node per robot: drop --nodes {options.nodes}")
+    if options.inject or options.realtime:
+        raise HilError(
+            f"the {scenario} scenario runs its {_count(robots)} nodes in lock-step: drop --inject and "
+            "--realtime (--kill-node takes a node down)"
+        )
+    return replace(options, nodes=robots)
+
+
+def _count(n: int) -> str:
+    """``n`` as a word for the small counts messages name (``two``), else as digits."""
+    return NUMBER_WORDS.get(n, str(n))
+
+
 def check_export(options: RunOptions, schedule: list[Scheduled]) -> tuple[RunOptions, Interface]:
-    """The options against the export's interface; the options to run (the export folder resolved, two
-    nodes for the two-robot scenario) and the interface, read once for the whole run."""
+    """The options against the export's interface; the options to run (the export folder resolved, one
+    node per robot for a scenario with several) and the interface, read once for the whole run."""
     options = replace(options, export_dir=options.export_dir.resolve())
     interface = _export_interface(options.export_dir)
     if NODE_KINDS[options.node].builds_c and not options.trust_c:
@@ -271,17 +296,8 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> tuple[RunOpt
             )
     if options.nodes > 1 and interface.env_id == NO_ENV:
         raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
-    if interface.env_id == TWO_ROBOTS.env_id:  # one node per robot
-        if options.node == "firmware":
-            raise HilError("the two-robot scenario needs two nodes; the firmware node runs one: use --node c")
-        if options.nodes not in (1, TWO_ROBOT_NODES):
-            raise HilError(f"the two-robot scenario runs one node per robot: drop --nodes {options.nodes}")
-        options = replace(options, nodes=TWO_ROBOT_NODES)
-        if options.inject or options.realtime:
-            raise HilError(
-                "the two-robot scenario runs its two nodes in lock-step: drop --inject and --realtime "
-                "(--kill-node takes a node down)"
-            )
+    if interface.robots > 1:
+        options = _one_node_per_robot(options, interface)
     for s in schedule:
         if s.step > interface.max_steps:
             raise HilError(
@@ -337,8 +353,8 @@ def session_config(
     export_dir = options.export_dir
     observations = export_dir / "test" / OBSERVATIONS_FILE
     env_id = interface.env_id
-    if env_id == TWO_ROBOTS.env_id:
-        nodes = "of two robots, one node each, "
+    if interface.robots > 1:
+        nodes = f"of {_count(interface.robots)} robots, one node each, "
     elif options.nodes > 1:
         nodes = f"on each of {options.nodes} nodes "
     else:

@@ -47,7 +47,6 @@ from embedrl.hil.link import Link, Stats
 from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
 from embedrl.train.interface import NO_ENV, Interface
-from embedrl.train.scenarios import TWO_ROBOTS
 
 TOLERANCE = 1e-5
 NODE_BOOT_S = 1.0
@@ -504,44 +503,47 @@ def open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
 
 
 def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
-    """The two-robot scenario: one node per robot on one bus, both robots in one episode, in lock-step.
+    """A scenario with several robots: one node per robot on one bus, every robot in one episode, in
+    lock-step.
 
-    Every step each robot's observation goes to its own node, then both actions are collected and the
-    two-robot env steps. A robot whose node does not answer is in the fault path: it stops (the safe
-    action) and its row ends as a fault, while the other robot's node keeps driving it. One row per robot
-    and episode (``node`` = robot index, ``seed`` = the episode's seed)."""
-    from embedrl.train.two_robots_env import AGENTS, WarehouseTwoRobotsEnv
+    Every step each robot's observation goes to its own node, then every action is collected and the
+    scenario's team env (:func:`~embedrl.train.scenarios.team_env`) steps. A robot whose node does not
+    answer is in the fault path: it stops (the safe action) and its row ends as a fault, while the other
+    robots' nodes keep driving theirs. One row per robot and episode (``node`` = robot index, ``seed`` =
+    the episode's seed)."""
+    from embedrl.train.scenarios import BY_ENV_ID, team_env
 
     episodes: list[dict[str, Any]] = []
-    env = WarehouseTwoRobotsEnv()
+    env = team_env(BY_ENV_ID[interface.env_id])
+    agents = list(env.possible_agents)
     safe = np.asarray(interface.safe_action, dtype=np.float32)
     try:
-        with _nodes_on_one_bus(cfg, interface, len(AGENTS)) as (links, nodes, policies):
+        with _nodes_on_one_bus(cfg, interface, len(agents)) as (links, nodes, policies):
             for index in range(cfg.episodes):
                 seed = cfg.seed + index
                 marks = [len(link.stats.diffs) for link in links]
                 obs, _ = env.reset(seed=seed)
-                totals = [0.0, 0.0]
-                faults: list[str | None] = [None, None]
+                totals = [0.0] * len(agents)
+                faults: list[str | None] = [None] * len(agents)
                 for policy in policies:
                     policy.begin_episode()
                 while env.agents:
-                    live = [k for k, a in enumerate(AGENTS) if a in env.agents and faults[k] is None]
+                    live = [k for k, a in enumerate(agents) if a in env.agents and faults[k] is None]
                     for k in live:
                         if cfg.kill_node == (k, index, policies[k].in_episode):
                             nodes[k].stop()
-                        policies[k].send(obs[AGENTS[k]])
+                        policies[k].send(obs[agents[k]])
                     actions = {a: safe for a in env.agents}
                     for k in live:
                         try:
-                            actions[AGENTS[k]] = policies[k].collect(obs[AGENTS[k]])
+                            actions[agents[k]] = policies[k].collect(obs[agents[k]])
                         except NodeFault as fault:
                             faults[k] = str(fault)
                     stepped, rewards, _, _, _ = env.step(actions)
                     obs.update(stepped)
                     for agent, r in rewards.items():
-                        totals[AGENTS.index(agent)] += float(r)
-                for k in range(len(AGENTS)):
+                        totals[agents.index(agent)] += float(r)
+                for k in range(len(agents)):
                     steps = len(env.trajectories[k]) - 1
                     hit = env._world.hits[k] if env._world is not None else None
                     diffs = links[k].stats.diffs[marks[k] :]
@@ -597,7 +599,7 @@ def run(cfg: SessionConfig, interface: Interface | None = None) -> dict[str, Any
     ``cfg.interface``, already read by the caller in this process (a session in a guest reads it)."""
     if interface is None:
         interface = load_interface(Path(cfg.interface))
-    if interface.env_id == TWO_ROBOTS.env_id:
+    if interface.robots > 1:
         return _run_robots(cfg, interface)
     if cfg.nodes > 1:
         return _run_nodes(cfg, interface)

@@ -196,3 +196,57 @@ def test_scenario_names_are_typed_only_in_their_specs(folder: str) -> None:
         if SCENARIO_NAME.search(line.split("#")[0])
     ]
     assert typed == []
+
+
+SCENARIO_IDENTITY = re.compile(
+    r"(==|!=|\bis|\bin)\s*\(?\s*[A-Z_]*TWO_ROBOTS\b|\bTWO_ROBOTS(\.\w+)?\s*(==|!=|\bis\b)"
+)
+
+
+def _identity_checks(path: Path) -> list[str]:
+    return [
+        f"{path.relative_to(REPO)}:{n + 1}"
+        for n, line in enumerate(path.read_text().splitlines())
+        if SCENARIO_IDENTITY.search(line.split("#")[0])
+    ]
+
+
+@pytest.mark.parametrize("folder", ["train", "export", "hil", "embedrl"])
+def test_no_code_compares_against_the_two_robot_scenario(folder: str) -> None:
+    """Code asks a scenario's properties (``spec.robots``), never whether it is the two-robot scenario, so a
+    second scenario with several robots touches no check."""
+    found = [
+        c
+        for path in sorted((REPO / folder).rglob("*.py"))
+        if path.name != "scenarios.py"
+        for c in _identity_checks(path)
+    ]
+    assert found == []
+
+
+def test_the_identity_check_finder_finds_one(tmp_path: Path) -> None:
+    sample = REPO / "tests" / "_identity_sample.py"
+    lines = [
+        "if env_id == TWO_ROBOTS.env_id:",
+        "if spec is TWO_ROBOTS:",
+        "if TWO_ROBOTS.name == s:",
+        "x = TWO_ROBOTS.obs_low",
+    ]
+    try:
+        sample.write_text("\n".join(lines) + "\n")
+        assert _identity_checks(sample) == [f"tests/_identity_sample.py:{n}" for n in (1, 2, 3)]
+    finally:
+        sample.unlink()
+
+
+def test_every_scenario_with_several_robots_has_a_team_env() -> None:
+    from embedrl.train.scenarios import SCENARIOS, TEAM_ENVS, team_env
+
+    several = {name for name, spec in SCENARIOS.items() if spec.robots > 1}
+    assert several and set(TEAM_ENVS) == several
+    for name in several:
+        env = team_env(SCENARIOS[name])
+        try:
+            assert len(env.possible_agents) == SCENARIOS[name].robots
+        finally:
+            env.close()

@@ -24,7 +24,7 @@ from embedrl.train.arguments import (
     seed,
 )
 from embedrl.train.errors import TrainError, UsageError
-from embedrl.train.scenarios import DEFAULT_SCENARIO, TWO_ROBOTS
+from embedrl.train.scenarios import DEFAULT_SCENARIO
 
 
 def _positive(text: str) -> int:
@@ -70,7 +70,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
     policy = policy_from(args)
-    extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
+    robots = SCENARIOS[args.scenario].robots
+    extra = {"partner": policy} if robots > 1 else {}  # one policy drives every robot
     env = gym.make(env_id_of(args), render_mode="rgb_array", **extra)
     obs, info = env.reset(seed=args.seed)
     frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]

@@ -72,7 +72,7 @@ from embedrl.train.evaluate import evaluate
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
 from embedrl.train.portable import machine
 from embedrl.train.rewards import SHAPING_GAIN, SUCCESS_BONUS, check_options
-from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TEACHERS, TWO_ROBOTS, WALKER
+from embedrl.train.scenarios import DEFAULT_SCENARIO, SCENARIOS, TEACHERS, WALKER, team_env
 from embedrl.train.study_agents import (
     SeparateRatesDDPG,
     SoftplusActorCriticPolicy,
@@ -141,13 +141,13 @@ def make_env(normalize: bool, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: 
     """The training env of a scenario: one Monitor-ed env, or one slot per robot for two robots."""
     kwargs = env_kwargs(cfg)
     env: VecEnv
-    if scenario == TWO_ROBOTS.name:
+    spec = SCENARIOS[scenario]
+    if spec.robots > 1:
         from embedrl.train.shared_policy import SharedPolicyVecEnv
-        from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 
-        env = SharedPolicyVecEnv(WarehouseTwoRobotsEnv(**kwargs))
+        env = SharedPolicyVecEnv(team_env(spec, **kwargs))
     else:
-        env_id = SCENARIOS[scenario].env_id
+        env_id = spec.env_id
 
         def monitored() -> gym.Env[Any, Any]:
             inner = gym.make(env_id, **kwargs)  # an env's per-episode sums (the walker's reward terms) logged
@@ -277,7 +277,7 @@ def _demonstration_steps(
     controller = PotentialFieldController(scenario=teacher or scenario)
     rng = np.random.default_rng(seed)
     first = DEMONSTRATION_SEED + 1000 * seed
-    if scenario == TWO_ROBOTS.name:
+    if SCENARIOS[scenario].robots > 1:
         venv = make_env(False, first, scenario, cfg)
         obs = np.asarray(venv.reset())
         finished = 0
@@ -663,9 +663,9 @@ def train(
         scenario = saved.get("scenario", DEFAULT_SCENARIO)
     elif out.exists() and any(out.iterdir()):
         raise UsageError(f"run directory {out} is not empty; use --resume {out} to continue it")
-    if algo == "recurrent-ppo" and scenario == TWO_ROBOTS.name:
+    if algo == "recurrent-ppo" and scenario in SCENARIOS and SCENARIOS[scenario].robots > 1:
         raise UsageError(
-            "recurrent-ppo cannot train the two-robot scenario: its one policy drives both robots, and a "
+            f"recurrent-ppo cannot train the {scenario} scenario: its one policy drives every robot, and a "
             "policy with memory holds one robot's state"
         )
     try:
