@@ -11,8 +11,9 @@ from embedrl.export.contract.layout import WATCHDOG_MS
 from embedrl.export.target import TARGETS
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS
-from embedrl.hil.options import DEFAULT_SANDBOX, DEFAULT_TARGET, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS, NODE_KINDS
-from embedrl.hil.sandbox import MODES
+from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS, cli_help
+from embedrl.hil.options import DEFAULT_SANDBOX, DEFAULT_TARGET, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS
+from embedrl.hil.sandbox import AUTO, MODES, mode_help
 from embedrl.train import arguments
 from embedrl.train.arguments import add_export_dir_argument
 
@@ -103,8 +104,8 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--sandbox",
         choices=MODES,
-        help="where vcan0 comes from, for the c and firmware nodes (auto: the first of host, uml, qemu that "
-        f"passes its self-test) (default: {DEFAULT_SANDBOX})",
+        help=f"where vcan0 comes from, for the nodes that run in a sandbox ({mode_help()}) "
+        f"(default: {DEFAULT_SANDBOX})",
     )
     r.add_argument(
         "--timeout-ms",
@@ -164,11 +165,8 @@ def _add_node_arguments(r: Any) -> None:
     r.add_argument(
         "--node",
         choices=tuple(NODE_KINDS),
-        default="c",
-        help="c: the compiled node over SocketCAN vcan0 (the verdict); firmware: the node as Cortex-M "
-        "firmware on qemu-system-arm, its UART bridged to vcan0 as serial CAN (SLCAN), with instructions "
-        "per step (processor in the loop); python: the Python reference node on python-can's virtual bus "
-        "(no kernel, no build: the harness logic only)",
+        default=DEFAULT_NODE,
+        help=cli_help(),
     )
     r.add_argument(
         "--target",
@@ -267,7 +265,7 @@ def _register_bench(hil_sub: Any) -> None:
     add_export_dir_argument(b, "an `embedrl export` folder")
     b.add_argument("--episodes", type=int, default=20, help="HIL episodes of the lock-step measurement")
     b.add_argument("--exchanges", type=int, default=2000, help="exchanges of the floor measurement")
-    b.add_argument("--sandbox", choices=MODES, default="auto", help="where vcan0 comes from (as hil run)")
+    b.add_argument("--sandbox", choices=MODES, default=AUTO, help="where vcan0 comes from (as hil run)")
     b.add_argument("--json", type=Path, help="write the measurement here")
     b.set_defaults(func=cmd_bench)
 
@@ -278,7 +276,7 @@ def _register_doctor(hil_sub: Any) -> None:
     )
     d.add_argument("--json", type=Path, help="also write the checks here")
     d.add_argument(
-        "--sandbox", choices=MODES, default="auto", help="check only this provider's candidates (auto: all)"
+        "--sandbox", choices=MODES, default=AUTO, help=f"check only this provider's candidates ({AUTO}: all)"
     )
     d.set_defaults(func=cmd_doctor)
 

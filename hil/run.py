@@ -25,13 +25,8 @@ from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.contract.layout import MAX_NODES
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
-from embedrl.hil.options import (
-    DEFAULT_TIMEOUT_MS,
-    MAX_TIMEOUT_MS,
-    MIN_TIMEOUT_MS,
-    NODE_KINDS,
-    RunOptions,
-)
+from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS, kinds_with
+from embedrl.hil.options import DEFAULT_TIMEOUT_MS, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS, RunOptions
 from embedrl.hil.progress import episode_bar
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
 
@@ -78,10 +73,11 @@ def check(options: RunOptions) -> list[Scheduled]:
             raise HilError(
                 f"--inject {s.injector.name}@{s.episode}:{s.step}: the run has {options.episodes} episode(s)"
             )
-        if s.injector.needs_socketcan and options.node != "c":
+        if s.injector.needs_socketcan and not NODE_KINDS[options.node].own_socketcan:
+            owners = kinds_with("own_socketcan")
             raise HilError(
-                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only the C "
-                "node has: use --node c"
+                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only the "
+                f"{' and '.join(owners)} node has: use --node {owners[0]}"
             )
     if options.target is not None:
         _check_target(options.target)
@@ -259,9 +255,10 @@ def _export_interface(export_dir: Path) -> Interface:
 def _one_node_per_robot(options: RunOptions, interface: Interface) -> RunOptions:
     """The options of a scenario with several robots: one node per robot, in lock-step."""
     scenario, robots = interface.name, interface.robots
-    if options.node == "firmware":
+    one = NODE_KINDS[options.node].refuses.get("nodes")
+    if one is not None:
         raise HilError(
-            f"the {scenario} scenario needs {_count(robots)} nodes; the firmware node runs one: use --node c"
+            f"the {scenario} scenario needs {_count(robots)} nodes; {one}: use --node {DEFAULT_NODE}"
         )
     if robots > MAX_NODES:
         raise HilError(f"the {scenario} scenario has {robots} robots, one node each: at most {MAX_NODES}")
@@ -391,9 +388,10 @@ def session_config(
 def _build_and_run(
     options: RunOptions, interface: Interface, guest: Guest | None, work: Path
 ) -> dict[str, Any]:
-    if options.node == "python":
+    kind = NODE_KINDS[options.node]
+    if not kind.in_sandbox:
         return _python_session(options, interface, work)
-    if options.node == "c":
+    if kind.host_binary:
         make_node(options, interface, work, {"FD": "1"} if options.fd else {})
     return _guest_session(options, interface, guest, work)
 
@@ -462,7 +460,8 @@ def _guest_session(
             progress=str(scratch / "progress"),
         )  # fmt: skip
         emulator: AbstractContextManager[None] = nullcontext()
-        if options.node == "firmware":  # its watchdog is fixed in the image: built for this sandbox
+        image = NODE_KINDS[options.node].firmware_image
+        if image:  # its watchdog is fixed in the image: built for this sandbox
             cfg = _with_firmware(options, interface, cfg, work)
             if where.link is not None:  # QEMU on this machine, its UART0 on the guest's serial line
                 cfg = replace(cfg, firmware_link=where.link.device, firmware_control=str(scratch / "qemu"))
@@ -477,7 +476,7 @@ def _guest_session(
             raise HilError(str(why))
         results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
         binary = Path(cfg.node_binary or "")
-        if options.node == "firmware":
+        if image:
             results["firmware"]["stack_bound"] = _firmware_stack_bound(options, binary)
         results["node_binary_sha256"] = sha256(binary)  # which bytes these verdicts are about
         _move_log(log, options.log)

@@ -36,15 +36,14 @@ from embedrl.export.contract.layout import (
     STATUS_PERIOD_MS,
     STEP_MODULO,
     WATCHDOG_MS,
-    episode_start_id,
-    layout,
 )
 from embedrl.export.reference import OnnxPolicy, reference_policy
 from embedrl.hil.codec import Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
-from embedrl.hil.firmware import FirmwareNode, HostQemu, instruction_summary
+from embedrl.hil.firmware import FirmwareNode, instruction_summary
 from embedrl.hil.link import Link, Stats
-from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
+from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS
+from embedrl.hil.nodes import Node, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
 from embedrl.train.interface import NO_ENV, Interface
 
@@ -74,9 +73,8 @@ class SessionConfig:
     (:func:`embedrl.export.reference.reference_policy`); None: with ``onnx`` under onnxruntime."""
     node_binary: str | None = None
     """The compiled ``policy_node`` (``node="c"``), or the firmware image (``node="firmware"``)."""
-    node: str = "c"
-    """``c`` (the compiled node, a process), ``firmware`` (the Cortex-M image on QEMU, bridged over SLCAN)
-    or ``python`` (the reference node, a thread)."""
+    node: str = DEFAULT_NODE
+    """The node's kind, a name of :data:`embedrl.hil.node_kinds.NODE_KINDS` (its ``start`` starts it)."""
     qemu_machine: str | None = None
     """The board that runs the firmware image (``node="firmware"``), e.g. ``netduinoplus2``."""
     tick_instructions: float = 1.0
@@ -469,29 +467,7 @@ def node_seed(seed: int, episode: int, node_id: int) -> int:
 
 
 def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> Node:
-    if cfg.node == "python":
-        return PythonNode(
-            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False, fd=cfg.fd),
-            interface, _session_policy(cfg), cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.fd,
-        )  # fmt: skip
-    if cfg.node_binary is None:
-        raise ValueError("the C node needs node_binary")
-    if cfg.node == "firmware":
-        if cfg.qemu_machine is None:
-            raise ValueError("the firmware node needs qemu_machine")
-        plan = layout(interface, node_id, cfg.fd)
-        on_host = None
-        if cfg.firmware_link is not None and cfg.firmware_control is not None:
-            on_host = HostQemu(Path(cfg.firmware_control), cfg.firmware_link)
-        return FirmwareNode(
-            cfg.node_binary, cfg.qemu_machine,
-            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
-            Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
-            [frame_id for _, frame_id, _ in plan.observation]
-            + ([episode_start_id(node_id)] if interface.state_size else []),
-            on_host, cfg.tick_instructions,
-        )  # fmt: skip
-    return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
+    return NODE_KINDS[cfg.node].start(cfg, interface, node_id, lambda: _session_policy(cfg))
 
 
 def open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
