@@ -372,7 +372,7 @@ def _keep_binaries(build_dir: Path, staging: Path, targets: tuple[str, ...]) -> 
             )
 
 
-def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[chain.Link]:
+def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[chain.TraceLink]:
     """The export's traceability chain (:mod:`embedrl.export.chain`), from the run to the report."""
     links = []
     config = chain.run_config_of(opts.source) if opts.source.suffix.lower() == ".zip" else None
@@ -408,7 +408,7 @@ def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[cha
     return links
 
 
-def _export_step(links: list[chain.Link]) -> chain.Step:
+def _export_step(links: list[chain.TraceLink]) -> chain.Step:
     """The export as a step of the chain: what it read (the run's files) and what it wrote."""
     inputs = [k.name for k in links if k.name in ("run config", "model", "normalisation statistics")]
     outputs = [k.name for k in links if k.name not in inputs]

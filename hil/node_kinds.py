@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 if TYPE_CHECKING:
-    from embedrl.hil.nodes import Node
+    from embedrl.hil.nodes import PolicyNode
     from embedrl.train.interface import Interface
 
 Policy = Callable[[np.ndarray], np.ndarray]
@@ -49,7 +49,7 @@ class NodeSettings(Protocol):
     def fd(self) -> bool: ...
 
 
-Start = Callable[[NodeSettings, "Interface", int, Callable[[], Policy]], "Node"]
+Start = Callable[[NodeSettings, "Interface", int, Callable[[], Policy]], "PolicyNode"]
 """Starts node ``node_id`` of a session: ``(settings, interface, node_id, reference policy factory)``."""
 
 
@@ -57,6 +57,8 @@ Start = Callable[[NodeSettings, "Interface", int, Callable[[], Policy]], "Node"]
 class NodeKind:
     """A kind of node (``--node``): what it needs and refuses, how the host prepares it, how it starts."""
 
+    called: str
+    """How messages name it, e.g. ``the C node``."""
     help: str
     """What it is, for ``hil run --help``."""
     start: Start
@@ -92,7 +94,7 @@ class NodeKind:
 
 def _start_python(
     cfg: NodeSettings, interface: Interface, node_id: int, policy: Callable[[], Policy]
-) -> Node:
+) -> PolicyNode:
     import can
 
     from embedrl.hil.nodes import PythonNode
@@ -103,7 +105,9 @@ def _start_python(
     )  # fmt: skip
 
 
-def _start_c(cfg: NodeSettings, interface: Interface, node_id: int, policy: Callable[[], Policy]) -> Node:
+def _start_c(
+    cfg: NodeSettings, interface: Interface, node_id: int, policy: Callable[[], Policy]
+) -> PolicyNode:
     from embedrl.hil.nodes import CNode
 
     if cfg.node_binary is None:
@@ -113,7 +117,7 @@ def _start_c(cfg: NodeSettings, interface: Interface, node_id: int, policy: Call
 
 def _start_firmware(
     cfg: NodeSettings, interface: Interface, node_id: int, policy: Callable[[], Policy]
-) -> Node:
+) -> PolicyNode:
     import can
 
     from embedrl.export.contract.layout import episode_start_id, layout
@@ -142,6 +146,7 @@ DEFAULT_NODE = "c"
 """The kind ``hil run`` drives unless ``--node`` names another: the verdict."""
 NODE_KINDS: dict[str, NodeKind] = {
     "c": NodeKind(
+        called="the C node",
         help="the compiled node over SocketCAN vcan0 (the verdict)",
         start=_start_c,
         refuses={"target": "the C node runs on this machine; --target picks the firmware node's core"},
@@ -150,6 +155,7 @@ NODE_KINDS: dict[str, NodeKind] = {
         runs_on="C on the host",
     ),
     "firmware": NodeKind(
+        called="the firmware node",
         help="the node as Cortex-M firmware on qemu-system-arm, its UART bridged to vcan0 as serial CAN "
         "(SLCAN), with instructions per step (processor in the loop)",
         start=_start_firmware,
@@ -164,6 +170,7 @@ NODE_KINDS: dict[str, NodeKind] = {
         runs_on="C on {target}",
     ),
     "python": NodeKind(
+        called="the Python node",
         help="the Python reference node on python-can's virtual bus (no kernel, no build: the harness logic "
         "only)",
         start=_start_python,

@@ -76,8 +76,8 @@ def check(options: RunOptions) -> list[Scheduled]:
         if s.injector.needs_socketcan and not NODE_KINDS[options.node].own_socketcan:
             owners = kinds_with("own_socketcan")
             raise HilError(
-                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only the "
-                f"{' and '.join(owners)} node has: use --node {owners[0]}"
+                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only "
+                f"{' and '.join(NODE_KINDS[k].called for k in owners)} has: use --node {owners[0]}"
             )
     if options.target is not None:
         _check_target(options.target)

@@ -43,7 +43,7 @@ from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_sche
 from embedrl.hil.firmware import FirmwareNode, instruction_summary
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS
-from embedrl.hil.nodes import Node, action_ok
+from embedrl.hil.nodes import PolicyNode, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
 from embedrl.train.interface import NO_ENV, Interface
 
@@ -139,7 +139,7 @@ class _Tally(gym.Wrapper[np.ndarray, np.ndarray, np.ndarray, np.ndarray]):
 class BusPolicy:
     """A policy whose actions come from the node over the bus: the simulator's side of one step."""
 
-    def __init__(self, cfg: SessionConfig, interface: Interface, link: Link, node: Node) -> None:
+    def __init__(self, cfg: SessionConfig, interface: Interface, link: Link, node: PolicyNode) -> None:
         self.cfg, self.interface, self.link, self.node = cfg, interface, link, node
         self.reference = _session_policy(cfg)
         self.step = 0
@@ -324,13 +324,13 @@ class BusPolicy:
 @contextmanager
 def _nodes_on_one_bus(
     cfg: SessionConfig, interface: Interface, count: int
-) -> Iterator[tuple[list[Link], list[Node], list[BusPolicy]]]:
+) -> Iterator[tuple[list[Link], list[PolicyNode], list[BusPolicy]]]:
     """``count`` nodes on one bus (node k with node k's CAN IDs), each with its own link and bus policy,
     booted; on exit the nodes get a last status in, then are stopped and the links closed. The lists stay
     readable afterwards (the links' statistics)."""
     logger = can.Logger(cfg.log) if cfg.log else None
     links: list[Link] = []
-    nodes: list[Node] = []
+    nodes: list[PolicyNode] = []
     policies: list[BusPolicy] = []
     try:
         for k in range(count):
@@ -424,14 +424,14 @@ def _replay(policy: BusPolicy, observations: Any, index: int, seed: int, sample_
     return EpisodeResult(seed, "open-loop", OPEN_LOOP_STEPS, 0.0, OPEN_LOOP_STEPS * sample_time, None, [])
 
 
-def _next_snapshot(link: Link, node: Node) -> tuple[Status, Diag] | None:
+def _next_snapshot(link: Link, node: PolicyNode) -> tuple[Status, Diag] | None:
     """The node's next NodeStatus and NodeDiag (None if they do not come within :data:`SNAPSHOT_S`); a node
     on the simulation's clock sends them once a status period of that time has passed."""
     node.advance(STATUS_PERIOD_S)
     return link.snapshot(SNAPSHOT_S)
 
 
-def _last_status(link: Link, node: Node) -> None:
+def _last_status(link: Link, node: PolicyNode) -> None:
     """Take the node's status once more before the session ends (its final counters)."""
     node.advance(STATUS_PERIOD_S)
     link.wait_status(LAST_STATUS_S)
@@ -446,7 +446,7 @@ def _detected(
     before: tuple[Status, Diag] | None,
     after: tuple[Status, Diag] | None,
     extra: dict[str, Any],
-    node: Node,
+    node: PolicyNode,
 ) -> bool | None:
     """Whether the node registered the fault: the counter(s) the class must move grew (any of them)."""
     if injector.detects is None:
@@ -466,7 +466,7 @@ def node_seed(seed: int, episode: int, node_id: int) -> int:
     return seed + episode + node_id * NODE_SEED_STRIDE
 
 
-def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> Node:
+def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> PolicyNode:
     return NODE_KINDS[cfg.node].start(cfg, interface, node_id, lambda: _session_policy(cfg))
 
 

@@ -299,7 +299,7 @@ def test_every_node_kind_is_complete_and_accepted_by_the_cli() -> None:
     option_names = {f.name for f in dataclasses.fields(RunOptions)}
     assert DEFAULT_NODE in NODE_KINDS
     for name, kind in NODE_KINDS.items():
-        assert isinstance(kind, NodeKind) and kind.help and callable(kind.start), name
+        assert isinstance(kind, NodeKind) and kind.called and kind.help and callable(kind.start), name
         assert set(kind.refuses) <= option_names, name
         assert kind.in_sandbox or not (kind.host_binary or kind.firmware_image), name
         assert not kind.builds_c or kind.runs_on, f"{name}: a kind that runs C says where"
@@ -332,3 +332,27 @@ def test_every_sandbox_provider_is_complete_and_every_list_derives_from_the_regi
     assert not set(listed.group(1).replace("\\\n", " ").split()) & set(sandbox.debian_packages()), (
         "listed twice"
     )
+
+
+def test_every_target_has_its_board_and_is_a_choice_of_the_commands() -> None:
+    from embedrl.cli import build_parser
+    from embedrl.export.target import TARGETS
+
+    assert TARGETS
+    for name, target in TARGETS.items():
+        assert (REPO / "runtime_c" / "cortex_m" / "boards" / target.board / "board.h").is_file(), name
+        assert build_parser().parse_args(["export", "m.zip", "--out", "x", "--target", name]).target == [name]
+        hil_args = ["hil", "run", "--export-dir", "x", "--node", "firmware", "--target", name]
+        assert build_parser().parse_args(hil_args).target == name
+
+
+def test_no_two_library_classes_share_a_name() -> None:
+    """A class name means one thing across the packages (a CAN link and a traceability link, a policy node
+    and a graph node, have names of their own)."""
+    where: dict[str, list[str]] = {}
+    for folder in ("train", "export", "hil", "embedrl"):
+        for path in sorted((REPO / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef):
+                    where.setdefault(node.name, []).append(str(path.relative_to(REPO)))
+    assert {name: paths for name, paths in where.items() if len(paths) > 1} == {}

@@ -73,9 +73,9 @@ __all__ = [
     "AUTO",
     "MODES",
     "PROVIDERS",
-    "Check",
     "Guest",
     "Provider",
+    "ProviderCheck",
     "SandboxError",
     "SandboxProvider",
     "check",
@@ -88,7 +88,7 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class Check:
+class ProviderCheck:
     """One provider's self-test on this machine."""
 
     provider: str
@@ -167,17 +167,17 @@ def opened(mode: str, workdir: Path, say: Callable[[str], None] = print) -> Iter
         guest.close()
 
 
-def check(provider: Provider, workdir: Path) -> Check:
+def check(provider: Provider, workdir: Path) -> ProviderCheck:
     """Boot ``provider``, run its self-test and shut it down again: one row of ``embedrl hil doctor``."""
     start = time.monotonic()
     try:
         guest = open_guest(provider, workdir / provider.slug)
     except SandboxError as exc:
-        return Check(provider.name, provider.label, False, None, str(exc))
+        return ProviderCheck(provider.name, provider.label, False, None, str(exc))
     try:
         boot_s = guest.boot_s
         total = time.monotonic() - start
-        return Check(
+        return ProviderCheck(
             provider.name,
             provider.label,
             True,
