@@ -173,8 +173,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from embedrl.train.checkpoints import read_run_config
     from embedrl.train.config import Budget
-    from embedrl.train.trainer import read_run_config, train
+    from embedrl.train.trainer import train
 
     if (args.resume is None) == (args.out is None):
         raise UsageError("give --out DIR for a new run or --resume DIR to continue one (not both)")
