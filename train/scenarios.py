@@ -190,9 +190,10 @@ OTHER_ROBOT_FIELDS = ("other_dx", "other_dy", "other_present")
 """A scenario whose observation has these fields has a second robot, driven by its own copy of the policy."""
 TEAM_ENVS = {TWO_ROBOTS.name: "embedrl.train.two_robots_env:WarehouseTwoRobotsEnv"}
 """The PettingZoo Parallel env of every scenario with more than one robot (``robots > 1``): all its robots
-in one episode, one agent each (``possible_agents`` in robot order). Training, evaluation and HIL drive
-it; the gymnasium env registered under the spec's ``env_id`` is one robot's seat, the others driven by a
-``partner``."""
+in one episode, one agent each (``possible_agents`` in robot order), and per robot its ``outcomes`` and
+``trajectories`` (as :class:`~train.two_robots_env.WarehouseTwoRobotsEnv`). Training, evaluation and HIL
+drive it; the gymnasium env registered under the spec's ``env_id`` is one robot's seat, the others driven by
+a ``partner``."""
 
 
 def team_env(spec: Interface, **kwargs: Any) -> Any:
