@@ -154,7 +154,7 @@ def _add_node_arguments(r: Any) -> None:
         type=int,
         default=1,
         help="nodes on one bus, one robot each with its own seeds (policy_node --node-id 0..N-1), lock-step; "
-        "a two-robot export always runs one node per robot in the same episode",
+        "an export of a scenario with several robots always runs one node per robot in the same episode",
     )
     r.add_argument(
         "--kill-node",

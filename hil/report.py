@@ -113,7 +113,8 @@ def _simulation(
     options: RunOptions, interface: Interface, results: dict[str, Any], episodes: list[EpisodeResult]
 ) -> tuple[EvalReport | None, dict[str, int] | None]:
     """The simulation's report, one row per HIL row (None in open loop: no plant to simulate; the actions
-    are compared per step), and for two robots the count of episodes both robots got through."""
+    are compared per step), and for a scenario with several robots the count of episodes every robot got
+    through."""
     if interface.env_id == NO_ENV:
         return None, None
     simulated = _simulated_policy(options, interface)

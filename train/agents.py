@@ -43,7 +43,8 @@ CLASSES: dict[str, type[BaseAlgorithm]] = {
 
 
 def make_env(normalize: bool, seed: int, scenario: str = DEFAULT_SCENARIO, cfg: Any = None) -> VecEnv:
-    """The training env of a scenario: one Monitor-ed env, or one slot per robot for two robots."""
+    """The training env of a scenario: one Monitor-ed env, or for a scenario with several robots one slot
+    per robot of its team env."""
     kwargs = env_kwargs(cfg)
     env: VecEnv
     spec = SCENARIOS[scenario]

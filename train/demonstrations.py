@@ -33,7 +33,7 @@ def _demonstration_steps(
     robot, ``next obs`` the terminal observation where a row is done.
 
     One env per scenario with one robot, reset with seed ``DEMONSTRATION_SEED + 1000 * seed + episode``;
-    for two robots, the training vector env itself (absorbing rows included), seeded once."""
+    for several robots, the training vector env itself (absorbing rows included), seeded once."""
     from embedrl.train.potential_field import PotentialFieldController
 
     teacher = TEACHERS.get(scenario)  # the controller sees the full observation, the learner its own

@@ -281,7 +281,8 @@ def evaluate(
     env_kwargs: dict[str, Any] | None = None,
 ) -> EvalReport:
     """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``
-    (``embedrl/WarehouseTwoRobots-v0``: the policy drives both robots)."""
+    (a scenario with several robots, e.g. ``embedrl/WarehouseTwoRobots-v0``: the policy drives every
+    robot)."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     bar = tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
