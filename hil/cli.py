@@ -235,8 +235,8 @@ def _register_report(sub: Any) -> None:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
-    from embedrl.hil.bench import run_bench
     from embedrl.hil.options import RunOptions
+    from embedrl.hil.round_trip import run_bench
 
     if args.exchanges < 1 or args.episodes < 1:
         raise HilError("--exchanges and --episodes must be at least 1")

@@ -103,7 +103,7 @@ def cmd_reward_field(args: argparse.Namespace) -> int:
 
 def cmd_bench_env(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
-    from embedrl.train.bench_env import run
+    from embedrl.train.env_throughput import run
 
     print_measurement(run(args.steps, args.seed), args.json)
     return 0
@@ -265,8 +265,8 @@ def _warn_untrained(algo: str, config: Any, max_steps: int) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from embedrl.train.bench import run_bench
     from embedrl.train.config import preset, with_overrides
+    from embedrl.train.study_benchmark import run_bench
 
     if args.portable:
         from embedrl.train.portable import restart_portable
@@ -285,7 +285,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         check_ray_address(args.ray)
     if args.from_runs:
-        from embedrl.train.bench import table_from
+        from embedrl.train.study_benchmark import table_from
 
         print(table_from(args.from_runs, args.out))
         print(f"wrote {args.out}/bench.md and bench.json")

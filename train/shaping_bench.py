@@ -21,9 +21,9 @@ import numpy as np
 
 from embedrl.common import atomic_write, provenance, write_json
 from embedrl.train import curves as curves_
-from embedrl.train.bench import Job, one_run
 from embedrl.train.monitor import STOP_THRESHOLD, STOP_WINDOW
 from embedrl.train.scenarios import DEFAULT_SCENARIO
+from embedrl.train.study_benchmark import Job, one_run
 from embedrl.train.sweep import run_all
 
 REWARD_VARIANTS = ("thesis", "shaped")
