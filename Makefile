@@ -56,7 +56,7 @@ demo: deps $(STAMP) ## the whole chain: baseline, export, HIL (host and firmware
 	    $(VENV)/bin/embedrl export $(DEMO_POLICY) --out $(OUT)/demo/export-$$q --force --quantize $$q --episodes 0 \
 	        || exit 1; \
 	done
-	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 \
+	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 20 --seed 0 --coverage \
 	    --json $(OUT)/demo/hil.json --log $(OUT)/demo/frames.log --plot $(OUT)/demo
 	$(VENV)/bin/embedrl hil run --export-dir $(OUT)/demo/export --episodes 3 --seed 0 --node firmware \
 	    --target cortex-m4 --json $(OUT)/demo/hil-firmware.json
@@ -64,7 +64,7 @@ demo: deps $(STAMP) ## the whole chain: baseline, export, HIL (host and firmware
 	$(VENV)/bin/embedrl report $(OUT)/demo/export --hil $(OUT)/demo/hil.json --hil $(OUT)/demo/hil-firmware.json \
 	    --also $(OUT)/demo/export-int8 --also $(OUT)/demo/export-q15 --out $(OUT)/demo/report.html
 	@echo "demo: wrote $(OUT)/demo (eval.json, trajectories.png, episode.gif, export/, export-int8/, export-q15/, \
-	hil.json, hil-firmware.json, frames.log, hil_*.png, report.html)"
+	hil.json, hil.coverage/, hil-firmware.json, frames.log, hil_*.png, report.html)"
 
 # How the shipped policies were made, each shipped only if it succeeds in >= 95% of 200 episodes on seeds
 # training never used (train/ship.py). policies/static/{ddpg,td3,sac,ppo}.zip were trained past the stop
@@ -84,12 +84,15 @@ policies: $(STAMP) ## train the shipped policies again (hours), each shipped onl
 
 # The suite in tiers (markers in pyproject.toml, set by the fixtures a test uses: tests/conftest.py). pytest is
 # exec'd, so that make's SIGTERM (timeout, CI cancelling) reaches it and the session stops, guests closed.
+# Both run on TEST_WORKERS pytest-xdist workers, a test file per worker at a time (tests/conftest.py).
+TEST_WORKERS ?= 2
+SIDE_BY_SIDE = -n $(TEST_WORKERS) --dist loadfile --no-loadscope-reorder
 FAST_TIER := not slow and not sandbox and not qemu and not training
 test: deps $(STAMP) ## the whole test suite, then its 25 slowest tests
-	exec $(PY) -m pytest --durations=25
+	exec $(PY) -m pytest $(SIDE_BY_SIDE) --durations=25
 
 test-fast: $(STAMP) ## the tests that are not slow, boot no sandbox, run no QEMU and train nothing (minutes)
-	exec $(PY) -m pytest -m "$(FAST_TIER)"
+	exec $(PY) -m pytest $(SIDE_BY_SIDE) -m "$(FAST_TIER)"
 
 lint: $(STAMP) ## ruff check and ruff format --check
 	$(VENV)/bin/ruff check .
@@ -109,8 +112,12 @@ $(EMX):
 	$(PYTHON) -m venv tools/emx
 	tools/emx/bin/pip install --quiet emx-onnx-cgen==1.4.0
 
+# How long make bench measures: env steps, HIL lock-step episodes and floor exchanges (smaller: quicker, noisier).
+BENCH_ENV_STEPS ?= 50000
+BENCH_HIL_EPISODES ?= 60
+BENCH_HIL_EXCHANGES ?= 6000
 bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/bench
-	$(VENV)/bin/embedrl bench-env --steps 50000 --json $(OUT)/bench/env.json
+	$(VENV)/bin/embedrl bench-env --steps $(BENCH_ENV_STEPS) --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
 	for q in int8 q15; do \
 	    $(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-$$q --force --episodes 0 \
@@ -118,7 +125,8 @@ bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/be
 	        --json $(OUT)/bench/export-$$q.json || exit 1; \
 	done
 	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
-	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes 60 --exchanges 6000 --json $(OUT)/bench/hil.json
+	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes $(BENCH_HIL_EPISODES) \
+	    --exchanges $(BENCH_HIL_EXCHANGES) --json $(OUT)/bench/hil.json
 
 # Instructions and estimated cycles per inference on the Cortex-M cores: embedrl's C against emx-onnx-cgen's
 # C of the same shipped policy, both on QEMU in one run.

@@ -77,9 +77,9 @@ class Step:
     tool: str
     command: list[str]
     inputs: list[str]
-    """Link names (:attr:`TraceLink.name`)."""
+    """TraceLink names (:attr:`TraceLink.name`)."""
     outputs: list[str]
-    """Link names (:attr:`TraceLink.name`)."""
+    """TraceLink names (:attr:`TraceLink.name`)."""
 
 
 @dataclass(frozen=True)
@@ -360,8 +360,14 @@ def _check(export_dir: Path, k: TraceLink, by_name: dict[str, TraceLink], declar
         )
     try:
         parents = _recorded_parents(path, k)
+        beside = recorded_coverage(read_json(path)) if k.name.startswith("HIL report") else {}
     except ValueError as exc:
         return TraceCheck(k, False, f"{k.path}: cannot read the hashes it records of its parents ({exc})")
+    for name, recorded in beside.items():  # the node's coverage profiles and binary, beside the report
+        file = path.parent / name
+        if not file.is_file() or sha256(file) != recorded:
+            said = "is missing" if not file.is_file() else f"changed (sha256 {sha256(file)[:12]}...)"
+            return TraceCheck(k, False, f"{k.path} records {name} (sha256 {recorded[:12]}...), which {said}")
     for parent, recorded in parents.items():
         if parent in by_name and by_name[parent].sha256 != recorded:
             said = (
@@ -398,6 +404,26 @@ def _recorded_parents(path: Path, k: TraceLink) -> dict[str, str]:
             records[f"file {log[0]}"] = log[1]
         return records
     return {}
+
+
+def recorded_coverage(data: Any) -> dict[str, str]:
+    """The coverage files a HIL report records (``hil run --coverage``), each as a path relative to the
+    report's folder with its sha256; none for a run without coverage. ValueError for a record of another
+    form, or a folder that is not one name beside the report."""
+    record = data.get("coverage") if isinstance(data, dict) else None
+    if record is None:
+        return {}
+    folder = record.get("folder") if isinstance(record, dict) else None
+    if not isinstance(folder, str) or folder in ("", ".", "..") or "/" in folder or "\\" in folder:
+        raise ValueError(f"its coverage folder {folder!r} is not one name beside the report")
+    entries = [record.get("binary"), *(record.get("profiles") or [])]
+    out = {}
+    for entry in entries:
+        file, digest = (entry.get("file"), entry.get("sha256")) if isinstance(entry, dict) else (None, None)
+        if not isinstance(file, str) or not isinstance(digest, str) or "/" in file or file in ("", ".", ".."):
+            raise ValueError(f"its coverage file {entry!r} is not an object of a file name and its sha256")
+        out[f"{folder}/{file}"] = digest
+    return out
 
 
 def recorded_log(data: Any) -> tuple[str, str] | None:

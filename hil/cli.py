@@ -21,16 +21,25 @@ from embedrl.train.arguments import add_export_dir_argument
 def cmd_run(args: argparse.Namespace) -> int:
     from embedrl.common import sha256, table, write_json
     from embedrl.export import chain
+    from embedrl.hil import coverage
     from embedrl.hil.options import RunOptions
     from embedrl.hil.run import add_to_chain, bundle_path, in_bundle, run
     from embedrl.hil.verdict import summary_rows
 
+    if args.coverage and not args.json:
+        raise HilError("--coverage keeps the node's profiles beside the report: give --json REPORT.json")
     if args.json and (args.export_dir / chain.MANIFEST).is_file():
         chain.check_appendable(args.export_dir)  # before the run: its report's link is written at the end
-    data = run(RunOptions.of(vars(args)))
+    folder = coverage.folder_of(args.json) if args.coverage else None
+    data = run(RunOptions.of({**vars(args), "coverage": folder}))
     print(table(summary_rows(data)))
     pictures = sorted(args.plot.glob("hil_*.png")) if args.plot else []
     written = [str(p) for p in (args.json, args.log, *pictures) if p]
+    if folder is not None:
+        record = data["coverage"]
+        left = len(record["unreadable"])
+        left_out = f"; {left} empty or cut short (a process killed), left out" if left else ""
+        written.append(f"{folder} ({len(record['profiles'])} profile(s) of the node{left_out})")
     chained = args.json and (args.export_dir / chain.MANIFEST).is_file()
     if chained and args.log and args.log.is_file():  # the bundle keeps the frames beside the report
         data["log"] = {"file": bundle_path(args.export_dir, args.log), "sha256": sha256(args.log)}
@@ -128,6 +137,13 @@ def register(sub: Any) -> None:
         help="pass even if episodes end in a fault (fault-injection runs); without it a fault fails the run",
     )
     r.add_argument("--keep-work", action="store_true", help="keep the temporary node build and guest files")
+    r.add_argument(
+        "--coverage",
+        action="store_true",
+        help="run the C node built with clang's coverage flags (clang-19, llvm-19) and keep each node "
+        "process's profile and the binary beside the report (--json NAME.json: NAME.coverage/), for embedrl "
+        "report",
+    )
     _add_node_arguments(r)
     r.set_defaults(func=cmd_run)
     _register_bench(hil_sub)

@@ -47,6 +47,8 @@ class NodeSettings(Protocol):
     def results(self) -> str: ...
     @property
     def fd(self) -> bool: ...
+    @property
+    def coverage_profile(self) -> str | None: ...
 
 
 Start = Callable[[NodeSettings, "Interface", int, Callable[[], Policy]], "PolicyNode"]
@@ -112,7 +114,9 @@ def _start_c(
 
     if cfg.node_binary is None:
         raise ValueError("the C node needs node_binary")
-    return CNode(cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id)
+    return CNode(
+        cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.coverage_profile
+    )
 
 
 def _start_firmware(
@@ -164,6 +168,8 @@ NODE_KINDS: dict[str, NodeKind] = {
             "fd": "the firmware node speaks classic CAN over its serial line (SLCAN)",
             "nodes": ONE_BOARD,
             "kill_node": ONE_BOARD,
+            "coverage": "the firmware image is built by arm-none-eabi-gcc and runs on QEMU; clang's coverage "
+            "measures the C node (--node c)",
         },
         simulated_time=True,
         firmware_image=True,
@@ -178,6 +184,7 @@ NODE_KINDS: dict[str, NodeKind] = {
             "sandbox": "the Python node runs in this process on python-can's virtual bus, in no sandbox",
             "target": "the Python node runs in this process; --target picks the firmware node's core",
             "trust_c": "the Python node runs the export's ONNX, no C",
+            "coverage": "the Python node runs the export's ONNX, no C",
         },
         builds_c=False,
         in_sandbox=False,

@@ -12,6 +12,7 @@ python-can's virtual bus in milliseconds; the C node over SocketCAN gives the ve
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import threading
@@ -40,6 +41,8 @@ from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import Interface
 
 STOP_TIMEOUT_S = 5.0
+PROFILE_VARIABLE = "LLVM_PROFILE_FILE"
+"""Where a node built with clang's coverage flags writes its raw profile when it exits."""
 U8_MAX, U16_MAX, INFERENCE_US_MAX = 255, 65535, 1023
 
 
@@ -88,14 +91,25 @@ class PolicyNode(ABC):
 class CNode(PolicyNode):
     """``policy_node --iface IFACE --timeout-ms T --recover K`` as a child process."""
 
-    def __init__(self, binary: str, iface: str, timeout_ms: int, recover: int, node_id: int = 0) -> None:
-        """The binary was built for classic CAN or CAN FD (``make node FD=1``); it knows which."""
+    def __init__(
+        self,
+        binary: str,
+        iface: str,
+        timeout_ms: int,
+        recover: int,
+        node_id: int = 0,
+        profile: str | None = None,
+    ) -> None:
+        """The binary was built for classic CAN or CAN FD (``make node FD=1``); it knows which. ``profile``:
+        its ``LLVM_PROFILE_FILE`` (a node built for coverage writes its profile there when it exits)."""
         self.argv = [binary, "--iface", iface, "--timeout-ms", str(timeout_ms), "--recover", str(recover),
                      "--node-id", str(node_id)]  # fmt: skip
+        self.env = {**os.environ, PROFILE_VARIABLE: profile} if profile is not None else None
         self.process = self._start()
 
     def _start(self) -> subprocess.Popen[bytes]:
-        return subprocess.Popen(self.argv, stdout=subprocess.DEVNULL)  # its stderr: the session log
+        # its stderr: the session log
+        return subprocess.Popen(self.argv, stdout=subprocess.DEVNULL, env=self.env)
 
     def restart(self) -> None:
         self.stop()

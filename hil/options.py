@@ -19,6 +19,9 @@ MAX_TIMEOUT_MS = 60_000
 DEFAULT_SANDBOX = "auto"
 DEFAULT_TARGET = "cortex-m4"
 """The firmware node's core unless ``--target`` names another."""
+COVERAGE_TOOLS = ("clang-19", "llvm-profdata-19")
+"""What ``--coverage`` needs on PATH: the compiler of the instrumented node (``make coverage-node``) and the
+tool that checks its raw profiles (Debian: clang-19, llvm-19)."""
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,11 @@ class RunOptions:
     None: :data:`DEFAULT_TARGET`."""
     trust_c: bool = False
     """Build and run the export's C even if it is not what embedrl generates from its ONNX (hand-edited)."""
+    coverage: Path | None = None
+    """A folder for the node's coverage (new, or an earlier coverage run's, replaced): the C node is built
+    with clang's coverage flags (``make coverage-node``), runs in the sandbox as the plain node does, and
+    each of its processes writes its raw profile when it exits; the profiles and the instrumented binary are
+    kept here. None: a plain node."""
 
     @property
     def sandbox_mode(self) -> str:

@@ -27,7 +27,7 @@ COPIED_KEYS = (
     "steps", "max_action_abs_diff", "first_divergent_step", "frames_tx", "frames_rx", "crc_errors",
     "sequence_errors", "rx_timeouts", "sandbox", "sandbox_detail", "latency_us", "deadline_misses",
     "jitter_us", "node_status", "node_diag", "retries", "injections", "fault_catalogue", "nodes", "firmware",
-    "node_binary_sha256", "action_diffs",
+    "node_binary_sha256", "action_diffs", "coverage",
 )  # fmt: skip
 """The session's results that the report carries as they are."""
 

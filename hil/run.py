@@ -81,7 +81,28 @@ def check(options: RunOptions) -> list[Scheduled]:
             )
     if options.target is not None:
         _check_target(options.target)
+    if options.coverage is not None:
+        _check_coverage(options.coverage)
     return schedule
+
+
+def _check_coverage(folder: Path) -> None:
+    """``--coverage``: its tools on PATH and a folder that is new or holds an earlier coverage run's files
+    only (replaced once this run has its own: a report written again gets its coverage folder anew)."""
+    from embedrl.hil.coverage import is_coverage_file
+    from embedrl.hil.options import COVERAGE_TOOLS
+
+    missing = [tool for tool in COVERAGE_TOOLS if shutil.which(tool) is None]
+    if missing:
+        raise HilError(
+            f"--coverage needs {' and '.join(missing)}, not found on PATH (Debian: apt-get install clang-19 "
+            "llvm-19)"
+        )
+    if folder.exists() and (not folder.is_dir() or not all(map(is_coverage_file, folder.iterdir()))):
+        raise HilError(
+            f"--coverage: {folder} holds other files than a coverage run's (*.profraw, policy_node); "
+            "move them"
+        )
 
 
 def _check_node_kind(options: RunOptions) -> None:
@@ -176,14 +197,20 @@ def keep_in_bundle(export_dir: Path, file: Path) -> Path:
 def add_to_chain(export_dir: Path, report: Path, data: dict[str, Any], log: Path | None = None) -> bool:
     """Append the written report (and the frame log it records) to the export's traceability chain, with
     the run as the step that made them; files written outside the export folder are copied into its
-    ``hil/`` first (the bundle holds what its chain names). False for an export without a chain."""
+    ``hil/`` first, with the report's coverage folder (the bundle holds what its chain names). False for an
+    export without a chain."""
     from embedrl.export import chain
+    from embedrl.hil.coverage import recorded_files
 
     if not (export_dir / chain.MANIFEST).is_file():
         return False
     if log is not None and data.get("log"):
         keep_in_bundle(export_dir, log)
-    link_report(export_dir, keep_in_bundle(export_dir, report), data, made_by="hil run")
+    place = keep_in_bundle(export_dir, report)
+    for file, copy in recorded_files(report, place, data) if place != report else []:
+        copy.parent.mkdir(exist_ok=True)
+        shutil.copyfile(file, copy)  # the coverage folder travels with its report
+    link_report(export_dir, place, data, made_by="hil run")
     return True
 
 
@@ -391,14 +418,19 @@ def _build_and_run(
     kind = NODE_KINDS[options.node]
     if not kind.in_sandbox:
         return _python_session(options, interface, work)
+    binary = work / "build" / "policy_node"
     if kind.host_binary:
-        make_node(options, interface, work, {"FD": "1"} if options.fd else {})
-    return _guest_session(options, interface, guest, work)
+        goal = "node" if options.coverage is None else "coverage-node"
+        binary = make_node(options, interface, work, {"FD": "1"} if options.fd else {}, goal)
+    return _guest_session(options, interface, guest, work, binary)
 
 
-def make_node(options: RunOptions, interface: Interface, work: Path, extra: dict[str, str]) -> Path:
-    """``make -C runtime_c node``: the host node, or with ``TARGET`` the firmware image; its path. An export
-    made before exports carried their CAN code gets it generated into ``work`` (``CAN_DIR``)."""
+def make_node(
+    options: RunOptions, interface: Interface, work: Path, extra: dict[str, str], goal: str = "node"
+) -> Path:
+    """``make -C runtime_c node``: the host node, or with ``TARGET`` the firmware image; its path. ``goal``
+    ``coverage-node``: the host node instrumented for coverage. An export made before exports carried their
+    CAN code gets it generated into ``work`` (``CAN_DIR``)."""
     from embedrl.export import build
     from embedrl.export.errors import BuildError
 
@@ -415,13 +447,15 @@ def make_node(options: RunOptions, interface: Interface, work: Path, extra: dict
             raise HilError(str(exc)) from None
         extra = {**extra, "CAN_DIR": str(work / folder)}
     target = f" TARGET={extra['TARGET']}" if "TARGET" in extra else ""
-    print(f"building the node: make -C runtime_c{target} node POLICY_DIR={options.export_dir / 'c'}")
+    print(f"building the node: make -C runtime_c{target} {goal} POLICY_DIR={options.export_dir / 'c'}")
     try:
-        build.make("node", options.export_dir / "c", work / "build", extra=extra)
+        build.make(goal, options.export_dir / "c", work / "build", extra=extra)
     except BuildError as exc:
         raise HilError(str(exc)) from None
     if "TARGET" in extra:
         return work / "build" / extra["TARGET"] / "node.elf"
+    if goal == "coverage-node":
+        return work / "build" / "coverage" / "policy_node"
     return work / "build" / "policy_node"
 
 
@@ -441,10 +475,11 @@ def _python_session(options: RunOptions, interface: Interface, work: Path) -> di
 
 
 def _guest_session(
-    options: RunOptions, interface: Interface, guest: Guest | None, work: Path
+    options: RunOptions, interface: Interface, guest: Guest | None, work: Path, binary: Path
 ) -> dict[str, Any]:
-    """The C node built in ``work`` and the session, both in ``guest`` (or the selected sandbox)."""
-    from embedrl.hil import sandbox
+    """The C node built in ``work`` (``binary``) and the session, both in ``guest`` (or the selected
+    sandbox)."""
+    from embedrl.hil import coverage, sandbox
 
     with nullcontext(guest) if guest else sandbox.opened(options.sandbox_mode, work / "sandbox") as where:
         if options.timeout_ms is None and where.slowdown > 1 and not NODE_KINDS[options.node].simulated_time:
@@ -454,10 +489,12 @@ def _guest_session(
             )
         scratch = where.scratch()  # the session's results and log: writable from inside the guest
         log = scratch / f"frames{options.log.suffix}" if options.log else None
+        profiles = scratch / coverage.PROFILES  # the guest's node writes its profiles here
         cfg = session_config(
-            options, interface, node_binary=str(work / "build" / "policy_node"), iface=where.iface,
+            options, interface, node_binary=str(binary), iface=where.iface,
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
             progress=str(scratch / "progress"),
+            coverage_profile=str(profiles / coverage.PROFILE_PATTERN) if options.coverage else None,
         )  # fmt: skip
         emulator: AbstractContextManager[None] = nullcontext()
         image = NODE_KINDS[options.node].firmware_image
@@ -479,6 +516,8 @@ def _guest_session(
         if image:
             results["firmware"]["stack_bound"] = _firmware_stack_bound(options, binary)
         results["node_binary_sha256"] = sha256(binary)  # which bytes these verdicts are about
+        if options.coverage is not None:
+            results["coverage"] = coverage.keep(profiles, binary, options.coverage)
         _move_log(log, options.log)
         results["sandbox"] = where.provider
         results["sandbox_detail"] = where.description

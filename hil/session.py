@@ -110,6 +110,9 @@ class SessionConfig:
     kill_node: tuple[int, int, int] | None = None
     """Several nodes: ``(node, episode, step)`` at which that node's process is killed (its robot then
     stops, the safe action; the other nodes go on)."""
+    coverage_profile: str | None = None
+    """The C node's ``LLVM_PROFILE_FILE`` (a node built for coverage writes its raw profile there when it
+    exits); None: the environment's."""
 
 
 def _session_policy(cfg: SessionConfig) -> Callable[[np.ndarray], np.ndarray]:

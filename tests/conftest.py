@@ -7,6 +7,10 @@
   ``qemu`` (a QEMU machine: the x86 sandbox guest or Cortex-M firmware), ``training`` (trains a policy),
   ``slow`` (minutes of work, e.g. many exports); a test that does such a thing itself carries the marker.
   ``make test-fast`` deselects all four; ``make test`` runs everything.
+- Side by side: ``make test`` runs the suite on two pytest-xdist workers, a test file per worker at a time
+  (``--dist loadfile``: a file's module and session fixtures are made once per worker), the longest files
+  first (:data:`LONGEST_FIRST`); each worker has its own temporary folder, so a test that counts the
+  temporary folders a run leaves sees only its own worker's.
 - SIGTERM stops the session as Ctrl-C does (fixtures torn down, guests closed), also when it arrives while
   a test runs ``embedrl.cli.main`` in-process, whose own handler would otherwise turn it into one failed
   test and let the session run on.
@@ -14,7 +18,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+import shutil
 import signal
+import tempfile
 from collections.abc import Callable, Generator, Iterator
 from pathlib import Path
 from types import FrameType
@@ -32,6 +40,16 @@ from embedrl.common import sha256
 TIERS = ("slow", "sandbox", "qemu", "training")
 """The markers a fixture may set on the tests that use it (registered in pyproject.toml)."""
 Fixture = TypeVar("Fixture", bound=Callable[..., object])
+LONGEST_FIRST = (
+    "tests/test_readme.py",
+    "tests/hil/test_paths_matrix.py",
+    "tests/hil/test_hil_vcan.py",
+    "tests/test_training.py",
+    "tests/test_tune.py",
+    "tests/hil/test_sandbox_providers.py",
+    "tests/hil/test_firmware.py",
+)
+"""Test files that take minutes, collected first so that side by side they start first, not last."""
 
 
 def marks_its_users(*markers: str) -> Callable[[Fixture], Fixture]:
@@ -93,7 +111,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+def _longest_first(item: pytest.Item) -> int:
+    path = item.nodeid.split("::", 1)[0]
+    return LONGEST_FIRST.index(path) if path in LONGEST_FIRST else len(LONGEST_FIRST)
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    items.sort(key=_longest_first)  # stable: the order within a file is kept
     for item in items:
         if not isinstance(item, pytest.Function):
             continue
@@ -113,6 +137,16 @@ def _raise_stop(signum: int, frame: FrameType | None) -> None:
     raise embedrl.cli.Terminated if signum == signal.SIGTERM else KeyboardInterrupt
 
 
+def _stop_workers_too(signum: int, frame: FrameType | None) -> None:
+    """The xdist controller's stop: its workers (its only children) get the signal at once, then it stops;
+    otherwise it would wait for each worker's current test before ending it."""
+    for task in Path("/proc/self/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            with contextlib.suppress(ProcessLookupError):  # ended meanwhile
+                os.kill(int(pid), signum)
+    _raise_stop(signum, frame)
+
+
 def _recording_stop(command_stop: Callable[[int, FrameType | None], None]) -> Callable[..., None]:
     def stop(signum: int, frame: FrameType | None) -> None:
         _Stopped.signum = signum
@@ -121,9 +155,27 @@ def _recording_stop(command_stop: Callable[[int, FrameType | None], None]) -> Ca
     return stop
 
 
+class _Worker:
+    """This xdist worker's own temporary folder (``None`` outside a worker)."""
+
+    folder: Path | None = None
+
+
 def pytest_configure(config: pytest.Config) -> None:
-    signal.signal(signal.SIGTERM, _raise_stop)  # teardown runs (guests closed) instead of a hard exit
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if worker:
+        _Worker.folder = Path(tempfile.mkdtemp(prefix=f"tests-{worker}-"))
+        os.environ["TMPDIR"] = str(_Worker.folder)  # for the commands the tests run, too
+        tempfile.tempdir = None  # tempfile reads TMPDIR again
+    controller = not worker and (getattr(config.option, "numprocesses", None) or 0) > 0
+    stop = _stop_workers_too if controller else _raise_stop
+    signal.signal(signal.SIGTERM, stop)  # teardown runs (guests closed) instead of a hard exit
     embedrl.cli._stop = _recording_stop(embedrl.cli._stop)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    if _Worker.folder is not None:
+        shutil.rmtree(_Worker.folder, ignore_errors=True)
 
 
 @pytest.hookimpl(wrapper=True)

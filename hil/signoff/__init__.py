@@ -28,6 +28,7 @@ def gather(
         links = chain.verify(export_dir)
     except chain.ChainError as exc:
         raise HilError(str(exc)) from None
+    with_paths = [(path, *h) for path, h in zip(hil_reports, hils, strict=True)]
     verification = [facts.recompute(folder, data) for folder, data in [(export_dir, export), *others]]
     gathered = {
         "export_dir": str(export_dir),
@@ -44,7 +45,7 @@ def gather(
         "warnings": export["compiler"]["command"],
         "chain": [{**c.link.__dict__, "ok": c.ok, "detail": c.detail} for c in links],
         "signature": signature.check(export_dir, public_key).to_json(),
-        "coverage": facts.coverage(export_dir, export, verification[0]),
+        "coverage": facts.coverage(export_dir, export, verification[0], with_paths),
         "back_to_back": back_to_back.links(export_dir, export, verification[0], hils),
     }
     tool = gathered["coding_standard"]["tool"]

@@ -13,11 +13,12 @@ from embedrl.hil.errors import HilError
 
 
 def gather(export_dir: Path, hil_reports: list[Path]) -> list[Path]:
-    """Each HIL report's path inside the bundle, copying in (and linking into the chain) those outside it
-    and the frame log each records (found in the bundle or beside the report). HilError (one line) for a
-    report that cannot join the bundle; nothing is copied then."""
+    """Each HIL report's path inside the bundle, copying in (and linking into the chain) those outside it,
+    the frame log each records (found in the bundle or beside the report) and its coverage folder. HilError
+    (one line) for a report that cannot join the bundle; nothing is copied then."""
     from embedrl.common import read_json
     from embedrl.export import chain
+    from embedrl.hil.coverage import recorded_files
     from embedrl.hil.run import in_bundle, link_report
 
     if not (export_dir / chain.MANIFEST).is_file():
@@ -31,9 +32,11 @@ def gather(export_dir: Path, hil_reports: list[Path]) -> list[Path]:
             raise HilError(f"cannot gather {report} into the bundle: two HIL reports named {report.name}")
         _check_place(report, report, place)
         copies.append((report, place))
-        log = _log_of(export_dir, report, read_json(report))
+        data = read_json(report)
+        log = _log_of(export_dir, report, data)
         if log is not None:
             copies.append(log)
+        copies.extend(recorded_files(report, place, data))  # its coverage folder (the digests: the report's)
     if copies and not os.access(export_dir, os.W_OK | os.X_OK):
         raise HilError(
             f"cannot gather {copies[0][0]} into the bundle: {export_dir} is not writable (the report cites "

@@ -1,7 +1,9 @@
 """Coverage of the deployed C, the report's "coverage" check: clang's source-based coverage (lines, branches,
 MC/DC conditions) of the generated policy over the export's verification observations and the non-finite
 probes, and of the node (``node.c``, ``e2e.c``) and its CAN glue (``policy_io.c``, ``slcan.c``) over their C
-unit tests (``make -C runtime_c coverage``, clang-19 and llvm-19).
+unit tests (``make -C runtime_c coverage``, clang-19 and llvm-19), merged (``llvm-profdata merge``) with the
+profiles of the HIL runs made with ``embedrl hil run --coverage`` (the instrumented node in the sandbox:
+:mod:`embedrl.hil.coverage`). The page names every source merged and every HIL report it could not merge.
 
 The goal per file is every line and every branch taken both ways, and MC/DC (each condition of a decision
 with two or more shown to change its outcome alone) on at least :data:`GOAL_MCDC` percent of the conditions.
@@ -12,6 +14,7 @@ caller regenerates it first): it runs on this host.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shutil
@@ -43,9 +46,15 @@ NODE_FILES = {
     "slcan.c": "CAN glue: serial CAN framing of the firmware node",
 }
 """The node's files in the goal, by name, and what each is."""
+HIL_ONLY = "run only by a HIL run; not held to the goal:"
 OUTSIDE_GOAL = {
     "policy_dbc.c": "cantools' codec of the whole CAN database: the node calls the pack/unpack of its own "
     "frames and of no other message",
+    "main.c": f"the host node's main loop: arguments, signals, receive, re-opening a failed interface "
+    f"({HIL_ONLY} the harness never gives it bad arguments, and its re-open needs a link fault)",
+    "transport_socketcan.c": f"CAN glue: the host node's SocketCAN transport ({HIL_ONLY} its failure paths "
+    "need kernel faults)",
+    "clock_posix.c": f"the host node's clock ({HIL_ONLY} its retry needs a sleep interrupted by a signal)",
 }
 """Files measured and shown but not held to the goal, and why."""
 OVERFLOW = np.float32(np.finfo(np.float32).max)
@@ -54,6 +63,26 @@ LARGE = np.float32(1e4)
 """A finite observation far outside every interface's range, whose sums stay finite."""
 BRANCH_REGION_KINDS = (4, 6)
 """llvm-cov's JSON: a branch region, an MC/DC condition's branch region."""
+LLVM_PROFDATA = "llvm-profdata-19"
+LLVM_COV = "llvm-cov-19"
+"""The tools ``make coverage`` uses (its LLVM_PROFDATA and LLVM_COV defaults)."""
+UNIT_SOURCES = (
+    "verification observations and probes (tests/cover_policy.c)",
+    "the node's C unit tests (tests/test_node.c)",
+    "the SLCAN framing's C tests (tests/test_slcan.c)",
+)
+"""What ``make coverage`` runs, each a source of the merged profile."""
+
+
+@dataclass(frozen=True)
+class HilProfile:
+    """A HIL run's coverage: the instrumented node that ran and the raw profiles its processes wrote."""
+
+    report: str
+    binary: Path
+    profiles: tuple[Path, ...]
+    left_out: int = 0
+    """Profiles the run found empty or cut short (a node process killed by SIGKILL) and did not keep."""
 
 
 @dataclass(frozen=True)
@@ -83,8 +112,11 @@ def probe_rows(observations: np.ndarray) -> np.ndarray:
     return np.concatenate(rows)
 
 
-def measure(c_dir: Path, name: str, observations: np.ndarray) -> dict[str, Any]:
-    """Build and run everything under coverage; the summary (:func:`summarise`) and the driver's codes."""
+def measure(
+    c_dir: Path, name: str, observations: np.ndarray, hil: tuple[HilProfile, ...] = ()
+) -> dict[str, Any]:
+    """Build and run everything under coverage, merge the HIL runs' profiles ``hil`` into it; the summary
+    (:func:`summarise`), the driver's codes and the sources merged."""
     from embedrl.export import build
 
     rows = probe_rows(observations)
@@ -98,14 +130,45 @@ def measure(c_dir: Path, name: str, observations: np.ndarray) -> dict[str, Any]:
             "coverage", work / "c", work, extra={"COVERAGE_OBS": str(work / "obs.f32"), "POLICY_NAME": name}
         )
         cov = work / "coverage"
+        if hil:
+            merge_hil(cov, hil)
         summary = summarise(json.loads((cov / "coverage.json").read_text()),
                             (cov / "coverage.lcov").read_text(), f"{name}.c", load_reasons())  # fmt: skip
         codes = [int(line.split()[2]) for line in (cov / "policy_steps.txt").read_text().splitlines()
                  if line.startswith("A ")]  # fmt: skip
     summary["compiler"] = _version(CLANG)
+    summary["sources"] = [{"source": s, "profiles": 1} for s in UNIT_SOURCES] + [
+        {"source": f"HIL run {h.report}", "profiles": len(h.profiles), "left_out": h.left_out} for h in hil
+    ]
     summary["probes"] = {"rows": len(rows), "verification_rows": len(observations),
                          "codes": {str(c): codes.count(c) for c in sorted(set(codes))}}  # fmt: skip
     return summary
+
+
+def merge_hil(cov: Path, hil: tuple[HilProfile, ...]) -> None:
+    """Merge the HIL runs' raw profiles into ``make coverage``'s profile and export it again (JSON, LCOV) over
+    its binaries and the HIL runs' nodes (read for their coverage mapping, never run)."""
+    from embedrl.export.errors import BuildError
+
+    merged = cov / "merged.profdata"
+    profiles = [str(p) for h in hil for p in h.profiles]
+    binaries = [cov / "test_node", cov / "test_slcan", *(h.binary for h in hil)]
+    objects = [str(cov / "cover_policy"), *(arg for b in binaries for arg in ("-object", str(b)))]
+    steps = (
+        ([LLVM_PROFDATA, "merge", "-o", str(merged), str(cov / "coverage.profdata"), *profiles], None),
+        ([LLVM_COV, "export", "-format=text", "-instr-profile", str(merged), *objects], "coverage.json"),
+        ([LLVM_COV, "export", "-format=lcov", "-instr-profile", str(merged), *objects], "coverage.lcov"),
+    )
+    for argv, out in steps:
+        try:
+            result = subprocess.run(argv, capture_output=True, text=True)
+        except FileNotFoundError:
+            raise BuildError(f"coverage needs {argv[0]}: apt-get install llvm-19") from None
+        if result.returncode != 0:
+            why = (result.stderr.strip().splitlines() or ["no output"])[-1]
+            raise BuildError(f"{argv[0]} {argv[1]} of the HIL runs' profiles failed: {why}")
+        if out is not None:
+            (cov / out).write_text(result.stdout)
 
 
 def _version(tool: str) -> str:
@@ -133,13 +196,8 @@ def summarise(
     roles = {policy_file: "the generated policy", **NODE_FILES}
     lines_not_run = _lines_not_run(lcov)
     files = []
-    for f in sorted(export["data"][0]["files"], key=lambda f: f["filename"]):
+    for f in _distinct(export["data"][0]["files"], {*roles, *OUTSIDE_GOAL}):
         base = Path(f["filename"]).name
-        source = Path(f["filename"])
-        if (base not in roles and base not in OUTSIDE_GOAL) or (
-            source.is_relative_to(TEST_DOUBLES) and not source.is_relative_to(TEST_CAN)
-        ):
-            continue
         text = Path(f["filename"]).read_text().splitlines()
         gaps = _gaps(f, text, lines_not_run.get(f["filename"], []))
         in_goal = base in roles
@@ -147,20 +205,54 @@ def summarise(
             gap["reason"] = next((r.reason for r in reasons if r.file == base and explains(r, gap)), None)
         s = f["summary"]
         row = {
-            "file": base,
+            "file": f.get("label", base),
             "role": roles.get(base) or OUTSIDE_GOAL[base],
             "in_goal": in_goal,
             **{
                 k: {"covered": s[k]["covered"], "count": s[k]["count"]} for k in ("lines", "branches", "mcdc")
             },
             "gaps": gaps if in_goal else [],
+            "calls": _calls(export["data"][0].get("functions", []), f["filename"]),
         }
         row["meets_goal"] = in_goal and _meets_goal(row)
         files.append(row)
     order = [policy_file, *NODE_FILES, *OUTSIDE_GOAL]
-    files.sort(key=lambda r: order.index(str(r["file"])))
+    files.sort(key=lambda r: (order.index(str(r["file"]).split()[0]), str(r["file"])))
     return {"files": files, "goal": {"lines": GOAL_LINES, "branches": GOAL_BRANCHES, "mcdc": GOAL_MCDC},
             "llvm_cov_json": export.get("version")}  # fmt: skip
+
+
+def _calls(functions: list[dict[str, Any]], filename: str) -> dict[str, int]:
+    """How often each function of the file ran (a function built into several binaries: its largest count;
+    one built alike in each shares its counters in the merged profile)."""
+    calls: dict[str, int] = {}
+    for function in functions:
+        if function["filenames"][0] == filename:
+            name = function["name"].rsplit(":", 1)[-1]  # a static function's name carries its file's
+            calls[name] = max(calls.get(name, 0), int(function["count"]))
+    return dict(sorted(calls.items()))
+
+
+def _distinct(entries: list[dict[str, Any]], names: set[str]) -> list[dict[str, Any]]:
+    """llvm-cov's files of the given base names, the test doubles left out, each source once: a file built
+    from two places (the policy's copy in the report's build and in the export the HIL node was built from)
+    has one merged profile and is shown once; files of one name and different text (the C tests' CAN glue
+    and another scenario's) are each shown, labelled with their folder. A path that no longer exists (a
+    temporary link a build went through) is left out."""
+    kept: dict[tuple[str, str], dict[str, Any]] = {}
+    for f in sorted(entries, key=lambda f: f["filename"]):
+        source = Path(f["filename"])
+        if source.name not in names or not source.is_file():
+            continue
+        if source.is_relative_to(TEST_DOUBLES) and not source.is_relative_to(TEST_CAN):
+            continue
+        kept.setdefault((source.name, hashlib.sha256(source.read_bytes()).hexdigest()), f)
+    out = []
+    for (name, _), f in kept.items():
+        folder = Path(f["filename"]).resolve().parent.name
+        twins = sum(other == name for other, _ in kept)
+        out.append({**f, "label": f"{name} ({folder}/)"} if twins > 1 else f)
+    return out
 
 
 def explains(reason: Reason, gap: dict[str, Any]) -> bool:
@@ -213,16 +305,17 @@ def _span(text: list[str], l1: int, c1: int, l2: int, c2: int) -> str:
 def _gaps(f: dict[str, Any], text: list[str], not_run: list[int]) -> list[dict[str, Any]]:
     """Lines not run, branch directions never taken, MC/DC conditions not shown independent."""
     gaps = [{"kind": "line", "line": n, "code": text[n - 1].strip(), "detail": "never run"} for n in not_run]
-    branches = sorted(
-        (b for b in f["branches"] if b[6] == 0 and b[8] in BRANCH_REGION_KINDS), key=lambda b: (b[0], b[1])
-    )
+    branches = _union_of_builds(f)
     for b in branches:
         for taken, count in (("true", b[4]), ("false", b[5])):
             if count == 0:
                 code = _span(text, *b[:4])
                 gaps.append({"kind": "branch", "line": b[0], "code": code, "detail": f"never {taken}"})
-    for record in f["mcdc_records"]:
-        l1, c1, l2, c2, covered = record[0], record[1], record[2], record[3], record[-1]
+    decisions: dict[tuple[int, ...], list[bool]] = {}
+    for record in f["mcdc_records"]:  # a condition is shown independent in any build: shown
+        earlier = decisions.setdefault(tuple(record[:4]), [False] * len(record[-1]))
+        decisions[tuple(record[:4])] = [a or bool(b) for a, b in zip(earlier, record[-1], strict=True)]
+    for (l1, c1, l2, c2), covered in decisions.items():
         inside = [b for b in branches if (l1, c1) <= (b[0], b[1]) and (b[2], b[3]) <= (l2, c2)]
         decision = _span(text, l1, c1, l2, c2)
         for i, shown in enumerate(covered):
@@ -234,11 +327,44 @@ def _gaps(f: dict[str, Any], text: list[str], not_run: list[int]) -> list[dict[s
     return gaps
 
 
+def merged_from(summary: dict[str, Any]) -> str:
+    """Which sources the coverage merges, and each HIL report it does not merge with why."""
+    hil = [
+        f"{s['source']} ({s['profiles']} node process profile(s)"
+        + (f"; {s['left_out']} empty, its process killed" if s["left_out"] else "")
+        + ")"
+        for s in summary.get("sources", [])
+        if s["source"].startswith("HIL run")
+    ]
+    text = "merged from the verification vectors, the C tests" + (f" and {', '.join(hil)}" if hil else "")
+    if not hil:
+        text += " (no HIL run with coverage)"
+    left = summary.get("hil_not_merged", [])
+    return text + "".join(f"; not merged: {h['why']}" for h in left)
+
+
+def _union_of_builds(f: dict[str, Any]) -> list[list[int]]:
+    """The file's branch regions in source order, each once: a file built into several binaries (the C tests
+    and a HIL run's node) has a record per build; a direction taken in any of them is taken."""
+    regions: dict[tuple[int, ...], list[int]] = {}
+    for b in f["branches"]:
+        if b[6] != 0 or b[8] not in BRANCH_REGION_KINDS:
+            continue
+        key = (*b[:4], b[8])
+        seen = regions.setdefault(key, list(b))
+        seen[4], seen[5] = max(seen[4], b[4]), max(seen[5], b[5])
+    return [regions[k] for k in sorted(regions)]
+
+
 def check(summary: dict[str, Any] | str) -> tuple[bool, str]:
     """The verdict's line: passed when each gap in a file of the goal has its reason (a file that meets the
-    goal may still list MC/DC conditions below 100 percent)."""
+    goal may still list MC/DC conditions below 100 percent) and every HIL run's recorded profile was found
+    as recorded."""
     if isinstance(summary, str):
         return False, f"not measured: {summary}"
+    broken = [h for h in summary.get("hil_not_merged", []) if h["failed"]]
+    if broken:
+        return False, f"{broken[0]['why']}; {merged_from(summary)}"
     unexplained = [(f["file"], g) for f in summary["files"] for g in f["gaps"] if g["reason"] is None]
     figures = "; ".join(
         f"{f['file']} " + ", ".join(f"{label} {shown(f[k])}" for k, label in LABELS.items())
@@ -250,7 +376,7 @@ def check(summary: dict[str, Any] | str) -> tuple[bool, str]:
         first = f"{file}:{gap['line']} `{gap['code']}` ({gap['kind']}, {gap['detail']})"
         return False, f"{len(unexplained)} gap(s) without a reason, first {first}; {figures}"
     gaps = sum(len(f["gaps"]) for f in summary["files"])
-    return True, f"{figures}; {gaps} gap(s), each with its reason"
+    return True, f"{figures}; {gaps} gap(s), each with its reason; {merged_from(summary)}"
 
 
 LABELS = {"lines": "lines", "branches": "branches", "mcdc": "MC/DC"}

@@ -10,6 +10,7 @@ than this export's is refused.
 from __future__ import annotations
 
 import subprocess
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -188,23 +189,42 @@ def recompute(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
     return row
 
 
-def coverage(export_dir: Path, export: dict[str, Any], row: dict[str, Any]) -> dict[str, Any] | str:
+def coverage(
+    export_dir: Path,
+    export: dict[str, Any],
+    row: dict[str, Any],
+    hils: Sequence[tuple[Path, str, dict[str, Any]]] = (),
+) -> dict[str, Any] | str:
     """The deployed C's coverage (:mod:`embedrl.hil.signoff.coverage`) with this export's policy, whose C
-    runs on this host only once ``row`` (its :func:`recompute`) found it to be the generator's; else, or
-    where it cannot be measured, one line saying why."""
+    runs on this host only once ``row`` (its :func:`recompute`) found it to be the generator's, merged with
+    the profiles of the HIL reports ``hils`` (path, name on the page, data) made with coverage; each other
+    HIL report is named with why it was not merged (``hil_not_merged``; ``failed``: its recorded profile is
+    missing or changed). Where coverage cannot be measured, one line saying why."""
     from embedrl.export.errors import BuildError
     from embedrl.export.regenerate import OBSERVATIONS
+    from embedrl.hil import coverage as recorded
     from embedrl.hil.signoff import coverage as measured
 
     if row["generated_c"] != IDENTICAL:
         return f"the policy's C is not the generator's ({row['generated_c']}): not run on this host"
     observations = np.load(export_dir / OBSERVATIONS, allow_pickle=False).astype(np.float32)
+    merged, not_merged = [], []
+    for report, name, data in hils:
+        try:
+            binary, profiles = recorded.sources(report, data)
+        except HilError as exc:
+            not_merged.append({"report": name, "why": str(exc), "failed": bool(data.get("coverage"))})
+            continue
+        left_out = len(data["coverage"].get("unreadable", []))
+        merged.append(measured.HilProfile(name, binary, tuple(profiles), left_out))
     try:
-        return measured.measure(export_dir / "c", export["name"], observations)
+        summary = measured.measure(export_dir / "c", export["name"], observations, tuple(merged))
     except BuildError as exc:
         return str(exc).strip().splitlines()[-1]
     except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
         return f"llvm-cov's output could not be read: {exc}"
+    summary["hil_not_merged"] = not_merged
+    return summary
 
 
 def image_memory(elf: Path) -> dict[str, Any]:

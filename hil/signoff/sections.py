@@ -258,7 +258,7 @@ OUTSIDE = " (outside the bundle, digest only)"
 
 def coverage(facts: dict[str, Any]) -> str:
     """Lines, branches and MC/DC conditions per file against the goal, then every gap with its reason."""
-    from embedrl.hil.signoff.coverage import GOAL_MCDC, LABELS, shown
+    from embedrl.hil.signoff.coverage import GOAL_MCDC, LABELS, merged_from, shown
 
     c = facts["coverage"]
     if isinstance(c, str):
@@ -283,8 +283,11 @@ def coverage(facts: dict[str, Any]) -> str:
         f"{p['rows'] - p['verification_rows']} probes (NaN, +/-inf, +/-1e4, +/-FLT_MAX at each position; "
         f"every position at FLT_MAX with equal and alternating signs): {codes}. "
         "The node's files ran under their C unit tests (runtime_c/tests: fake transport, clock and policy; "
-        "the static scenario's CAN code). A HIL run is not measured: the node in the sandbox is built "
-        f"without coverage. Goal per file: every line, every branch both ways, MC/DC >= {GOAL_MCDC:g}% of "
+        "the static scenario's CAN code) and, for each HIL report made with <code>embedrl hil run "
+        "--coverage</code>, as the instrumented node in the sandbox (one raw profile per node process that "
+        "exited; one killed by SIGKILL writes none). "
+        f'<span data-key="coverage-sources">Profiles {escape(merged_from(c))}.</span> '
+        f"Goal per file: every line, every branch both ways, MC/DC >= {GOAL_MCDC:g}% of "
         "the conditions of decisions with two or more (single-condition decisions are branches). Gaps need "
         "a reason in <code>runtime_c/coverage_reasons.toml</code>.</p>"
         + table(["file", "what", "lines", "branches", "MC/DC conditions", "meets goal", "gaps"], rows)

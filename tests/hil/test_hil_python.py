@@ -347,6 +347,7 @@ def test_a_report_for_a_read_only_export_is_refused_before_the_run(export_dir: P
 
 GIVEN = {
     "sandbox": "host", "target": "cortex-m3", "fd": True, "nodes": 2, "kill_node": (1, 0, 3), "trust_c": True,
+    "coverage": Path("hil.coverage"),
 }  # fmt: skip
 """A value other than the default for each option some node kind refuses."""
 
