@@ -11,18 +11,21 @@ setup: $(STAMP) ## the virtual environment .venv with embedrl and its Python dep
 
 # Debian packages the tests need: cross compiler, newlib, QEMU (Cortex-M); can-utils (its cangen floods the
 # bus in the fault catalogue); clang (libFuzzer: make -C runtime_c fuzz); clang-19 and llvm-19 (coverage with
-# MC/DC: make -C runtime_c coverage, the report's coverage check); for the CAN sandboxes where the
-# kernel has no CAN (hil/sandbox): User-Mode Linux, kmod, iproute2, patchelf (uml); QEMU, busybox and
-# Debian's stable kernel with its vcan module (qemu). Installed when missing (as root or with passwordless
-# sudo); otherwise the command to run is printed. Then a User-Mode Linux >= 7.2 is cached for CPUs on
-# which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision; no network once cached).
-APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm user-mode-linux kmod iproute2 \
-    patchelf qemu-system-x86 busybox-static linux-image-amd64 can-utils clang clang-19 llvm-19 cppcheck chromium
+# MC/DC: make -C runtime_c coverage, the report's coverage check); and what each CAN sandbox provider needs
+# where the kernel has no CAN (hil/sandbox: its PROVIDERS say, e.g. User-Mode Linux, kmod, iproute2,
+# patchelf for uml; QEMU, busybox and Debian's stable kernel with its vcan module for qemu). Installed when
+# missing (as root or with passwordless sudo); otherwise the command to run is printed. Then a User-Mode
+# Linux >= 7.2 is cached for CPUs on which Debian stable's UML dies (python -m embedrl.hil.sandbox.provision;
+# no network once cached).
+APT_PACKAGES := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm can-utils clang clang-19 llvm-19 \
+    cppcheck chromium
+SANDBOX_PACKAGES = $(PY) -c 'from embedrl.hil.sandbox import debian_packages; print(*debian_packages())'
 deps: apt-packages $(STAMP) ## setup, the Debian packages and the cached User-Mode Linux the tests need
 	$(PY) -m embedrl.hil.sandbox.provision
 
-apt-packages: ## install the missing Debian packages (as root or with passwordless sudo)
-	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+apt-packages: $(STAMP) ## install the missing Debian packages (as root or with passwordless sudo)
+	@sandbox=$$($(SANDBOX_PACKAGES)) || exit 1; \
+	missing=""; for p in $(APT_PACKAGES) $$sandbox; do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
 	if [ -z "$$missing" ]; then exit 0; fi; \
 	echo "installing Debian packages:$$missing"; \
 	if [ "$$(id -u)" = 0 ]; then SUDO=""; elif sudo -n true 2>/dev/null; then SUDO=sudo; \

@@ -41,7 +41,7 @@ from embedrl.export.errors import ExportError
 MANIFEST = "chain.json"
 STATEMENT_TYPE = "https://in-toto.io/Statement/v1"
 PREDICATE_TYPE = "https://embedrl.dev/traceability-chain/v2"
-"""What the predicate holds: ``links`` (this module's :class:`Link`) and ``steps`` (:class:`Step`)."""
+"""What the predicate holds: ``links`` (this module's :class:`TraceLink`) and ``steps`` (:class:`Step`)."""
 OLD_FORMAT = 1
 """The manifest before it was an in-toto Statement: ``{"format": 1, "links": [...]}``, absolute paths for
 files outside the export; still read (those links become digest-only) and rewritten as a Statement by
@@ -55,7 +55,9 @@ class ChainError(ExportError):
 
 
 @dataclass(frozen=True)
-class Link:
+class TraceLink:
+    """One file of the traceability chain: its hash and the links it was made from."""
+
     name: str
     path: str
     """Relative to the export folder (``/``-separated); for a link outside it, the file's name only."""
@@ -75,14 +77,16 @@ class Step:
     tool: str
     command: list[str]
     inputs: list[str]
-    """Link names."""
+    """TraceLink names (:attr:`TraceLink.name`)."""
     outputs: list[str]
-    """Link names."""
+    """TraceLink names (:attr:`TraceLink.name`)."""
 
 
 @dataclass(frozen=True)
-class Check:
-    link: Link
+class TraceCheck:
+    """One link checked against the file it names (``embedrl verify-chain``)."""
+
+    link: TraceLink
     ok: bool
     detail: str
 
@@ -109,20 +113,20 @@ def seed_of(config: Path) -> int | None:
     return seed if isinstance(seed, int) else None
 
 
-def link(export_dir: Path, name: str, path: Path, made_from: list[str], **facts: Any) -> Link:
+def link(export_dir: Path, name: str, path: Path, made_from: list[str], **facts: Any) -> TraceLink:
     """A link to ``path`` as it is now: by its path in the bundle, or by digest only if it lies outside."""
     path = path.resolve()
     root = export_dir.resolve()
     if path.is_relative_to(root):
-        return Link(name, path.relative_to(root).as_posix(), sha256(path), made_from, facts)
-    return Link(name, path.name, sha256(path), made_from, facts, in_bundle=False)
+        return TraceLink(name, path.relative_to(root).as_posix(), sha256(path), made_from, facts)
+    return TraceLink(name, path.name, sha256(path), made_from, facts, in_bundle=False)
 
 
-def statement(links: list[Link], steps: list[Step]) -> dict[str, Any]:
+def statement(links: list[TraceLink], steps: list[Step]) -> dict[str, Any]:
     """The manifest's content: an in-toto Statement whose subjects are the bundle's files."""
     by_name = {k.name: k for k in links}
 
-    def descriptor(k: Link) -> dict[str, Any]:
+    def descriptor(k: TraceLink) -> dict[str, Any]:
         return {"name": k.path, "digest": {"sha256": k.sha256}, "annotations": {"link": k.name}}
 
     return {
@@ -145,7 +149,7 @@ def statement(links: list[Link], steps: list[Step]) -> dict[str, Any]:
     }
 
 
-def write(export_dir: Path, links: list[Link], steps: list[Step]) -> Path:
+def write(export_dir: Path, links: list[TraceLink], steps: list[Step]) -> Path:
     """Write the manifest atomically: a reader sees the old one or the new one, never a part of either."""
     manifest = export_dir / MANIFEST
     data = statement(links, steps)
@@ -162,13 +166,13 @@ def write(export_dir: Path, links: list[Link], steps: list[Step]) -> Path:
 
 @dataclass(frozen=True)
 class Manifest:
-    links: list[Link]
+    links: list[TraceLink]
     steps: list[Step]
     declared: dict[str, set[str]]
     """Every digest the Statement's subjects and steps give each link (by name): each must be the link's."""
 
 
-def read(export_dir: Path) -> list[Link]:
+def read(export_dir: Path) -> list[TraceLink]:
     return read_manifest(export_dir).links
 
 
@@ -239,21 +243,21 @@ def _digest_of(descriptor: Any) -> str:
     return digest
 
 
-def _migrated(k: Link) -> Link:
+def _migrated(k: TraceLink) -> TraceLink:
     """An old manifest's link: an absolute path (a file outside the export folder) becomes digest-only."""
     if not Path(k.path).is_absolute():
         return k
-    return Link(k.name, Path(k.path).name, k.sha256, k.made_from, k.facts, in_bundle=False)
+    return TraceLink(k.name, Path(k.path).name, k.sha256, k.made_from, k.facts, in_bundle=False)
 
 
 _DIGEST = re.compile(r"[0-9a-f]{64}")
 
 
-def _link_of(entry: Any, old: bool = False) -> Link:
+def _link_of(entry: Any, old: bool = False) -> TraceLink:
     """One entry of the manifest, each field of its type (the manifest is a file anyone can edit)."""
     if not old and "in_bundle" not in entry:
         raise TypeError("a link without in_bundle")
-    k = Link(**entry)  # a field missing or unknown: TypeError
+    k = TraceLink(**entry)  # a field missing or unknown: TypeError
     if not isinstance(k.name, str) or not k.name:
         raise ValueError(f"a link's name is {k.name!r}, not a text")
     if not isinstance(k.path, str) or not k.path:
@@ -277,7 +281,9 @@ def inside(path: str) -> bool:
     return bool(parts) and not PurePosixPath(path).is_absolute() and ".." not in parts and "\\" not in path
 
 
-def append(export_dir: Path, new: Link, step: Step | None = None, replaces: tuple[str, ...] = ()) -> None:
+def append(
+    export_dir: Path, new: TraceLink, step: Step | None = None, replaces: tuple[str, ...] = ()
+) -> None:
     """Add (or replace, by name) a link made on the export later, such as a HIL report, with the step that
     made it; ``replaces`` names links the new one stands for (a digest-only link now in the bundle: the
     steps that named it name the new one). Appends from several processes at once each keep their link:
@@ -325,7 +331,7 @@ def _locked(export_dir: Path) -> Iterator[None]:
         os.close(fd)  # releases the lock
 
 
-def verify(export_dir: Path) -> list[Check]:
+def verify(export_dir: Path) -> list[TraceCheck]:
     """Every link in order: what the Statement's subjects and steps say of it, its file's hash now against
     the manifest, then what it records of its parents."""
     manifest = read_manifest(export_dir)
@@ -334,32 +340,34 @@ def verify(export_dir: Path) -> list[Check]:
     return [_check(export_dir, k, by_name, manifest.declared.get(k.name, set())) for k in links]
 
 
-def _check(export_dir: Path, k: Link, by_name: dict[str, Link], declared: set[str]) -> Check:
+def _check(export_dir: Path, k: TraceLink, by_name: dict[str, TraceLink], declared: set[str]) -> TraceCheck:
     other = sorted(declared - {k.sha256})
     if other:
-        return Check(
+        return TraceCheck(
             k, False, f"{MANIFEST} gives {k.path} two digests: {other[0][:12]}... and {k.sha256[:12]}..."
         )
     if not k.in_bundle:
-        return Check(k, True, f"{k.path}: outside the bundle, digest only (sha256 {k.sha256[:12]}...)")
+        return TraceCheck(k, True, f"{k.path}: outside the bundle, digest only (sha256 {k.sha256[:12]}...)")
     path = export_dir / k.path
     if not path.resolve().is_relative_to(export_dir.resolve()):
-        return Check(k, False, f"{k.path} leads out of the export folder (a link to another file)")
+        return TraceCheck(k, False, f"{k.path} leads out of the export folder (a link to another file)")
     if not path.is_file():
-        return Check(k, False, f"{k.path} is missing")
+        return TraceCheck(k, False, f"{k.path} is missing")
     now = sha256(path)
     if now != k.sha256:
-        return Check(k, False, f"{k.path} changed: sha256 {now[:12]}..., the chain says {k.sha256[:12]}...")
+        return TraceCheck(
+            k, False, f"{k.path} changed: sha256 {now[:12]}..., the chain says {k.sha256[:12]}..."
+        )
     try:
         parents = _recorded_parents(path, k)
         beside = recorded_coverage(read_json(path)) if k.name.startswith("HIL report") else {}
     except ValueError as exc:
-        return Check(k, False, f"{k.path}: cannot read the hashes it records of its parents ({exc})")
+        return TraceCheck(k, False, f"{k.path}: cannot read the hashes it records of its parents ({exc})")
     for name, recorded in beside.items():  # the node's coverage profiles and binary, beside the report
         file = path.parent / name
         if not file.is_file() or sha256(file) != recorded:
             said = "is missing" if not file.is_file() else f"changed (sha256 {sha256(file)[:12]}...)"
-            return Check(k, False, f"{k.path} records {name} (sha256 {recorded[:12]}...), which {said}")
+            return TraceCheck(k, False, f"{k.path} records {name} (sha256 {recorded[:12]}...), which {said}")
     for parent, recorded in parents.items():
         if parent in by_name and by_name[parent].sha256 != recorded:
             said = (
@@ -367,14 +375,14 @@ def _check(export_dir: Path, k: Link, by_name: dict[str, Link], declared: set[st
                 if parent.startswith("file ")
                 else f"was made from another {parent} (sha256 {recorded[:12]}...)"
             )
-            return Check(k, False, f"{k.path} {said}")
-    return Check(k, True, f"{k.path} sha256 {now[:12]}...")
+            return TraceCheck(k, False, f"{k.path} {said}")
+    return TraceCheck(k, True, f"{k.path} sha256 {now[:12]}...")
 
 
 _C_HEADER = re.compile(r"^ \* (source|onnx): (?:\S+ )?sha256 ([0-9a-f]{64})$", re.M)
 
 
-def _recorded_parents(path: Path, k: Link) -> dict[str, str]:
+def _recorded_parents(path: Path, k: TraceLink) -> dict[str, str]:
     """The hashes of its parents that a file records itself, by link name."""
     if path.suffix == ".c" and k.name.startswith("C source"):
         found = dict(_C_HEADER.findall(path.read_text(errors="replace")[:2000]))

@@ -251,11 +251,11 @@ def _print_summary(report: dict[str, Any]) -> None:
 
 def cmd_bench_target(args: argparse.Namespace) -> int:
     from embedrl.common import table, write_json
-    from embedrl.export import target, target_bench
+    from embedrl.export import target, target_comparison
 
     if not (args.export_dir / "policy.onnx").is_file():
         raise ExportError(f"{args.export_dir}: no policy.onnx (give an `embedrl export` folder)")
-    report = target_bench.run(args.export_dir, args.target or list(target.TARGETS), args.emx)
+    report = target_comparison.run(args.export_dir, args.target or list(target.TARGETS), args.emx)
     rows: list[tuple[str, str]] = []
     for t in report["targets"]:
         for who in ("embedrl", "emx_onnx_cgen"):
@@ -277,7 +277,7 @@ def cmd_bench_target(args: argparse.Namespace) -> int:
 
 def cmd_bench_export(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
-    from embedrl.export.bench import run
+    from embedrl.export.inference_latency import run
 
     print_measurement(run(args.export_dir, args.seed, args.emx), args.json)
     return 0

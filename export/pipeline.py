@@ -52,7 +52,7 @@ from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileErro
 from embedrl.train.evaluate import start_episode
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface, InterfaceError, from_spaces, with_names
 from embedrl.train.models import LoadedPolicy, load_sb3, normalization_candidates
-from embedrl.train.scenarios import TWO_ROBOTS, interface_of
+from embedrl.train.scenarios import BY_ENV_ID, interface_of
 
 INTERFACE_METADATA_KEY = "embedrl.interface"
 """The same JSON in the ONNX model's ``metadata_props``."""
@@ -372,7 +372,7 @@ def _keep_binaries(build_dir: Path, staging: Path, targets: tuple[str, ...]) -> 
             )
 
 
-def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[chain.Link]:
+def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[chain.TraceLink]:
     """The export's traceability chain (:mod:`embedrl.export.chain`), from the run to the report."""
     links = []
     config = chain.run_config_of(opts.source) if opts.source.suffix.lower() == ".zip" else None
@@ -408,7 +408,7 @@ def _chain_links(staging: Path, loaded: Loaded, opts: ExportOptions) -> list[cha
     return links
 
 
-def _export_step(links: list[chain.Link]) -> chain.Step:
+def _export_step(links: list[chain.TraceLink]) -> chain.Step:
     """The export as a step of the chain: what it read (the run's files) and what it wrote."""
     inputs = [k.name for k in links if k.name in ("run config", "model", "normalisation statistics")]
     outputs = [k.name for k in links if k.name not in inputs]
@@ -464,10 +464,11 @@ def _lower(loaded: Loaded, staging: Path, opts: ExportOptions) -> Lowered:
                 f"--safe-action {list(opts.safe_action)} must be {act_dim} values within the action space "
                 f"[{act_space.low.tolist()}, {act_space.high.tolist()}]"
             )
-    if graph.states and opts.env_id == TWO_ROBOTS.env_id:
+    scenario = BY_ENV_ID.get(opts.env_id)
+    if graph.states and scenario is not None and scenario.robots > 1:
         raise ExportError(
-            "a policy with memory holds one robot's state; the two-robot scenario runs one policy for both "
-            "robots: export it for one robot's scenario"
+            f"a policy with memory holds one robot's state; the {scenario.name} scenario runs one policy for "
+            "every robot: export it for one robot's scenario"
         )
     bounds = action_bounds(graph, obs_space.low, obs_space.high)
     finite_space = bool(np.all(np.isfinite(act_space.low)) and np.all(np.isfinite(act_space.high)))

@@ -11,8 +11,9 @@ from embedrl.export.contract.layout import WATCHDOG_MS
 from embedrl.export.target import TARGETS
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import INJECT_STEP, INJECTORS
-from embedrl.hil.options import DEFAULT_SANDBOX, DEFAULT_TARGET, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS, NODE_KINDS
-from embedrl.hil.sandbox import MODES
+from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS, cli_help
+from embedrl.hil.options import DEFAULT_SANDBOX, DEFAULT_TARGET, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS
+from embedrl.hil.sandbox import AUTO, MODES, mode_help
 from embedrl.train import arguments
 from embedrl.train.arguments import add_export_dir_argument
 
@@ -112,8 +113,8 @@ def register(sub: Any) -> None:
     r.add_argument(
         "--sandbox",
         choices=MODES,
-        help="where vcan0 comes from, for the c and firmware nodes (auto: the first of host, uml, qemu that "
-        f"passes its self-test) (default: {DEFAULT_SANDBOX})",
+        help=f"where vcan0 comes from, for the nodes that run in a sandbox ({mode_help()}) "
+        f"(default: {DEFAULT_SANDBOX})",
     )
     r.add_argument(
         "--timeout-ms",
@@ -169,7 +170,7 @@ def _add_node_arguments(r: Any) -> None:
         type=int,
         default=1,
         help="nodes on one bus, one robot each with its own seeds (policy_node --node-id 0..N-1), lock-step; "
-        "a two-robot export always runs one node per robot in the same episode",
+        "an export of a scenario with several robots always runs one node per robot in the same episode",
     )
     r.add_argument(
         "--kill-node",
@@ -180,11 +181,8 @@ def _add_node_arguments(r: Any) -> None:
     r.add_argument(
         "--node",
         choices=tuple(NODE_KINDS),
-        default="c",
-        help="c: the compiled node over SocketCAN vcan0 (the verdict); firmware: the node as Cortex-M "
-        "firmware on qemu-system-arm, its UART bridged to vcan0 as serial CAN (SLCAN), with instructions "
-        "per step (processor in the loop); python: the Python reference node on python-can's virtual bus "
-        "(no kernel, no build: the harness logic only)",
+        default=DEFAULT_NODE,
+        help=cli_help(),
     )
     r.add_argument(
         "--target",
@@ -196,12 +194,13 @@ def _add_node_arguments(r: Any) -> None:
 def cmd_scope(args: argparse.Namespace) -> int:
     from embedrl.hil import scope
     from embedrl.train.arguments import policy_from
-    from embedrl.train.scenarios import TWO_ROBOTS
+    from embedrl.train.scenarios import SCENARIOS
 
     if args.out.suffix.lower() != ".png":
         raise HilError(f"cannot write {args.out}: the scope view is a .png file")
     policy = policy_from(args)
-    extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
+    robots = SCENARIOS[args.scenario].robots
+    extra = {"partner": policy} if robots > 1 else {}  # one policy drives every robot
     episode = scope.record(policy, args.scenario, args.seed, extra)
     scope.plot(episode, args.out, args.controller or args.model.name)
     print(f"wrote {args.out}: {len(episode['actions'])} steps, {episode['outcome']}")
@@ -252,8 +251,8 @@ def _register_report(sub: Any) -> None:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
-    from embedrl.hil.bench import run_bench
     from embedrl.hil.options import RunOptions
+    from embedrl.hil.round_trip import run_bench
 
     if args.exchanges < 1 or args.episodes < 1:
         raise HilError("--exchanges and --episodes must be at least 1")
@@ -282,7 +281,7 @@ def _register_bench(hil_sub: Any) -> None:
     add_export_dir_argument(b, "an `embedrl export` folder")
     b.add_argument("--episodes", type=int, default=20, help="HIL episodes of the lock-step measurement")
     b.add_argument("--exchanges", type=int, default=2000, help="exchanges of the floor measurement")
-    b.add_argument("--sandbox", choices=MODES, default="auto", help="where vcan0 comes from (as hil run)")
+    b.add_argument("--sandbox", choices=MODES, default=AUTO, help="where vcan0 comes from (as hil run)")
     b.add_argument("--json", type=Path, help="write the measurement here")
     b.set_defaults(func=cmd_bench)
 
@@ -293,7 +292,7 @@ def _register_doctor(hil_sub: Any) -> None:
     )
     d.add_argument("--json", type=Path, help="also write the checks here")
     d.add_argument(
-        "--sandbox", choices=MODES, default="auto", help="check only this provider's candidates (auto: all)"
+        "--sandbox", choices=MODES, default=AUTO, help=f"check only this provider's candidates ({AUTO}: all)"
     )
     d.set_defaults(func=cmd_doctor)
 

@@ -37,7 +37,7 @@ if TYPE_CHECKING:  # the command lists the injectors without loading the session
 
     from embedrl.hil.codec import Codec, Status
     from embedrl.hil.link import Link
-    from embedrl.hil.nodes import Node
+    from embedrl.hil.nodes import PolicyNode
     from embedrl.train.interface import Interface
 
 INJECT_STEP = 3
@@ -78,7 +78,7 @@ CAN_ERR_CRTL_RX_PASSIVE = 0x10
 @dataclass
 class Context:
     link: Link
-    node: Node
+    node: PolicyNode
     interface: Interface
     node_timeout_ms: int
     action_timeout_s: float

@@ -53,7 +53,7 @@ from can.interfaces.slcan import slcanBus
 
 from embedrl.export.contract.layout import STATUS_PERIOD_MS
 from embedrl.hil.errors import HilError
-from embedrl.hil.nodes import Node
+from embedrl.hil.nodes import PolicyNode
 
 ICOUNT_SHIFT = 0
 """1 ns of virtual time per guest instruction."""
@@ -344,7 +344,7 @@ class SerialLine(slcanBus):
             self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
 
 
-class FirmwareNode(Node):
+class FirmwareNode(PolicyNode):
     """The firmware image on QEMU, bridged to ``iface`` (python-can interface ``bus``); its clock is the
     simulation's (:meth:`advance`)."""
 

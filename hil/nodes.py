@@ -56,7 +56,7 @@ def action_ok(action: np.ndarray, interface: Interface) -> bool:
     return all(np.float32(lo) <= v <= np.float32(hi) for (lo, hi), v in zip(bounds, values, strict=True))
 
 
-class Node(ABC):
+class PolicyNode(ABC):
     """A running policy node."""
 
     simulated_time: bool = False
@@ -88,7 +88,7 @@ class Node(ABC):
         """Start it again after it died (a fresh node: all its state from the beginning)."""
 
 
-class CNode(Node):
+class CNode(PolicyNode):
     """``policy_node --iface IFACE --timeout-ms T --recover K`` as a child process."""
 
     def __init__(
@@ -134,7 +134,7 @@ class CNode(Node):
                 self.process.kill()
 
 
-class PythonNode(Node):
+class PythonNode(PolicyNode):
     """The reference node: the C node's rules in Python, the exported ONNX as the policy."""
 
     def __init__(

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
 from embedrl.export.contract.layout import WATCHDOG_MS
+from embedrl.hil.node_kinds import DEFAULT_NODE
 
 DEFAULT_TIMEOUT_MS = WATCHDOG_MS
 """The node's watchdog on the host (stretched by a slow guest's slowdown)."""
@@ -19,54 +19,9 @@ MAX_TIMEOUT_MS = 60_000
 DEFAULT_SANDBOX = "auto"
 DEFAULT_TARGET = "cortex-m4"
 """The firmware node's core unless ``--target`` names another."""
-
-
-@dataclass(frozen=True)
-class NodeKind:
-    """A kind of node (``--node``): the programs it needs and the run's options that do not apply to it."""
-
-    tools: tuple[str, ...] = ()
-    """Programs it needs on PATH, looked for before anything is built or booted."""
-    refuses: Mapping[str, str] = field(default_factory=dict)
-    """Options (:class:`RunOptions` fields) it cannot honour, each with the reason."""
-    simulated_time: bool = False
-    """Whether its clock is the simulation's (the firmware node): its watchdog is not stretched for a slow
-    sandbox, and must exceed the sample time, which passes for it at every step."""
-    builds_c: bool = True
-    """Whether the run compiles the export's C and runs it (on this machine's kernel in a sandbox that shares
-    its files, or on QEMU with semihosting): only C that is the generator's output, unless ``--trust-c``."""
-
-
-ONE_BOARD = "the firmware node runs one robot on one emulated board"
 COVERAGE_TOOLS = ("clang-19", "llvm-profdata-19")
 """What ``--coverage`` needs on PATH: the compiler of the instrumented node (``make coverage-node``) and the
 tool that checks its raw profiles (Debian: clang-19, llvm-19)."""
-NODE_KINDS: dict[str, NodeKind] = {
-    "c": NodeKind(
-        refuses={"target": "the C node runs on this machine; --target picks the firmware node's core"}
-    ),
-    "firmware": NodeKind(
-        tools=("arm-none-eabi-gcc", "qemu-system-arm"),
-        refuses={
-            "fd": "the firmware node speaks classic CAN over its serial line (SLCAN)",
-            "nodes": ONE_BOARD,
-            "kill_node": ONE_BOARD,
-            "coverage": "the firmware image is built by arm-none-eabi-gcc and runs on QEMU; clang's coverage "
-            "measures the C node (--node c)",
-        },
-        simulated_time=True,
-    ),
-    "python": NodeKind(
-        refuses={
-            "sandbox": "the Python node runs in this process on python-can's virtual bus, in no sandbox",
-            "target": "the Python node runs in this process; --target picks the firmware node's core",
-            "trust_c": "the Python node runs the export's ONNX, no C",
-            "coverage": "the Python node runs the export's ONNX, no C",
-        },
-        builds_c=False,
-    ),
-}
-"""Every node kind; an option a kind does not refuse applies to it (tests/hil checks each pair)."""
 
 
 @dataclass(frozen=True)
@@ -93,9 +48,8 @@ class RunOptions:
     nodes: int = 1
     kill_node: tuple[int, int, int] | None = None
     """(node, episode, step): that node's process is killed before that step."""
-    node: str = "c"
-    """``c``: the compiled node over SocketCAN; ``firmware``: the Cortex-M image on QEMU, bridged over
-    SLCAN; ``python``: the reference node on a virtual bus."""
+    node: str = DEFAULT_NODE
+    """The node's kind, a name of :data:`embedrl.hil.node_kinds.NODE_KINDS`."""
     target: str | None = None
     """The core the firmware node is built for (``node="firmware"``): a name of ``cortex_m/targets.mk``;
     None: :data:`DEFAULT_TARGET`."""

@@ -16,7 +16,6 @@ from embedrl.common import owned_temporary_folder
 from embedrl.export.contract.layout import rounding_errors
 from embedrl.train.evaluate import REPORT_KEYS, EpisodeResult, EvalReport, evaluate
 from embedrl.train.interface import NO_ENV, Interface
-from embedrl.train.scenarios import TWO_ROBOTS
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -114,12 +113,13 @@ def _simulation(
     options: RunOptions, interface: Interface, results: dict[str, Any], episodes: list[EpisodeResult]
 ) -> tuple[EvalReport | None, dict[str, int] | None]:
     """The simulation's report, one row per HIL row (None in open loop: no plant to simulate; the actions
-    are compared per step), and for two robots the count of episodes both robots got through."""
+    are compared per step), and for a scenario with several robots the count of episodes every robot got
+    through."""
     if interface.env_id == NO_ENV:
         return None, None
     simulated = _simulated_policy(options, interface)
-    if interface.env_id == TWO_ROBOTS.env_id:
-        return _two_robot_simulation(options, interface, results, episodes, simulated)
+    if interface.robots > 1:
+        return _team_simulation(options, interface, results, episodes, simulated)
     from embedrl.hil.session import NODE_SEED_STRIDE
 
     # each node's robot on its own seeds (node_seed), in the order the HIL rows have
@@ -135,14 +135,14 @@ def _simulation(
     return EvalReport.from_results([by_seed[h.seed] for h in episodes], options.seed, SIMULATION), None
 
 
-def _two_robot_simulation(
+def _team_simulation(
     options: RunOptions,
     interface: Interface,
     results: dict[str, Any],
     episodes: list[EpisodeResult],
     simulated: Callable[[np.ndarray], np.ndarray],
 ) -> tuple[EvalReport, dict[str, int]]:
-    """One row per robot; the simulation drives both robots."""
+    """One row per robot; the simulation drives every robot of the episode."""
     pairs = evaluate(simulated, options.episodes, options.seed, SIMULATION, False, interface.env_id).results
     by_seed = {r.seed: r for r in pairs}
     robot_rows = [
@@ -157,7 +157,9 @@ def _two_robot_simulation(
         hil_pairs.setdefault(e["seed"], []).append(e["outcome"])
     counts = {
         "episodes": len(hil_pairs),
-        "hil_both_through": sum(o == ["success", "success"] for o in hil_pairs.values()),
+        "hil_both_through": sum(
+            len(o) == interface.robots and all(x == "success" for x in o) for o in hil_pairs.values()
+        ),
         "simulation_both_through": sum(r.outcome == "success" for r in pairs),
     }
     return EvalReport.from_results(robot_rows, options.seed, SIMULATION), counts

@@ -25,16 +25,10 @@ from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.contract.layout import MAX_NODES
 from embedrl.hil.errors import HilError
 from embedrl.hil.faults import Scheduled, parse_schedule
-from embedrl.hil.options import (
-    DEFAULT_TIMEOUT_MS,
-    MAX_TIMEOUT_MS,
-    MIN_TIMEOUT_MS,
-    NODE_KINDS,
-    RunOptions,
-)
+from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS, kinds_with
+from embedrl.hil.options import DEFAULT_TIMEOUT_MS, MAX_TIMEOUT_MS, MIN_TIMEOUT_MS, RunOptions
 from embedrl.hil.progress import episode_bar
 from embedrl.train.interface import INTERFACE_FILE, NO_ENV, Interface
-from embedrl.train.scenarios import TWO_ROBOTS
 
 if TYPE_CHECKING:
     from embedrl.hil.sandbox import Guest
@@ -45,8 +39,10 @@ SESSION_TIMEOUT_S = 3600.0
 """A whole HIL session inside a guest (pure emulation runs Python about ten times slower)."""
 ACTION_TIMEOUT_S = 2.0
 """How long the simulator waits for the node's answer to a step (on the host; stretched in slow guests)."""
-TWO_ROBOT_NODES = 2
-"""The two-robot scenario runs one node per robot."""
+
+
+NUMBER_WORDS = {2: "two", 3: "three", 4: "four"}
+"""Counts of robots and nodes as messages spell them."""
 
 
 def check(options: RunOptions) -> list[Scheduled]:
@@ -77,10 +73,11 @@ def check(options: RunOptions) -> list[Scheduled]:
             raise HilError(
                 f"--inject {s.injector.name}@{s.episode}:{s.step}: the run has {options.episodes} episode(s)"
             )
-        if s.injector.needs_socketcan and options.node != "c":
+        if s.injector.needs_socketcan and not NODE_KINDS[options.node].own_socketcan:
+            owners = kinds_with("own_socketcan")
             raise HilError(
-                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only the C "
-                "node has: use --node c"
+                f"--inject {s.injector.name} acts on the node's own kernel CAN interface, which only "
+                f"{' and '.join(NODE_KINDS[k].called for k in owners)} has: use --node {owners[0]}"
             )
     if options.target is not None:
         _check_target(options.target)
@@ -282,9 +279,34 @@ def _export_interface(export_dir: Path) -> Interface:
         raise HilError(str(exc)) from None
 
 
+def _one_node_per_robot(options: RunOptions, interface: Interface) -> RunOptions:
+    """The options of a scenario with several robots: one node per robot, in lock-step."""
+    scenario, robots = interface.name, interface.robots
+    one = NODE_KINDS[options.node].refuses.get("nodes")
+    if one is not None:
+        raise HilError(
+            f"the {scenario} scenario needs {_count(robots)} nodes; {one}: use --node {DEFAULT_NODE}"
+        )
+    if robots > MAX_NODES:
+        raise HilError(f"the {scenario} scenario has {robots} robots, one node each: at most {MAX_NODES}")
+    if options.nodes not in (1, robots):
+        raise HilError(f"the {scenario} scenario runs one node per robot: drop --nodes {options.nodes}")
+    if options.inject or options.realtime:
+        raise HilError(
+            f"the {scenario} scenario runs its {_count(robots)} nodes in lock-step: drop --inject and "
+            "--realtime (--kill-node takes a node down)"
+        )
+    return replace(options, nodes=robots)
+
+
+def _count(n: int) -> str:
+    """``n`` as a word for the small counts messages name (``two``), else as digits."""
+    return NUMBER_WORDS.get(n, str(n))
+
+
 def check_export(options: RunOptions, schedule: list[Scheduled]) -> tuple[RunOptions, Interface]:
-    """The options against the export's interface; the options to run (the export folder resolved, two
-    nodes for the two-robot scenario) and the interface, read once for the whole run."""
+    """The options against the export's interface; the options to run (the export folder resolved, one
+    node per robot for a scenario with several) and the interface, read once for the whole run."""
     options = replace(options, export_dir=options.export_dir.resolve())
     interface = _export_interface(options.export_dir)
     if NODE_KINDS[options.node].builds_c and not options.trust_c:
@@ -298,17 +320,8 @@ def check_export(options: RunOptions, schedule: list[Scheduled]) -> tuple[RunOpt
             )
     if options.nodes > 1 and interface.env_id == NO_ENV:
         raise HilError("a policy without an env runs in open loop on one node: drop --nodes")
-    if interface.env_id == TWO_ROBOTS.env_id:  # one node per robot
-        if options.node == "firmware":
-            raise HilError("the two-robot scenario needs two nodes; the firmware node runs one: use --node c")
-        if options.nodes not in (1, TWO_ROBOT_NODES):
-            raise HilError(f"the two-robot scenario runs one node per robot: drop --nodes {options.nodes}")
-        options = replace(options, nodes=TWO_ROBOT_NODES)
-        if options.inject or options.realtime:
-            raise HilError(
-                "the two-robot scenario runs its two nodes in lock-step: drop --inject and --realtime "
-                "(--kill-node takes a node down)"
-            )
+    if interface.robots > 1:
+        options = _one_node_per_robot(options, interface)
     for s in schedule:
         if s.step > interface.max_steps:
             raise HilError(
@@ -364,8 +377,8 @@ def session_config(
     export_dir = options.export_dir
     observations = export_dir / "test" / OBSERVATIONS_FILE
     env_id = interface.env_id
-    if env_id == TWO_ROBOTS.env_id:
-        nodes = "of two robots, one node each, "
+    if interface.robots > 1:
+        nodes = f"of {_count(interface.robots)} robots, one node each, "
     elif options.nodes > 1:
         nodes = f"on each of {options.nodes} nodes "
     else:
@@ -402,10 +415,11 @@ def session_config(
 def _build_and_run(
     options: RunOptions, interface: Interface, guest: Guest | None, work: Path
 ) -> dict[str, Any]:
-    if options.node == "python":
+    kind = NODE_KINDS[options.node]
+    if not kind.in_sandbox:
         return _python_session(options, interface, work)
     binary = work / "build" / "policy_node"
-    if options.node == "c":
+    if kind.host_binary:
         goal = "node" if options.coverage is None else "coverage-node"
         binary = make_node(options, interface, work, {"FD": "1"} if options.fd else {}, goal)
     return _guest_session(options, interface, guest, work, binary)
@@ -483,7 +497,8 @@ def _guest_session(
             coverage_profile=str(profiles / coverage.PROFILE_PATTERN) if options.coverage else None,
         )  # fmt: skip
         emulator: AbstractContextManager[None] = nullcontext()
-        if options.node == "firmware":  # its watchdog is fixed in the image: built for this sandbox
+        image = NODE_KINDS[options.node].firmware_image
+        if image:  # its watchdog is fixed in the image: built for this sandbox
             cfg = _with_firmware(options, interface, cfg, work)
             if where.link is not None:  # QEMU on this machine, its UART0 on the guest's serial line
                 cfg = replace(cfg, firmware_link=where.link.device, firmware_control=str(scratch / "qemu"))
@@ -498,7 +513,7 @@ def _guest_session(
             raise HilError(str(why))
         results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
         binary = Path(cfg.node_binary or "")
-        if options.node == "firmware":
+        if image:
             results["firmware"]["stack_bound"] = _firmware_stack_bound(options, binary)
         results["node_binary_sha256"] = sha256(binary)  # which bytes these verdicts are about
         if options.coverage is not None:

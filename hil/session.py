@@ -36,18 +36,16 @@ from embedrl.export.contract.layout import (
     STATUS_PERIOD_MS,
     STEP_MODULO,
     WATCHDOG_MS,
-    episode_start_id,
-    layout,
 )
 from embedrl.export.reference import OnnxPolicy, reference_policy
 from embedrl.hil.codec import Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
-from embedrl.hil.firmware import FirmwareNode, HostQemu, instruction_summary
+from embedrl.hil.firmware import FirmwareNode, instruction_summary
 from embedrl.hil.link import Link, Stats
-from embedrl.hil.nodes import CNode, Node, PythonNode, action_ok
+from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS
+from embedrl.hil.nodes import PolicyNode, action_ok
 from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
 from embedrl.train.interface import NO_ENV, Interface
-from embedrl.train.scenarios import TWO_ROBOTS
 
 TOLERANCE = 1e-5
 NODE_BOOT_S = 1.0
@@ -75,9 +73,8 @@ class SessionConfig:
     (:func:`embedrl.export.reference.reference_policy`); None: with ``onnx`` under onnxruntime."""
     node_binary: str | None = None
     """The compiled ``policy_node`` (``node="c"``), or the firmware image (``node="firmware"``)."""
-    node: str = "c"
-    """``c`` (the compiled node, a process), ``firmware`` (the Cortex-M image on QEMU, bridged over SLCAN)
-    or ``python`` (the reference node, a thread)."""
+    node: str = DEFAULT_NODE
+    """The node's kind, a name of :data:`embedrl.hil.node_kinds.NODE_KINDS` (its ``start`` starts it)."""
     qemu_machine: str | None = None
     """The board that runs the firmware image (``node="firmware"``), e.g. ``netduinoplus2``."""
     tick_instructions: float = 1.0
@@ -145,7 +142,7 @@ class _Tally(gym.Wrapper[np.ndarray, np.ndarray, np.ndarray, np.ndarray]):
 class BusPolicy:
     """A policy whose actions come from the node over the bus: the simulator's side of one step."""
 
-    def __init__(self, cfg: SessionConfig, interface: Interface, link: Link, node: Node) -> None:
+    def __init__(self, cfg: SessionConfig, interface: Interface, link: Link, node: PolicyNode) -> None:
         self.cfg, self.interface, self.link, self.node = cfg, interface, link, node
         self.reference = _session_policy(cfg)
         self.step = 0
@@ -330,13 +327,13 @@ class BusPolicy:
 @contextmanager
 def _nodes_on_one_bus(
     cfg: SessionConfig, interface: Interface, count: int
-) -> Iterator[tuple[list[Link], list[Node], list[BusPolicy]]]:
+) -> Iterator[tuple[list[Link], list[PolicyNode], list[BusPolicy]]]:
     """``count`` nodes on one bus (node k with node k's CAN IDs), each with its own link and bus policy,
     booted; on exit the nodes get a last status in, then are stopped and the links closed. The lists stay
     readable afterwards (the links' statistics)."""
     logger = can.Logger(cfg.log) if cfg.log else None
     links: list[Link] = []
-    nodes: list[Node] = []
+    nodes: list[PolicyNode] = []
     policies: list[BusPolicy] = []
     try:
         for k in range(count):
@@ -430,14 +427,14 @@ def _replay(policy: BusPolicy, observations: Any, index: int, seed: int, sample_
     return EpisodeResult(seed, "open-loop", OPEN_LOOP_STEPS, 0.0, OPEN_LOOP_STEPS * sample_time, None, [])
 
 
-def _next_snapshot(link: Link, node: Node) -> tuple[Status, Diag] | None:
+def _next_snapshot(link: Link, node: PolicyNode) -> tuple[Status, Diag] | None:
     """The node's next NodeStatus and NodeDiag (None if they do not come within :data:`SNAPSHOT_S`); a node
     on the simulation's clock sends them once a status period of that time has passed."""
     node.advance(STATUS_PERIOD_S)
     return link.snapshot(SNAPSHOT_S)
 
 
-def _last_status(link: Link, node: Node) -> None:
+def _last_status(link: Link, node: PolicyNode) -> None:
     """Take the node's status once more before the session ends (its final counters)."""
     node.advance(STATUS_PERIOD_S)
     link.wait_status(LAST_STATUS_S)
@@ -452,7 +449,7 @@ def _detected(
     before: tuple[Status, Diag] | None,
     after: tuple[Status, Diag] | None,
     extra: dict[str, Any],
-    node: Node,
+    node: PolicyNode,
 ) -> bool | None:
     """Whether the node registered the fault: the counter(s) the class must move grew (any of them)."""
     if injector.detects is None:
@@ -472,32 +469,8 @@ def node_seed(seed: int, episode: int, node_id: int) -> int:
     return seed + episode + node_id * NODE_SEED_STRIDE
 
 
-def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> Node:
-    if cfg.node == "python":
-        return PythonNode(
-            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False, fd=cfg.fd),
-            interface, _session_policy(cfg), cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.fd,
-        )  # fmt: skip
-    if cfg.node_binary is None:
-        raise ValueError("the C node needs node_binary")
-    if cfg.node == "firmware":
-        if cfg.qemu_machine is None:
-            raise ValueError("the firmware node needs qemu_machine")
-        plan = layout(interface, node_id, cfg.fd)
-        on_host = None
-        if cfg.firmware_link is not None and cfg.firmware_control is not None:
-            on_host = HostQemu(Path(cfg.firmware_control), cfg.firmware_link)
-        return FirmwareNode(
-            cfg.node_binary, cfg.qemu_machine,
-            lambda: can.Bus(interface=cfg.bus, channel=cfg.iface, receive_own_messages=False),
-            Path(cfg.results).with_name(f"firmware-uart1-node{node_id}.txt"),
-            [frame_id for _, frame_id, _ in plan.observation]
-            + ([episode_start_id(node_id)] if interface.state_size else []),
-            on_host, cfg.tick_instructions,
-        )  # fmt: skip
-    return CNode(
-        cfg.node_binary, cfg.iface, cfg.node_timeout_ms, cfg.node_recover, node_id, cfg.coverage_profile
-    )
+def _start_node(cfg: SessionConfig, interface: Interface, node_id: int = 0) -> PolicyNode:
+    return NODE_KINDS[cfg.node].start(cfg, interface, node_id, lambda: _session_policy(cfg))
 
 
 def open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
@@ -509,44 +482,47 @@ def open_bus(cfg: SessionConfig, codec: Codec) -> can.BusABC:
 
 
 def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
-    """The two-robot scenario: one node per robot on one bus, both robots in one episode, in lock-step.
+    """A scenario with several robots: one node per robot on one bus, every robot in one episode, in
+    lock-step.
 
-    Every step each robot's observation goes to its own node, then both actions are collected and the
-    two-robot env steps. A robot whose node does not answer is in the fault path: it stops (the safe
-    action) and its row ends as a fault, while the other robot's node keeps driving it. One row per robot
-    and episode (``node`` = robot index, ``seed`` = the episode's seed)."""
-    from embedrl.train.two_robots_env import AGENTS, WarehouseTwoRobotsEnv
+    Every step each robot's observation goes to its own node, then every action is collected and the
+    scenario's team env (:func:`~embedrl.train.scenarios.team_env`) steps. A robot whose node does not
+    answer is in the fault path: it stops (the safe action) and its row ends as a fault, while the other
+    robots' nodes keep driving theirs. One row per robot and episode (``node`` = robot index, ``seed`` =
+    the episode's seed)."""
+    from embedrl.train.scenarios import BY_ENV_ID, team_env
 
     episodes: list[dict[str, Any]] = []
-    env = WarehouseTwoRobotsEnv()
+    env = team_env(BY_ENV_ID[interface.env_id])
+    agents = list(env.possible_agents)
     safe = np.asarray(interface.safe_action, dtype=np.float32)
     try:
-        with _nodes_on_one_bus(cfg, interface, len(AGENTS)) as (links, nodes, policies):
+        with _nodes_on_one_bus(cfg, interface, len(agents)) as (links, nodes, policies):
             for index in range(cfg.episodes):
                 seed = cfg.seed + index
                 marks = [len(link.stats.diffs) for link in links]
                 obs, _ = env.reset(seed=seed)
-                totals = [0.0, 0.0]
-                faults: list[str | None] = [None, None]
+                totals = [0.0] * len(agents)
+                faults: list[str | None] = [None] * len(agents)
                 for policy in policies:
                     policy.begin_episode()
                 while env.agents:
-                    live = [k for k, a in enumerate(AGENTS) if a in env.agents and faults[k] is None]
+                    live = [k for k, a in enumerate(agents) if a in env.agents and faults[k] is None]
                     for k in live:
                         if cfg.kill_node == (k, index, policies[k].in_episode):
                             nodes[k].stop()
-                        policies[k].send(obs[AGENTS[k]])
+                        policies[k].send(obs[agents[k]])
                     actions = {a: safe for a in env.agents}
                     for k in live:
                         try:
-                            actions[AGENTS[k]] = policies[k].collect(obs[AGENTS[k]])
+                            actions[agents[k]] = policies[k].collect(obs[agents[k]])
                         except NodeFault as fault:
                             faults[k] = str(fault)
                     stepped, rewards, _, _, _ = env.step(actions)
                     obs.update(stepped)
                     for agent, r in rewards.items():
-                        totals[AGENTS.index(agent)] += float(r)
-                for k in range(len(AGENTS)):
+                        totals[agents.index(agent)] += float(r)
+                for k in range(len(agents)):
                     steps = len(env.trajectories[k]) - 1
                     hit = env._world.hits[k] if env._world is not None else None
                     diffs = links[k].stats.diffs[marks[k] :]
@@ -602,7 +578,7 @@ def run(cfg: SessionConfig, interface: Interface | None = None) -> dict[str, Any
     ``cfg.interface``, already read by the caller in this process (a session in a guest reads it)."""
     if interface is None:
         interface = load_interface(Path(cfg.interface))
-    if interface.env_id == TWO_ROBOTS.env_id:
+    if interface.robots > 1:
         return _run_robots(cfg, interface)
     if cfg.nodes > 1:
         return _run_nodes(cfg, interface)

@@ -8,6 +8,7 @@ so the graph holds every file of ``train/``, ``export/`` and ``hil/``.
 from __future__ import annotations
 
 import ast
+import dataclasses
 import re
 from pathlib import Path
 
@@ -196,3 +197,162 @@ def test_scenario_names_are_typed_only_in_their_specs(folder: str) -> None:
         if SCENARIO_NAME.search(line.split("#")[0])
     ]
     assert typed == []
+
+
+SCENARIO_IDENTITY = re.compile(
+    r"(==|!=|\bis|\bin)\s*\(?\s*[A-Z_]*TWO_ROBOTS\b|\bTWO_ROBOTS(\.\w+)?\s*(==|!=|\bis\b)"
+)
+
+
+def _identity_checks(path: Path) -> list[str]:
+    return [
+        f"{path.relative_to(REPO)}:{n + 1}"
+        for n, line in enumerate(path.read_text().splitlines())
+        if SCENARIO_IDENTITY.search(line.split("#")[0])
+    ]
+
+
+@pytest.mark.parametrize("folder", ["train", "export", "hil", "embedrl"])
+def test_no_code_compares_against_the_two_robot_scenario(folder: str) -> None:
+    """Code asks a scenario's properties (``spec.robots``), never whether it is the two-robot scenario, so a
+    second scenario with several robots touches no check."""
+    found = [
+        c
+        for path in sorted((REPO / folder).rglob("*.py"))
+        if path.name != "scenarios.py"
+        for c in _identity_checks(path)
+    ]
+    assert found == []
+
+
+def test_the_identity_check_finder_finds_one(tmp_path: Path) -> None:
+    sample = REPO / "tests" / "_identity_sample.py"
+    lines = [
+        "if env_id == TWO_ROBOTS.env_id:",
+        "if spec is TWO_ROBOTS:",
+        "if TWO_ROBOTS.name == s:",
+        "x = TWO_ROBOTS.obs_low",
+    ]
+    try:
+        sample.write_text("\n".join(lines) + "\n")
+        assert _identity_checks(sample) == [f"tests/_identity_sample.py:{n}" for n in (1, 2, 3)]
+    finally:
+        sample.unlink()
+
+
+def test_every_scenario_with_several_robots_has_a_team_env() -> None:
+    from embedrl.train.scenarios import SCENARIOS, TEAM_ENVS, team_env
+
+    several = {name for name, spec in SCENARIOS.items() if spec.robots > 1}
+    assert several and set(TEAM_ENVS) == several
+    for name in several:
+        env = team_env(SCENARIOS[name])
+        try:
+            assert len(env.possible_agents) == SCENARIOS[name].robots
+        finally:
+            env.close()
+
+
+NODE_KIND_LITERAL = re.compile(
+    r"""(==|!=|\bin)\s*\(?\s*["'](c|firmware|python)["']|["'](c|firmware|python)["']\s*(==|!=)"""
+)
+
+
+def _node_kind_comparisons(path: Path) -> list[str]:
+    return [
+        f"{path.relative_to(REPO)}:{n + 1}"
+        for n, line in enumerate(path.read_text().splitlines())
+        if NODE_KIND_LITERAL.search(line.split("#")[0])
+    ]
+
+
+def test_no_code_compares_a_node_kind_by_name() -> None:
+    """What differs between node kinds is a field or hook of its :class:`NodeKind`, so adding a kind is one
+    entry of ``NODE_KINDS``."""
+    found = [
+        c
+        for folder in ("hil", "export", "embedrl")
+        for path in sorted((REPO / folder).rglob("*.py"))
+        if path.name != "node_kinds.py"
+        for c in _node_kind_comparisons(path)
+    ]
+    assert found == []
+
+
+def test_the_node_kind_comparison_finder_finds_one() -> None:
+    sample = REPO / "tests" / "_node_kind_sample.py"
+    lines = ['if options.node == "firmware":', 'if cfg.node != "c":', "if 'python' == kind:", 'd = {"c": 1}']
+    try:
+        sample.write_text("\n".join(lines) + "\n")
+        assert _node_kind_comparisons(sample) == [f"tests/_node_kind_sample.py:{n}" for n in (1, 2, 3)]
+    finally:
+        sample.unlink()
+
+
+def test_every_node_kind_is_complete_and_accepted_by_the_cli() -> None:
+    import argparse
+
+    from embedrl.cli import build_parser
+    from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS, NodeKind
+    from embedrl.hil.options import RunOptions
+
+    option_names = {f.name for f in dataclasses.fields(RunOptions)}
+    assert DEFAULT_NODE in NODE_KINDS
+    for name, kind in NODE_KINDS.items():
+        assert isinstance(kind, NodeKind) and kind.called and kind.help and callable(kind.start), name
+        assert set(kind.refuses) <= option_names, name
+        assert kind.in_sandbox or not (kind.host_binary or kind.firmware_image), name
+        assert not kind.builds_c or kind.runs_on, f"{name}: a kind that runs C says where"
+        args = build_parser().parse_args(["hil", "run", "--export-dir", "x", "--node", name])
+        assert isinstance(args, argparse.Namespace) and args.node == name
+
+
+def test_every_sandbox_provider_is_complete_and_every_list_derives_from_the_registry() -> None:
+    from embedrl.cli import build_parser
+    from embedrl.hil import sandbox
+
+    names = [p.name for p in sandbox.PROVIDERS]
+    assert (sandbox.AUTO, *names) == sandbox.MODES and len(set(names)) == len(names)
+    help_text = sandbox.mode_help()
+    for p in sandbox.PROVIDERS:
+        assert p.summary and p.debian and callable(p.candidates), p.name
+        assert f"{p.name}: {p.summary}" in help_text
+        assert set(p.debian) <= set(sandbox.debian_packages())
+        assert all(found.name == p.name for found in p.candidates()), p.name
+        for command in (
+            ["hil", "run", "--export-dir", "x"],
+            ["hil", "doctor"],
+            ["hil", "bench", "--export-dir", "x"],
+        ):
+            assert build_parser().parse_args([*command, "--sandbox", p.name]).sandbox == p.name
+    makefile = (REPO / "Makefile").read_text()
+    assert "debian_packages()" in makefile, "make apt-packages installs what the providers need"
+    listed = re.search(r"^APT_PACKAGES := ((?:.*\\\n)*.*)$", makefile, re.M)
+    assert listed is not None
+    assert not set(listed.group(1).replace("\\\n", " ").split()) & set(sandbox.debian_packages()), (
+        "listed twice"
+    )
+
+
+def test_every_target_has_its_board_and_is_a_choice_of_the_commands() -> None:
+    from embedrl.cli import build_parser
+    from embedrl.export.target import TARGETS
+
+    assert TARGETS
+    for name, target in TARGETS.items():
+        assert (REPO / "runtime_c" / "cortex_m" / "boards" / target.board / "board.h").is_file(), name
+        assert build_parser().parse_args(["export", "m.zip", "--out", "x", "--target", name]).target == [name]
+        hil_args = ["hil", "run", "--export-dir", "x", "--node", "firmware", "--target", name]
+        assert build_parser().parse_args(hil_args).target == name
+
+
+def test_no_two_library_classes_share_a_name() -> None:
+    """A class name means one thing across the packages (a CAN link and a traceability link, a policy node
+    and a graph node, have names of their own)."""
+    where: dict[str, list[str]] = {}
+    for folder in ("train", "export", "hil", "embedrl"):
+        for path in sorted((REPO / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ClassDef):
+                    where.setdefault(node.name, []).append(str(path.relative_to(REPO)))
+    assert {name: paths for name, paths in where.items() if len(paths) > 1} == {}

@@ -11,8 +11,8 @@ import pytest
 import torch as th
 from torch.nn import functional as F
 
+from embedrl.train.agents import CLASSES, build_model, make_env
 from embedrl.train.config import DDPGConfig, PPOConfig, SACConfig, TD3Config, preset
-from embedrl.train.trainer import CLASSES, build_model, make_env
 
 OBS = np.random.default_rng(0).uniform(-1, 1, (32, 6)).astype(np.float32)
 

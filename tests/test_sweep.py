@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 
 from embedrl.cli import main
-from embedrl.train.bench import MIN_SEEDS_FOR_INTERVAL, median_ci
 from embedrl.train.errors import TrainError
+from embedrl.train.study_benchmark import MIN_SEEDS_FOR_INTERVAL, median_ci
 from embedrl.train.sweep import run_all
 
 

@@ -18,7 +18,8 @@ from stable_baselines3 import PPO, TD3
 from embedrl.cli import main
 from embedrl.train.config import ALGOS, Budget, preset, untrained_budget
 from embedrl.train.models import load_model_policy
-from embedrl.train.trainer import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor, train
+from embedrl.train.monitor import CURVE_FIELDS, STOP_THRESHOLD, STOP_WINDOW, RunMonitor
+from embedrl.train.trainer import train
 
 SHORT = Budget(max_steps=600, checkpoint_every=300, eval_every=10_000)
 
@@ -454,15 +455,16 @@ def test_shipped_policies_meet_their_bar() -> None:
 
 @pytest.mark.slow
 def test_ppo_warm_start_clones_the_baseline(tmp_path: Path) -> None:
+    from embedrl.train.agents import build_model, make_env
     from embedrl.train.config import preset
+    from embedrl.train.demonstrations import controller_demonstrations, warm_start
     from embedrl.train.potential_field import PotentialFieldController
-    from embedrl.train.trainer import _demonstrations, build_model, make_env, warm_start
 
     cfg = preset("ppo", "tuned")
     env = make_env(True, 0)
     model = build_model("ppo", cfg, env, 0, None)
     assert isinstance(model, PPO)
-    obs, labels, _ = _demonstrations(20, 0.0, 7)  # held-out states of the baseline
+    obs, labels, _ = controller_demonstrations(20, 0.0, 7)  # held-out states of the baseline
 
     def error() -> float:
         x = env.normalize_obs(obs)  # type: ignore[attr-defined]

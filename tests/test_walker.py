@@ -164,9 +164,9 @@ def test_the_can_database_carries_17_observations_in_9_frames_and_6_actions_in_3
 def test_the_deck_preset_is_the_deck_s_ddpg_options_and_builds_them() -> None:
     from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
 
+    from embedrl.train.agents import build_model, make_env
     from embedrl.train.config import DDPGConfig, preset, with_overrides
     from embedrl.train.study_agents import ClippedAdam, SeparateRatesDDPG
-    from embedrl.train.trainer import build_model, make_env
 
     cfg = preset("ddpg", "deck", "walker")
     assert isinstance(cfg, DDPGConfig)
@@ -225,7 +225,7 @@ def test_clipped_adam_scales_each_parameter_s_gradient_to_the_threshold() -> Non
 
 def test_the_walker_s_criterion_is_the_deck_s_250_episode_window(tmp_path: Path) -> None:
     from embedrl.train.config import Budget
-    from embedrl.train.trainer import CRITERIA, CURVE_FIELDS, RunMonitor
+    from embedrl.train.monitor import CRITERIA, CURVE_FIELDS, RunMonitor
 
     criterion = CRITERIA["walker"]
     assert (criterion.window, criterion.threshold, criterion.save_above) == (250, 1000.0, 500.0)
@@ -258,8 +258,8 @@ def test_an_evaluation_reports_distance_and_speed_per_episode_and_falls_as_colli
 
 
 def test_agents_are_saved_after_episodes_at_or_above_the_threshold_and_sums_logged(tmp_path: Path) -> None:
-    from embedrl.train import trainer
-    from embedrl.train.trainer import EpisodeSums, SaveAboveThreshold
+    from embedrl.train import monitor
+    from embedrl.train.monitor import EpisodeSums, SaveAboveThreshold
 
     class Model:
         def save(self, path: Path) -> None:
@@ -279,4 +279,4 @@ def test_agents_are_saved_after_episodes_at_or_above_the_threshold_and_sums_logg
     assert sorted(p.name for p in (tmp_path / "saved").iterdir()) == ["episode2.zip", "episode4.zip"]
     rows = (tmp_path / "sums.csv").read_text().splitlines()
     assert rows[0] == "steps,episode_forward,distance" and rows[2] == "200,500.000000,0.100000"
-    assert trainer.MAX_SAVED_AGENTS == 50
+    assert monitor.MAX_SAVED_AGENTS == 50

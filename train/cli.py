@@ -24,7 +24,7 @@ from embedrl.train.arguments import (
     seed,
 )
 from embedrl.train.errors import TrainError, UsageError
-from embedrl.train.scenarios import DEFAULT_SCENARIO, TWO_ROBOTS
+from embedrl.train.scenarios import DEFAULT_SCENARIO
 
 
 def _positive(text: str) -> int:
@@ -70,7 +70,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.out.suffix.lower() not in (".gif", ".png"):
         raise UsageError(f"cannot write {args.out}: use a .gif (animation) or .png (strip) file name")
     policy = policy_from(args)
-    extra = {"partner": policy} if args.scenario == TWO_ROBOTS.name else {}  # one policy drives both robots
+    robots = SCENARIOS[args.scenario].robots
+    extra = {"partner": policy} if robots > 1 else {}  # one policy drives every robot
     env = gym.make(env_id_of(args), render_mode="rgb_array", **extra)
     obs, info = env.reset(seed=args.seed)
     frames: list[np.ndarray] = [env.unwrapped.render()]  # type: ignore[list-item]
@@ -102,7 +103,7 @@ def cmd_reward_field(args: argparse.Namespace) -> int:
 
 def cmd_bench_env(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
-    from embedrl.train.bench_env import run
+    from embedrl.train.env_throughput import run
 
     print_measurement(run(args.steps, args.seed), args.json)
     return 0
@@ -172,8 +173,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
 
 def cmd_train(args: argparse.Namespace) -> int:
+    from embedrl.train.checkpoints import read_run_config
     from embedrl.train.config import Budget
-    from embedrl.train.trainer import read_run_config, train
+    from embedrl.train.trainer import train
 
     if (args.resume is None) == (args.out is None):
         raise UsageError("give --out DIR for a new run or --resume DIR to continue one (not both)")
@@ -263,8 +265,8 @@ def _warn_untrained(algo: str, config: Any, max_steps: int) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from embedrl.train.bench import run_bench
     from embedrl.train.config import preset, with_overrides
+    from embedrl.train.study_benchmark import run_bench
 
     if args.portable:
         from embedrl.train.portable import restart_portable
@@ -283,7 +285,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
         check_ray_address(args.ray)
     if args.from_runs:
-        from embedrl.train.bench import table_from
+        from embedrl.train.study_benchmark import table_from
 
         print(table_from(args.from_runs, args.out))
         print(f"wrote {args.out}/bench.md and bench.json")

@@ -360,7 +360,7 @@ def walker_preset(algo: str, name: str) -> AlgoConfig:
     (theta) 1 and 0.1 as the factor of its random term over one sample time as time step (MATLAB's noise
     model, whose option called ``Variance`` multiplies ``randn``: SB3's ``sigma``); the deck's MATLAB-style
     critic (two branches). Its stop criterion and save threshold are the scenario's
-    (:data:`train.trainer.CRITERIA`).
+    (:data:`train.monitor.CRITERIA`).
 
     ``tuned`` (DDPG, TD3, SAC): RL Zoo's Walker2d settings (10,000 random steps first, exploration noise 0.1:
     Gaussian for TD3, DDPG keeps its OU noise; batch 256, SB3's standard networks).

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from embedrl.common import provenance, table
 from embedrl.train import ENV_ID
 from embedrl.train.robot import SAMPLE_TIME
-from embedrl.train.scenarios import BY_ENV_ID, TWO_ROBOTS
+from embedrl.train.scenarios import BY_ENV_ID, team_env
 from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 
 Policy = Callable[[np.ndarray], np.ndarray]
@@ -281,12 +281,14 @@ def evaluate(
     env_kwargs: dict[str, Any] | None = None,
 ) -> EvalReport:
     """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``
-    (``embedrl/WarehouseTwoRobots-v0``: the policy drives both robots)."""
+    (a scenario with several robots, e.g. ``embedrl/WarehouseTwoRobots-v0``: the policy drives every
+    robot)."""
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     bar = tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
-    if env_id == TWO_ROBOTS.env_id:
-        pair = WarehouseTwoRobotsEnv(**(env_kwargs or {}))
+    spec = BY_ENV_ID.get(env_id)
+    if spec is not None and spec.robots > 1:
+        pair = team_env(spec, **(env_kwargs or {}))
         try:
             results = [run_two_robot_episode(pair, policy, seed + i) for i in bar]
         finally:

@@ -67,6 +67,10 @@ class Interface:
     state_size: int = 0
     """Floats of recurrent state the policy carries between steps (0: none). A policy with memory gets an
     episode-start message on the bus, which resets its state."""
+    robots: int = 1
+    """Robots in one episode, each driven by its own copy of this policy (in HIL, each on its own node).
+    A property of the scenario, not of the policy: ``interface.json`` does not carry it, and
+    :func:`embedrl.export.contract.interface_file.load_interface` takes it from the scenario's spec."""
 
     def __post_init__(self) -> None:
         for kind, fields in (("observation", self.observation), ("action", self.action)):
@@ -96,6 +100,8 @@ class Interface:
             raise InterfaceError(f"{self.name}: sample time and step limit must be positive")
         if not 0 <= self.state_size <= MAX_STATE_SIZE:
             raise InterfaceError(f"{self.name}: state size {self.state_size} is outside 0..{MAX_STATE_SIZE}")
+        if self.robots < 1:
+            raise InterfaceError(f"{self.name}: a scenario has at least one robot, got {self.robots}")
 
     @property
     def obs_low(self) -> np.ndarray:
@@ -117,16 +123,7 @@ class Interface:
         """This interface with another safe action (validated), or itself for ``None``."""
         if safe is None:
             return self
-        return Interface(
-            self.name,
-            self.env_id,
-            self.observation,
-            self.action,
-            self.sample_time_s,
-            tuple(safe),
-            self.max_steps,
-            self.state_size,
-        )
+        return replace(self, safe_action=tuple(safe))
 
     def with_state_size(self, state_size: int) -> Interface:
         """This interface for a policy that carries ``state_size`` floats between steps."""
@@ -134,6 +131,7 @@ class Interface:
 
     def to_json(self) -> dict[str, Any]:
         data = asdict(self)
+        del data["robots"]  # the scenario's, not the policy's
         if not self.state_size:  # a policy without memory: the same file as before memory existed
             del data["state_size"]
         return {"format": FORMAT_VERSION, **data}
@@ -213,7 +211,4 @@ def with_names(interface: Interface, names: Any) -> Interface:
             Field(n, f.description if f.description != f"{kind} {i}" else n, f.low, f.high, f.unit)
             for i, (n, f) in enumerate(zip(given, fields, strict=True))
         )
-    return Interface(
-        interface.name, interface.env_id, groups["observation"], groups["action"], interface.sample_time_s,
-        interface.safe_action, interface.max_steps,
-    )  # fmt: skip
+    return replace(interface, observation=groups["observation"], action=groups["action"], state_size=0)

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from gymnasium import spaces
+from gymnasium.envs.registration import load_env_creator
 
 from embedrl.train import layout
 from embedrl.train.interface import Field, Interface, InterfaceError, from_spaces
@@ -106,6 +107,7 @@ TWO_ROBOTS = Interface(
     sample_time_s=SAMPLE_TIME,
     safe_action=STATIC.safe_action,
     max_steps=STATIC.max_steps,
+    robots=2,
 )
 """The study's two robots through one gap; this is one robot's interface (each robot runs its own copy of
 the policy, on its own node)."""
@@ -186,6 +188,17 @@ WAREHOUSE = (STATIC.name, MOVING_SHELF.name, TWO_ROBOTS.name, MOVING_SHELF_PARTI
 """The warehouse scenarios: the potential-field controller drives them, its demonstrations teach them."""
 OTHER_ROBOT_FIELDS = ("other_dx", "other_dy", "other_present")
 """A scenario whose observation has these fields has a second robot, driven by its own copy of the policy."""
+TEAM_ENVS = {TWO_ROBOTS.name: "embedrl.train.two_robots_env:WarehouseTwoRobotsEnv"}
+"""The PettingZoo Parallel env of every scenario with more than one robot (``robots > 1``): all its robots
+in one episode, one agent each (``possible_agents`` in robot order), and per robot its ``outcomes`` and
+``trajectories`` (as :class:`~train.two_robots_env.WarehouseTwoRobotsEnv`). Training, evaluation and HIL
+drive it; the gymnasium env registered under the spec's ``env_id`` is one robot's seat, the others driven by
+a ``partner``."""
+
+
+def team_env(spec: Interface, **kwargs: Any) -> Any:
+    """A new team env of ``spec``'s scenario (:data:`TEAM_ENVS`), built with ``kwargs``."""
+    return load_env_creator(TEAM_ENVS[spec.name])(**kwargs)
 
 
 def field_indices(spec: Interface, names: tuple[str, ...]) -> tuple[int, ...] | None:

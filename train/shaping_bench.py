@@ -21,10 +21,10 @@ import numpy as np
 
 from embedrl.common import atomic_write, provenance, write_json
 from embedrl.train import curves as curves_
-from embedrl.train.bench import Job, one_run
+from embedrl.train.monitor import STOP_THRESHOLD, STOP_WINDOW
 from embedrl.train.scenarios import DEFAULT_SCENARIO
+from embedrl.train.study_benchmark import Job, one_run
 from embedrl.train.sweep import run_all
-from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
 
 REWARD_VARIANTS = ("thesis", "shaped")
 """The two rewards compared: the study's, and the study's plus the shaping term."""

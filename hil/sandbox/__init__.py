@@ -1,6 +1,6 @@
 """A real SocketCAN ``vcan0`` on any Linux machine: the host's own, or one inside a guest kernel.
 
-Three providers behind one interface, tried in this order by ``auto``:
+Three providers behind one interface (:data:`PROVIDERS`), tried in this order by ``auto``:
 
 ==========  =============================================================================  ============
 provider    what gives the CAN link                                                        boot
@@ -33,17 +33,54 @@ from embedrl.hil.sandbox.host import HostProvider
 from embedrl.hil.sandbox.qemu import QemuProvider
 from embedrl.hil.sandbox.uml import uml_providers
 
-MODES = ("auto", "host", "uml", "qemu")
+
+@dataclass(frozen=True)
+class SandboxProvider:
+    """One way to get ``vcan0`` (``--sandbox NAME``): its candidates on this machine and what it needs."""
+
+    name: str
+    summary: str
+    """What it is, for the commands' help."""
+    candidates: Callable[[], list[Provider]]
+    """Its variants found on this machine, in the order they are tried (UML: Debian's, then cached)."""
+    debian: tuple[str, ...]
+    """The Debian packages it needs (``make deps`` installs them: :func:`debian_packages`)."""
+
+
+PROVIDERS = (
+    SandboxProvider("host", "the host's own vcan0", lambda: [HostProvider()], ("kmod", "iproute2")),
+    SandboxProvider(
+        "uml",
+        "a User-Mode Linux kernel",
+        lambda: [*uml_providers()],
+        ("user-mode-linux", "kmod", "iproute2", "patchelf"),
+    ),
+    SandboxProvider(
+        "qemu",
+        "a QEMU virtual machine (virtme-ng)",
+        lambda: [QemuProvider()],
+        ("qemu-system-x86", "busybox-static", "linux-image-amd64"),
+    ),
+)
+"""Every sandbox provider, in the order ``auto`` tries them."""
+AUTO = "auto"
+"""The mode that tries every provider in turn."""
+MODES = (AUTO, *(p.name for p in PROVIDERS))
 PROBE_TIMEOUT_S = 60.0
 """The self-test probe is one short Python process (slower under QEMU's pure emulation)."""
 
 __all__ = [
+    "AUTO",
     "MODES",
-    "Check",
+    "PROVIDERS",
     "Guest",
     "Provider",
+    "ProviderCheck",
     "SandboxError",
+    "SandboxProvider",
     "check",
+    "debian_packages",
+    "mode_help",
     "open_guest",
     "providers",
     "select",
@@ -51,7 +88,7 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class Check:
+class ProviderCheck:
     """One provider's self-test on this machine."""
 
     provider: str
@@ -65,8 +102,19 @@ def providers(mode: str) -> list[Provider]:
     """The candidate providers for ``mode``, in the order ``auto`` tries them."""
     if mode not in MODES:
         raise HilError(f"unknown sandbox {mode!r}; use one of {', '.join(MODES)}")
-    found: list[Provider] = [HostProvider(), *uml_providers(), QemuProvider()]
-    return [p for p in found if mode in ("auto", p.name)]
+    return [found for p in PROVIDERS if mode in (AUTO, p.name) for found in p.candidates()]
+
+
+def mode_help() -> str:
+    """What ``--sandbox`` chooses between, for the commands' help."""
+    names = ", ".join(p.name for p in PROVIDERS)
+    each = "; ".join(f"{p.name}: {p.summary}" for p in PROVIDERS)
+    return f"{AUTO}: the first of {names} that passes its self-test; {each}"
+
+
+def debian_packages() -> tuple[str, ...]:
+    """The Debian packages every provider needs, each once (``make apt-packages`` installs them)."""
+    return tuple(dict.fromkeys(package for p in PROVIDERS for package in p.debian))
 
 
 def open_guest(provider: Provider, workdir: Path) -> Guest:
@@ -119,17 +167,17 @@ def opened(mode: str, workdir: Path, say: Callable[[str], None] = print) -> Iter
         guest.close()
 
 
-def check(provider: Provider, workdir: Path) -> Check:
+def check(provider: Provider, workdir: Path) -> ProviderCheck:
     """Boot ``provider``, run its self-test and shut it down again: one row of ``embedrl hil doctor``."""
     start = time.monotonic()
     try:
         guest = open_guest(provider, workdir / provider.slug)
     except SandboxError as exc:
-        return Check(provider.name, provider.label, False, None, str(exc))
+        return ProviderCheck(provider.name, provider.label, False, None, str(exc))
     try:
         boot_s = guest.boot_s
         total = time.monotonic() - start
-        return Check(
+        return ProviderCheck(
             provider.name,
             provider.label,
             True,

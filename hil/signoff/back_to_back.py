@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from embedrl.common import owned_temporary_folder
+from embedrl.hil.node_kinds import NODE_KINDS
 
 
 def links(
@@ -46,9 +47,8 @@ def links(
     for target in export.get("targets", {}):
         rows.append(_firmware_link(export_dir, export, row, target, tolerance))
     for name, h in hils:
-        node = {"firmware": f"C on {h.get('target')}", "c": "C on the host"}.get(
-            h["node"], f"{h['node']} node"
-        )
+        kind = NODE_KINDS.get(h["node"])
+        node = (kind.where(h.get("target")) if kind else "") or f"{h['node']} node"
         diffs = [
             r["max_action_abs_diff"] for r in h["per_episode"] if r.get("max_action_abs_diff") is not None
         ]

@@ -88,9 +88,17 @@ def load_hil(path: Path, export_dir: Path) -> dict[str, Any]:
     return dict(data)
 
 
+def _on_firmware(hil: dict[str, Any]) -> bool:
+    """Whether a HIL report's node was a firmware image on an emulated target."""
+    from embedrl.hil.node_kinds import NODE_KINDS
+
+    kind = NODE_KINDS.get(hil.get("node", ""))
+    return kind is not None and kind.firmware_image
+
+
 def _check_hil(data: Any) -> None:
     """ValueError naming the first key the page reads that is missing or of another type."""
-    from embedrl.hil.options import NODE_KINDS
+    from embedrl.hil.node_kinds import NODE_KINDS
 
     def expect(where: dict[str, Any], key: str, kinds: tuple[type, ...], what: str) -> Any:
         if key not in where:
@@ -110,8 +118,9 @@ def _check_hil(data: Any) -> None:
         raise ValueError(f"'node' is {node!r}, not one of {', '.join(NODE_KINDS)}")
     expect(data, "target", (str, type(None)), "a target's name or null")
     expect(data, "simulation", (dict, type(None)), "an object or null")
-    firmware = expect(data, "firmware", (dict,) if node == "firmware" else (dict, type(None)), "an object")
-    if node == "firmware":
+    image = NODE_KINDS[node].firmware_image
+    firmware = expect(data, "firmware", (dict,) if image else (dict, type(None)), "an object")
+    if image:
         expect(firmware, "stack_peak_bytes", (int, type(None)), "a number of bytes or null")
         step = expect(data, "time_on_target", (dict, type(None)), "an object or null")
         if step is not None:
@@ -259,7 +268,7 @@ def target_facts(
     beside what was painted (the test image's policy_step; the firmware node in a HIL run)."""
     rows = []
     for name, t in export.get("targets", {}).items():
-        node_runs = [h for h in hils if h.get("node") == "firmware" and h.get("target") == name]
+        node_runs = [h for h in hils if _on_firmware(h) and h.get("target") == name]
         peaks = [
             h["firmware"]["stack_peak_bytes"] for h in node_runs if h["firmware"].get("stack_peak_bytes")
         ]

@@ -39,8 +39,11 @@ def boot_or_skip(provider: Provider, workdir: Path) -> Guest:
 
 def run_options(export_dir: Path, *argv: str) -> RunOptions:
     """The options ``embedrl hil run --export-dir export_dir *argv`` stands for."""
+    from embedrl.hil import coverage
+
     args = build_parser().parse_args(["hil", "run", "--export-dir", str(export_dir), *argv])
-    return RunOptions.of(vars(args))
+    folder = coverage.folder_of(args.json) if args.coverage else None  # as the command turns the flag
+    return RunOptions.of({**vars(args), "coverage": folder})
 
 
 def hil_report(guest: Guest | None, export_dir: Path, *argv: str) -> dict[str, Any]:

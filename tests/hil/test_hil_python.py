@@ -29,8 +29,9 @@ from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.reference import reference_policy
 from embedrl.hil.codec import Action, Codec, Status
 from embedrl.hil.errors import HilError
+from embedrl.hil.node_kinds import NODE_KINDS
 from embedrl.hil.nodes import PythonNode
-from embedrl.hil.options import NODE_KINDS, RunOptions
+from embedrl.hil.options import RunOptions
 from embedrl.hil.run import check
 from tests.hil.contract import HilContract
 from tests.test_user_errors import run_and_interrupt

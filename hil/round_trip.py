@@ -8,7 +8,7 @@ session with the C node (:func:`embedrl.hil.session.run`), steps per second of i
 time (the environment, the reference policy and every check included). Their ratio says how much of the
 bus's speed a HIL step uses.
 
-Inside the guest this module runs as ``python -m embedrl.hil.bench CONFIG.json``.
+Inside the guest this module runs as ``python -m embedrl.hil.round_trip CONFIG.json``.
 """
 
 from __future__ import annotations
@@ -126,13 +126,12 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
     from embedrl.hil import sandbox
     from embedrl.hil.errors import HilError
     from embedrl.hil.run import REPO, SESSION_TIMEOUT_S, check, check_export, make_node, session_config
-    from embedrl.train.scenarios import TWO_ROBOTS
 
     options, interface = check_export(options, check(options))
-    if interface.env_id == TWO_ROBOTS.env_id:
+    if interface.robots > 1:
         raise HilError(
             f"{options.export_dir}: hil bench measures one node on one robot; this export runs one node per "
-            "robot of the two-robot scenario (export a one-robot policy)"
+            f"robot of the {interface.name} scenario (export a one-robot policy)"
         )
     work = Path(tempfile.mkdtemp(prefix="embedrl-hil-bench-"))
     try:
@@ -149,7 +148,7 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
             config = {"session": asdict(cfg), "responder": str(work / "build" / "can_responder"),
                       "exchanges": exchanges, "out": str(scratch / "bench.json")}  # fmt: skip
             (scratch / "config.json").write_text(json.dumps(config))
-            argv = [where.python, "-m", "embedrl.hil.bench", str(scratch / "config.json")]
+            argv = [where.python, "-m", "embedrl.hil.round_trip", str(scratch / "config.json")]
             job = where.run(argv, REPO, timeout_s=SESSION_TIMEOUT_S)
             if job.status != 0 or not (scratch / "bench.json").is_file():
                 raise HilError(str(where.diagnose(f"the HIL benchmark failed (status {job.status}): "

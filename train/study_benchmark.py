@@ -157,7 +157,7 @@ def _derived(run: Path) -> dict[str, Any]:
     summary predates these keys)."""
     import csv
 
-    from embedrl.train.trainer import STOP_WINDOW
+    from embedrl.train.monitor import STOP_WINDOW
 
     hyper = json.loads((run / "config.json").read_text())["hyperparameters"]
     with (run / "curve.csv").open() as f:
@@ -380,7 +380,7 @@ def plot_learning_curves(runs: list[dict[str, Any]], algos: list[str], path: Pat
 
     from embedrl.common import atomic_write
     from embedrl.train import curves
-    from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
+    from embedrl.train.monitor import STOP_THRESHOLD, STOP_WINDOW
 
     width = max(5.5 * len(algos), 9.0)  # room for the legend and the title with a single panel
     fig, axes = plt.subplots(1, len(algos), figsize=(width, 4.8), sharey=True, squeeze=False)

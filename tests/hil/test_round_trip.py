@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from embedrl.cli import main
-from embedrl.hil.bench import run_bench
 from embedrl.hil.options import RunOptions
+from embedrl.hil.round_trip import run_bench
 from embedrl.hil.sandbox import Guest
 
 
