@@ -53,8 +53,6 @@ def make(
         result = subprocess.run(cmd, capture_output=True, text=True, env=_own_make_env())
     if result.returncode != 0:
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])
-        if "overflowed by" in result.stderr or "RAM overflow" in result.stderr:
-            tail = result.stderr  # the linker names the region: keep every line
         raise BuildError(f"building the generated C failed (make {target}):\n{tail}")
 
 
