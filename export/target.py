@@ -111,10 +111,6 @@ def _require(tool: str) -> None:
         raise ExportError(f"{tool} not found: install the Debian packages {APT_PACKAGES} (make deps)")
 
 
-_REFUSAL = re.compile(r"^[\w-]+: the image does not fit the part's memory: (.*)$", re.MULTILINE)
-"""The one line with which the link (runtime_c/cortex_m/fit.sh) refuses an image too large for the part."""
-
-
 def build_firmware(target: Target, c_dir: Path, vectors: Path, build_dir: Path) -> Path:
     """Build the test image and the size probes; a policy too large for the part is a clear error."""
     _require("arm-none-eabi-gcc")
@@ -126,11 +122,11 @@ def build_firmware(target: Target, c_dir: Path, vectors: Path, build_dir: Path) 
             extra={"TARGET": target.name, "TEST_VECTORS": str(vectors.resolve())},
         )
     except BuildError as exc:
-        refused = _REFUSAL.search(str(exc))
+        refused = build.FIT_REFUSAL.match(str(exc))
         if refused:
             part = target.part.split(", ")[-1]
             raise ExportError(
-                f"{target.name}: the policy does not fit the {part}: {refused.group(1)}"
+                f"{target.name}: the policy does not fit the {part}: {refused.group(4)}"
             ) from None
         raise
     return build_dir / target.name

@@ -130,8 +130,9 @@ def test_a_policy_too_large_for_the_part_is_refused_in_one_line(
 
 
 def test_make_refuses_a_policy_too_large_for_the_part_in_one_line(tmp_path: Path) -> None:
-    """At make time, the same refusal from the link (cortex_m/fit.sh): one line of its own, before make's
-    summary of the failed recipe, and make's exit status 2."""
+    """At make time, the same refusal from the link (cortex_m/fit.sh): one line of its own naming the part and
+    the image, before make's summary of the failed recipe, and make's exit status 2; the firmware node (what
+    ``hil run --node firmware`` builds) is refused in that one line too."""
     code, out = _export(tmp_path, [6, 1500, 2])
     assert code == 0
     result = subprocess.run(
@@ -142,11 +143,18 @@ def test_make_refuses_a_policy_too_large_for_the_part_in_one_line(tmp_path: Path
     assert result.returncode == 2
     ours = [line for line in result.stderr.splitlines() if not line.startswith("make")]
     assert len(ours) == 1, result.stderr
+    part = re.escape("cortex-m3 (Cortex-M3 without FPU, STM32F100RB)")
     assert re.fullmatch(
-        r"cortex-m3: the image does not fit the part's memory: RAM (\d+) bytes needed, 8192 available",
+        part + r": firmware\.elf does not fit the part's memory: RAM (\d+) bytes needed, 8192 available",
         ours[0],
     ), ours
     assert "collect2" not in result.stderr
+    with pytest.raises(build.BuildError) as refused:
+        build.make("node", out / "c", tmp_path / "node", extra={"TARGET": "cortex-m3"})
+    assert re.fullmatch(
+        part + r": node\.elf does not fit the part's memory: RAM (\d+) bytes needed, 8192 available",
+        str(refused.value),
+    ), str(refused.value)
 
 
 def test_firmware_builds_by_hand_from_an_export(tmp_path: Path) -> None:
