@@ -20,6 +20,7 @@ import pytest
 from embedrl.cli import main
 from embedrl.export import build, target
 from embedrl.export.build import RUNTIME_C
+from embedrl.export.errors import BuildError
 from tests.conftest import marks_its_users
 from tests.export.helpers import mlp_model
 
@@ -149,7 +150,7 @@ def test_make_refuses_a_policy_too_large_for_the_part_in_one_line(tmp_path: Path
         ours[0],
     ), ours
     assert "collect2" not in result.stderr
-    with pytest.raises(build.BuildError) as refused:
+    with pytest.raises(BuildError) as refused:
         build.make("node", out / "c", tmp_path / "node", extra={"TARGET": "cortex-m3"})
     assert re.fullmatch(
         part + r": node\.elf does not fit the part's memory: RAM (\d+) bytes needed, 8192 available",
