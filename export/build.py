@@ -21,6 +21,11 @@ RUNTIME_C = Path(__file__).resolve().parents[1] / "runtime_c"
 the ``embedrl`` package (as package data) in an installed wheel."""
 
 
+FIT_REFUSAL = re.compile(r"^([\w-]+) \((.+)\): (\S+) does not fit the part's memory: (.+)$", re.MULTILINE)
+"""The one line with which a Cortex-M link (``runtime_c/cortex_m/fit.sh``) refuses an image too large for its
+part: target, part, image, and each overflowed region's bytes needed against available."""
+
+
 def make(
     target: str, c_dir: Path, build_dir: Path, opt: str | None = None, extra: dict[str, str] | None = None
 ) -> None:
@@ -52,9 +57,10 @@ def make(
         cmd += [f"{k}={v}" for k, v in extra.items()]
         result = subprocess.run(cmd, capture_output=True, text=True, env=_own_make_env())
     if result.returncode != 0:
+        refused = FIT_REFUSAL.search(result.stderr)
+        if refused:  # an image too large for its part: the link's one line says all
+            raise BuildError(refused.group(0))
         tail = "\n".join((result.stdout + result.stderr).strip().splitlines()[-15:])
-        if "overflowed by" in result.stderr or "RAM overflow" in result.stderr:
-            tail = result.stderr  # the linker names the region: keep every line
         raise BuildError(f"building the generated C failed (make {target}):\n{tail}")
 
 

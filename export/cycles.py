@@ -4,9 +4,9 @@ instruction timings.
 **Instructions** are counted, not estimated: QEMU runs the test image with ``-icount shift=0`` (virtual
 time advances 1 ns per guest instruction), so the board's timer ticks once per a fixed number of
 instructions (the target table's ``TICK``: 40 for the MPS2 boards' 25 MHz timer, 1 for the STM32F405's TIM2,
-which QEMU runs at 1 GHz); the image times a loop of ``policy_step`` over its test observations and the
-same loop around an empty function, and the difference over the count is the instructions of one inference
-(to ``TICK`` / count instructions).
+which QEMU runs at 1 GHz, 125/3 for the STM32F100's SysTick at 24 MHz); the image times a loop of
+``policy_step`` over its test observations and the same loop around an empty function, and the difference
+over the count is the instructions of one inference (to ``TICK`` / count instructions).
 
 **Cycles** are estimated: one inference of the size probe (``policy.elf``) is traced instruction by
 instruction (``-singlestep -d exec``), each executed instruction is classed from the image's disassembly,
@@ -14,7 +14,9 @@ and each class costs what the core's technical reference manual lists (:data:`CY
 branch told from the next traced address). The estimate's cycles per instruction times the measured
 instructions is the cycle estimate. Wait states of a real part's flash are not modelled (the STM32F405
 at 168 MHz has 5 flash wait states at 3.3 V, RM0090 table 10, which its ART accelerator hides when it
-hits: a part running from zero-wait-state memory, or with its accelerator hitting, matches the model best);
+hits; the STM32F100 value line runs its flash with 0 wait states at its 24 MHz maximum, so its estimate
+needs no such caveat: a part running from zero-wait-state memory, or with its accelerator hitting, matches
+the model best);
 :data:`ASSUMPTIONS` states what the estimate takes for granted, for the report.
 """
 
@@ -95,8 +97,10 @@ CYCLE_MODELS = {
     "cortex-m3": CycleModel(
         "Cortex-M3 TRM (ARM DDI 0337H) table 18-1: LDR/STR 2, LDM/STM/PUSH/POP 1+N, taken branch 1+P with "
         "P = 2, MUL 1, MLA 2, UMULL/SMULL 3-5 (4), SDIV 2-12 (7), other data processing 1; no FPU (floating "
-        "point in library calls, counted as their instructions)",
-        50_000_000, "LM3S6965 at 50 MHz", {**_M4, "long_multiply": 4},
+        "point in library calls, counted as their instructions); the STM32F100 runs its flash with 0 wait "
+        "states at 24 MHz (ST's system_stm32f10x.c sets no flash latency on value-line parts), so the table "
+        "holds for its fetches",
+        24_000_000, "STM32F100RB at 24 MHz", {**_M4, "long_multiply": 4},
     ),
     "cortex-m7": CycleModel(
         "The Cortex-M4 table as an upper bound: the Cortex-M7's TRM publishes no per-instruction timings, "

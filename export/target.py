@@ -13,6 +13,7 @@ import re
 import shutil
 import subprocess
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,8 @@ class Target:
     board: str
     """The board file (``runtime_c/cortex_m/boards/<board>/board.h``)."""
     tick_instructions: float
-    """Guest instructions per tick of the board's timer under ``-icount shift=0``."""
+    """Guest instructions per tick of the board's timer under ``-icount shift=0`` (125/3 for the STM32F100's
+    SysTick at 24 MHz)."""
 
     @property
     def has_fpu(self) -> bool:
@@ -64,7 +66,14 @@ def load_targets(table: Path = TARGET_TABLE) -> dict[str, Target]:
             entries.setdefault(match.group(1), {})[match.group(2)] = match.group(3)
     return {
         name: Target(
-            name, e["QEMU"], int(e["FLASH"]), int(e["RAM"]), e["PART"], e["CPU"], e["BOARD"], float(e["TICK"])
+            name,
+            e["QEMU"],
+            int(e["FLASH"]),
+            int(e["RAM"]),
+            e["PART"],
+            e["CPU"],
+            e["BOARD"],
+            float(Fraction(e["TICK"])),
         )
         for name, e in entries.items()
     }
@@ -102,9 +111,6 @@ def _require(tool: str) -> None:
         raise ExportError(f"{tool} not found: install the Debian packages {APT_PACKAGES} (make deps)")
 
 
-_OVERFLOW = re.compile(r"region [`']?(\w+)'? overflowed by (\d+) bytes")
-
-
 def build_firmware(target: Target, c_dir: Path, vectors: Path, build_dir: Path) -> Path:
     """Build the test image and the size probes; a policy too large for the part is a clear error."""
     _require("arm-none-eabi-gcc")
@@ -116,17 +122,11 @@ def build_firmware(target: Target, c_dir: Path, vectors: Path, build_dir: Path) 
             extra={"TARGET": target.name, "TEST_VECTORS": str(vectors.resolve())},
         )
     except BuildError as exc:
-        overflows = _OVERFLOW.findall(str(exc))
-        if overflows:
-            region, excess = max(overflows, key=lambda o: int(o[1]))
-            size = target.flash_kib if region == "FLASH" else target.ram_kib
+        refused = build.FIT_REFUSAL.match(str(exc))
+        if refused:
+            part = target.part.split(", ")[-1]
             raise ExportError(
-                f"{target.name}: the policy does not fit the target's memory: region {region} "
-                f"({size} KiB) overflowed by {int(excess)} bytes"
-            ) from None
-        if "RAM overflow" in str(exc):
-            raise ExportError(
-                f"{target.name}: the policy does not fit the target's RAM ({target.ram_kib} KiB)"
+                f"{target.name}: the policy does not fit the {part}: {refused.group(4)}"
             ) from None
         raise
     return build_dir / target.name

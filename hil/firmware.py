@@ -389,8 +389,9 @@ class FirmwareNode(PolicyNode):
         for thread in self.threads:
             thread.start()
         self._await_listening()
-        # Its first status went out before the bridge opened the serial channel (lost, counted as send
-        # failures): a status period of simulated time brings the next one, the sign that it is up.
+        # The firmware starts its node once the channel is open (transport_await_open), so its first status
+        # reaches the bus; a status period of simulated time brings the next one, the sign that its clock
+        # follows the time lines.
         self.advance(STATUS_PERIOD_MS / 1000)
 
     def _await_listening(self) -> None:

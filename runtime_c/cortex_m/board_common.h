@@ -14,7 +14,8 @@
 #define SYST_CVR (*(volatile uint32_t *)0xE000E018u)
 #define SYST_CSR_ENABLE_TICKINT_CORE 0x7u
 
-/* The free-running timer (timer.c): started by clock_init; ticks since then (board_timer_ticks). */
+/* The free-running timer (timer.c): started by clock_init; ticks since then (board_timer_ticks), modulo
+ * BOARD_TIMER_MASK + 1 (the board's counter width): differences are taken with the mask. */
 void timer_start(void);
 uint32_t clock_ticks(void);
 /* Sleep until the next interrupt (a received byte, or with the real-time clock the next millisecond); an

@@ -10,6 +10,10 @@
 #include "board.h"
 #include "platform.h"
 
+#if defined(BOARD_TIMER_IS_SYSTICK)
+#error "NODE_CLOCK=timer needs a timer besides SysTick (its 1 ms interrupt): this board's timer is SysTick; use NODE_CLOCK=sim"
+#endif
+
 #define TICKS_PER_US (BOARD_TIMER_HZ / 1000000u)
 
 static uint32_t last_ticks;

@@ -4,7 +4,7 @@
  * configuration is fixed at build time (NODE_TIMEOUT_MS, NODE_RECOVER, NODE_ID; make variables).
  *
  * Diagnostics line (UART1), one line each:
- *   READY                       the node runs (after its interface opened)
+ *   READY                       the node runs (after the far end opened the channel)
  *   S <step> <cycle>            a step answered: timer ticks from its observation's last frame in to the
  *                               end of the last frame it sent (its action; under QEMU -icount: instructions,
  *                               see timer.c)
@@ -88,6 +88,7 @@ int main(void)
         diag_write("\n");
         return 1;
     }
+    transport_await_open(); /* the node's first status goes out once it can reach the bus */
     static node_t node;
     node_init(&node, &config, clock_ms());
     diag_write("READY\n");
@@ -100,7 +101,7 @@ int main(void)
             uint32_t answered = node.actions_sent;
             node_on_frame(&node, &frame, clock_ms());
             if (node.actions_sent != answered) {
-                uint32_t cycle = transport_sent_ticks() - transport_frame_ticks(); /* the last frame sent */
+                uint32_t cycle = (transport_sent_ticks() - transport_frame_ticks()) & BOARD_TIMER_MASK; /* the last frame sent */
                 report_step(node.last_step, cycle);
             }
         }

@@ -35,7 +35,7 @@ static uint32_t timed_pass(volatile peer_fn fn, float act[1][POLICY_ACT_DIM])
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
         fn(1, &embedrl_test_obs[i], act);
     }
-    return board_timer_ticks() - start;
+    return (board_timer_ticks() - start) & BOARD_TIMER_MASK;
 }
 
 int main(void)

@@ -18,11 +18,11 @@
 #include "policy.h"
 
 #define PAINT 0xA5A5A5A5u
-#define PROBE_WORDS 1024u /* 4 KB below main's stack pointer: more than any policy here may use */
 
 extern const unsigned embedrl_test_count;
 extern const float embedrl_test_obs[][POLICY_OBS_DIM];
 extern void initialise_monitor_handles(void);
+extern uint32_t _sstack[]; /* the bottom of the stack reservation (sections.ld) */
 
 static int __attribute__((noinline)) no_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
@@ -37,7 +37,7 @@ static uint32_t timed_pass(int (*volatile step)(const float *, float *), float a
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
         (void)step(embedrl_test_obs[i], act);
     }
-    return board_timer_ticks() - start;
+    return (board_timer_ticks() - start) & BOARD_TIMER_MASK;
 }
 
 static uint32_t bits(float f)
@@ -58,11 +58,12 @@ int main(void)
     __asm__ volatile("mov %0, sp" : "=r"(top));
     volatile uint32_t *sp = top; /* volatile: gcc must not turn the loop into a memset call, whose own
                                     frame would sit in the painted area */
-    for (uint32_t i = 1; i <= PROBE_WORDS; ++i) {
+    const uint32_t probe_words = (uint32_t)(top - _sstack); /* down to the reservation's bottom, no further */
+    for (uint32_t i = 1; i <= probe_words; ++i) {
         sp[-(int32_t)i] = PAINT;
     }
     policy_step(embedrl_test_obs[0], act);
-    uint32_t used = PROBE_WORDS;
+    uint32_t used = probe_words;
     while (used > 0 && sp[-(int32_t)used] == PAINT) {
         --used;
     }

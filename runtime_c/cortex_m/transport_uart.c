@@ -65,6 +65,29 @@ int transport_open(const char *iface, const uint32_t *ids, unsigned count, int f
     return 0;
 }
 
+void transport_await_open(void)
+{
+    while (!rx.open) {
+        can_frame_t frame;
+        uint8_t reply = 0u;
+        slcan_event event = slcan_rx_poll(&rx, &frame, &reply);
+        if (event == SLCAN_TIME) { /* answered at once: no node acts on the time yet */
+            if (clock_advance_us(rx.advance_us)) {
+                board_uart_put(false, (uint8_t)'Y');
+                board_uart_put(false, (uint8_t)'\r');
+            } else {
+                board_uart_put(false, (uint8_t)'\a');
+            }
+        } else if (event == SLCAN_REPLY) {
+            board_uart_put(false, reply);
+        } else if (event == SLCAN_NONE) {
+            idle_until_byte();
+        } else {
+            /* a frame: none is passed on before the channel opens */
+        }
+    }
+}
+
 transport_event transport_recv(can_frame_t *frame, uint8_t *bus_state, uint32_t timeout_ms)
 {
     static bool time_answer_due; /* a time line taken: answered once the node has acted on it */

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import re
 import subprocess
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ import pytest
 from embedrl.cli import main
 from embedrl.export import build, target
 from embedrl.export.build import RUNTIME_C
+from embedrl.export.errors import BuildError
 from tests.conftest import marks_its_users
 from tests.export.helpers import mlp_model
 
@@ -43,7 +45,9 @@ def study_export(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     return report
 
 
-@pytest.mark.parametrize(("target", "machine"), [("cortex-m4", "netduinoplus2"), ("cortex-m3", "mps2-an385")])
+@pytest.mark.parametrize(
+    ("target", "machine"), [("cortex-m4", "netduinoplus2"), ("cortex-m3", "stm32vldiscovery")]
+)
 def test_firmware_matches_onnxruntime_on_qemu(
     study_export: dict[str, Any], target: str, machine: str
 ) -> None:
@@ -97,17 +101,61 @@ def test_time_on_the_target_is_counted_and_the_cycles_follow_the_traced_mix(
     assert "fp_alu" not in m3["cycle_model"]["instruction_classes"]
 
 
-def test_a_policy_too_large_for_the_target_is_a_clear_error(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+_REFUSED = re.compile(
+    r"^error: cortex-m3: the policy does not fit the STM32F100RB: "
+    r"(FLASH|RAM) (\d+) bytes needed, (\d+) available"
+)
+
+
+@pytest.mark.parametrize(
+    ("widths", "region", "available"),
+    [
+        ([6, 300, 300, 2], "FLASH", 128 * 1024),  # float weights of 370 KB
+        ([6, 1500, 2], "RAM", 8 * 1024),  # 48 KB of weights fit the flash; a 6 KB activation buffer and the
+        # reserved stack and heap do not fit the RAM
+    ],
+)
+def test_a_policy_too_large_for_the_part_is_refused_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], widths: list[int], region: str, available: int
 ) -> None:
-    # 6-300-300-2 float weights are 370 KB; the Cortex-M3 part has 256 KiB of flash.
-    code, out = _export(tmp_path, [6, 300, 300, 2], "--target", "cortex-m3")
+    """At export time (``--target``): one line naming what the image needs against what the STM32F100 has,
+    exit 2, nothing written."""
+    code, out = _export(tmp_path, widths, "--target", "cortex-m3")
     assert code == 2
     err = capsys.readouterr().err
-    assert (
-        "cortex-m3: the policy does not fit the target's memory: region FLASH (256 KiB) overflowed by" in err
-    )
-    assert "collect2" not in err and not out.exists()
+    assert len(err.strip().splitlines()) == 1, err
+    refused = _REFUSED.match(err.strip())
+    assert refused and refused.group(1) == region and int(refused.group(3)) == available, err
+    assert int(refused.group(2)) > available
+    assert not out.exists()
+
+
+def test_make_refuses_a_policy_too_large_for_the_part_in_one_line(tmp_path: Path) -> None:
+    """At make time, the same refusal from the link (cortex_m/fit.sh): one line of its own naming the part and
+    the image, before make's summary of the failed recipe, and make's exit status 2; the firmware node (what
+    ``hil run --node firmware`` builds) is refused in that one line too."""
+    code, out = _export(tmp_path, [6, 1500, 2])
+    assert code == 0
+    result = subprocess.run(
+        ["make", "-s", "-C", str(RUNTIME_C), "TARGET=cortex-m3", f"POLICY_DIR={out / 'c'}",
+         f"BUILD_DIR={tmp_path / 'b'}"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert result.returncode == 2
+    ours = [line for line in result.stderr.splitlines() if not line.startswith("make")]
+    assert len(ours) == 1, result.stderr
+    part = re.escape("cortex-m3 (Cortex-M3 without FPU, STM32F100RB)")
+    assert re.fullmatch(
+        part + r": firmware\.elf does not fit the part's memory: RAM (\d+) bytes needed, 8192 available",
+        ours[0],
+    ), ours
+    assert "collect2" not in result.stderr
+    with pytest.raises(BuildError) as refused:
+        build.make("node", out / "c", tmp_path / "node", extra={"TARGET": "cortex-m3"})
+    assert re.fullmatch(
+        part + r": node\.elf does not fit the part's memory: RAM (\d+) bytes needed, 8192 available",
+        str(refused.value),
+    ), str(refused.value)
 
 
 def test_firmware_builds_by_hand_from_an_export(tmp_path: Path) -> None:
@@ -209,8 +257,9 @@ def test_one_table_gives_the_linker_script_and_the_report_their_memory(tmp_path:
         )
         text = script.read_text()
         assert f"LENGTH = {t.flash_kib}K" in text and f"LENGTH = {t.ram_kib}K" in text and t.part in text
-        flash_at = "0x08000000" if t.board == "stm32f4" else "0x00000000"  # STM32 flash; MPS2 code memory
+        flash_at = "0x08000000" if t.board.startswith("stm32") else "0x00000000"  # STM32 flash; MPS2 code
         assert f"FLASH (rx) : ORIGIN = {flash_at}" in text
+        assert "STACK_SIZE = " in text and "HEAP_SIZE = " in text
         flags = subprocess.run(
             ["make", "-s", "-C", str(build.RUNTIME_C), f"TARGET={name}", "flags"],
             check=True,
@@ -290,3 +339,38 @@ def test_float_dot_products_on_cortex_m_give_the_host_input_major_bits(tmp_path:
     for name in ("cortex-m4", "cortex-m3"):
         run = target.run_qemu(target.TARGETS[name], out / "bin" / name / "firmware.elf", len(obs), 2)
         assert run.actions.tobytes() == np.asarray(host, np.float32).tobytes(), name
+
+
+def test_the_stm32f100_counts_an_inference_as_the_mps2_board_does(tmp_path: Path) -> None:
+    """The Cortex-M3 on QEMU's stm32vldiscovery (STM32F100RB) times the test image with the core's SysTick at
+    24 MHz (125/3 instructions per tick: QEMU models none of the part's timers); the same image built for
+    the MPS2 board (its CMSDK timer at 25 MHz, 40 instructions per tick) counts the same instructions per
+    inference, to the two timers' resolution. The F100 image sits in the part's memory map."""
+    code, out = _export(tmp_path, [6, 32, 2], "--quantize", "q15", "--target", "cortex-m3")
+    assert code == 0
+    f100 = target.TARGETS["cortex-m3"]
+    assert (f100.qemu_machine, f100.flash_kib, f100.ram_kib) == ("stm32vldiscovery", 128, 8)
+    assert f100.tick_instructions == pytest.approx(1e9 / 24e6)
+    elf = out / "bin" / "cortex-m3" / "firmware.elf"
+    symbols = dict(
+        (name, int(address, 16))
+        for address, _, name in (
+            line.split() for line in subprocess.run(
+                ["arm-none-eabi-nm", str(elf)], capture_output=True, text=True, check=True
+            ).stdout.splitlines() if len(line.split()) == 3
+        )
+    )  # fmt: skip
+    assert symbols["vector_table"] == 0x08000000 and symbols["_estack"] == 0x20000000 + 8 * 1024
+    mps2 = {"cortex-m3.BOARD": "mps2", "cortex-m3.FLASH_AT": "0x00000000", "cortex-m3.FLASH": "256",
+            "cortex-m3.RAM": "64"}  # fmt: skip
+    build.make("firmware", out / "c", tmp_path / "mps2", extra={"TARGET": "cortex-m3", **mps2,
+               "TEST_VECTORS": str(out / "test" / "test_vectors.c")})  # fmt: skip
+    on_mps2 = target.run_qemu(
+        replace(f100, qemu_machine="mps2-an385", tick_instructions=40.0),
+        tmp_path / "mps2" / "cortex-m3" / "firmware.elf", 256, 2,
+    )  # fmt: skip
+    on_f100 = target.run_qemu(f100, elf, 256, 2)
+    assert on_f100.actions.tobytes() == on_mps2.actions.tobytes()
+    assert on_f100.instructions_per_inference > 1000
+    resolution = 2 * (40 + f100.tick_instructions) / 256  # a tick at each end of each timed loop
+    assert abs(on_f100.instructions_per_inference - on_mps2.instructions_per_inference) <= resolution

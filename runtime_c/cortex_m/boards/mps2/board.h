@@ -16,6 +16,7 @@
 
 #define BOARD_PCLK_HZ 25000000u  /* the APB clock of the MPS2 images: UART baud and TIMER0 tick */
 #define BOARD_TIMER_HZ BOARD_PCLK_HZ
+#define BOARD_TIMER_MASK 0xFFFFFFFFu /* a 32-bit counter: tick differences wrap at 2^32 */
 #define BOARD_CPU_HZ 25000000u   /* the processor clock (SysTick) */
 
 /* CMSDK APB UART: DATA, STATE (bit 0 TX full, bit 1 RX full), CTRL (TX, RX, TX irq, RX irq enables),

@@ -19,6 +19,7 @@
 
 #define BOARD_CPU_HZ 168000000u   /* SYSCLK from the PLL */
 #define BOARD_TIMER_HZ 84000000u  /* TIM2 on APB1 (42 MHz, timer clock x2) at this SYSCLK */
+#define BOARD_TIMER_MASK 0xFFFFFFFFu /* a 32-bit counter: tick differences wrap at 2^32 */
 
 /* USART (RM0090 section 30.6): SR (RXNE bit 5, TC bit 6, TXE bit 7), DR, BRR, CR1 (RE bit 2, TE bit 3,
  * RXNEIE bit 5, UE bit 13). */
