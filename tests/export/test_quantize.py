@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import platform
 import subprocess
 import tempfile
 from pathlib import Path
@@ -270,6 +271,49 @@ def test_generated_int8_full_c_equals_the_integer_model_bit_for_bit(spec: tuple[
         assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
     assert not codes.any()
     assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x, section)) == 0
+
+
+HOST_BUILDS = ("-O0", "-O2", "-O3", "-O2 -DPOLICY_ONE_TARGET", "-O2 -DPOLICY_PORTABLE")
+"""The host loop at every level, in its baseline (SSE2) build alone, and the portable loop on the host."""
+
+
+def test_int8_full_host_and_portable_loops_give_the_models_bits_at_every_level(tmp_path: Path) -> None:
+    """Outputs not a multiple of the host loop's rows, inputs not a multiple of its vectors, saturated
+    inputs: every build gives the integer model's bits."""
+    model = mlp_model([7, 37, 19, 3], ["Relu", "Relu", "Tanh"], 5)
+    rng = np.random.default_rng(5)
+    calibration = rng.normal(scale=2.0, size=(300, 7)).astype(np.float32)
+    x = rng.normal(scale=3.0, size=(3000, 7)).astype(np.float32)
+    graph = to_ir(model)
+    section = full_integer.plan(graph, calibration)
+    want = quantize.evaluate(graph, x, section)
+    (tmp_path / "c").mkdir()
+    for filename, text in generate(graph, quantize="int8-full", section=section).items():
+        (tmp_path / "c" / filename).write_text(text)
+    for k, opt in enumerate(HOST_BUILDS):
+        build.make("lib", tmp_path / "c", tmp_path / f"b{k}", opt=opt)
+        policy = build.CPolicy(tmp_path / f"b{k}" / "libpolicy.so", "policy", 7, 3)
+        assert verify.bitwise_mismatches(policy.rows(x)[0], want) == 0, opt
+
+
+@pytest.mark.skipif(platform.machine() != "x86_64", reason="the host loop is x86-64's")
+def test_int8_full_host_loop_multiplies_with_pmaddwd(tmp_path: Path) -> None:
+    """The host build's step sums int16 pairs with pmaddwd (gcc's vectorised dot product), in the
+    baseline and the AVX2 clone; the portable loop does not."""
+    model = mlp_model([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    graph = to_ir(model)
+    section = full_integer.plan(graph, np.random.default_rng(0).normal(size=(200, 6)).astype(np.float32))
+    (tmp_path / "c").mkdir()
+    for filename, text in generate(graph, quantize="int8-full", section=section).items():
+        (tmp_path / "c" / filename).write_text(text)
+    counts = {}
+    for opt in ("-O2", "-O2 -DPOLICY_PORTABLE"):
+        build.make("obj", tmp_path / "c", tmp_path / opt.replace(" ", ""), opt=opt)
+        objects = list((tmp_path / opt.replace(" ", "")).glob("*.o"))
+        text = subprocess.run(["objdump", "-d", *map(str, objects)], capture_output=True, text=True).stdout
+        counts[opt] = (text.count("\tpmaddwd"), text.count("\tvpmaddwd"))
+    assert counts["-O2"][0] > 0 and counts["-O2"][1] > 0
+    assert counts["-O2 -DPOLICY_PORTABLE"] == (0, 0)
 
 
 def test_int8_full_is_close_to_float_within_the_calibrated_range() -> None:
