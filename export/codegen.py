@@ -274,9 +274,9 @@ def _interface_block(up: str, interface: Interface | None) -> str:
 
 QUANTIZED_NOTE = {
     None: "",
-    "int8": ", int8 weights per output channel, float32 activations",
+    "int8-weights": ", int8 weights per output channel, float32 activations",
     "q15": ", 16-bit fixed point (int16 weights and activations, int64 sums)",
-    "int8-full": ", full-integer int8 (int8 weights and activations, int32 sums, gemmlowp requantisation)",
+    "int8": ", full-integer int8 (int8 weights and activations, int32 sums, gemmlowp requantisation)",
 }
 
 
@@ -296,7 +296,7 @@ def generate(
     finite (default zeros); ``{NAME}_SAFE_ACTION`` in the header gives it to the CAN node's watchdog.
     ``interface`` adds a named index constant per observation and action field (``{NAME}_OBS_X``) and
     the sample time. ``provenance`` lines (e.g. hashes) go into both file headers.
-    ``quantize`` is None, "int8", "q15" or "int8-full"; q15 and int8-full need the integer ``section``
+    ``quantize`` is None, "int8", "int8-weights" or "q15"; int8 and q15 need the integer ``section``
     planned by :func:`export.quantize.plan_section`. ``checks=False`` leaves out the finite checks of the
     observation and the result, so ``{name}_step`` returns whatever the graph computes, NaN included: a probe
     of one op's NaN semantics for verification (:mod:`embedrl.export.nan_check`), never a deployable policy.

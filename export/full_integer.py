@@ -1,4 +1,4 @@
-"""``--quantize int8-full``: full-integer int8 for the MLP chain, and its exact Python model.
+"""``--quantize int8``: full-integer int8 for the MLP chain, and its exact Python model.
 
 The chain of Gemm/MatMul layers (with ReLU between them, see :func:`embedrl.export.fixed_point.chain`) runs
 in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
@@ -51,7 +51,7 @@ from embedrl.export.ops.linear import (
 )
 
 F = np.float32
-SCHEME = "int8-full"
+SCHEME = "int8"
 
 
 @dataclass(frozen=True)
