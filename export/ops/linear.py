@@ -554,6 +554,14 @@ def dsp_condition(prefix: str) -> str:
     )
 
 
+def byte_source(prefix: str) -> str:
+    """Portable loop: int8 value ``j`` (0-3, least significant first) of a packed weight word."""
+    return f"""static inline int32_t {prefix}_byte(uint32_t u, uint32_t j)
+{{
+    return (int32_t)(((u >> (8u * j)) & 0xFFu) ^ 0x80u) - 128;
+}}"""
+
+
 def odd_source(prefix: str) -> str:
     """DSP inner loop: bytes 1 and 3 of a word sign-extended into two int16 (``__sxtb16`` of the word rotated
     by 8; ACLE has no rotated form, so gcc gets SXTB16's ``ROR #8`` operand written out)."""
@@ -654,26 +662,24 @@ class Int8Layer:
 
     def c_lines(self, ctx: EmitContext, src: str, dst: str, scratch: tuple[str, str, str]) -> list[str]:
         """C reading the int8 array ``src`` (padded to whole words) and writing ``dst`` (int8, or the float
-        output if last); ``scratch`` names the DSP loop's int16 pairs, the portable loop's int16 input and
-        its int32 sums.
-        DSP (Cortex-M4/M7): packed weight words (:func:`pack_weights`), the input unpacked once into
-        ``pairs`` (per word: its even bytes, then its odd bytes, as int16 pairs, ``__sxtb16``), then four
-        outputs per pass sharing each load of the input, each weight word two ``__sxtb16`` and two
-        ``__smlad`` (four multiply-adds); each output requantised once, when its sum is complete. Portable
-        x86-64: :func:`_host_lines`; every other core: :func:`_portable_lines`. Each build holds only its own
-        weight array."""
+        output if last); ``scratch`` names the DSP loop's int16 pairs, the host loop's int16 input and its
+        int32 sums. DSP (Cortex-M4/M7): packed weight words (:func:`pack_weights`), the input unpacked once
+        into ``pairs`` (per word: its even bytes, then its odd bytes, as int16 pairs, ``__sxtb16``), then
+        four outputs per pass sharing each load of the input, each weight word two ``__sxtb16`` and two
+        ``__smlad`` (four multiply-adds); each output requantised once, when its sum is complete. x86-64:
+        :func:`_host_lines`, over int16 rows of its own. Every other core: a dot product per output over the
+        packed words. Each build compiles only its own weight array."""
         pairs, wide, sums = scratch
         n_out, k_in = self.weights.shape
         groups = padded(k_in) // WORD
-        dsp = dsp_condition(ctx.prefix)
+        host = host_condition(ctx.prefix)
         w = ctx.const(
             f"{self.name}#int8full",
             pack_weights(self.weights),
             f"{self.name} weights, int8 [{n_out}][{k_in}] packed four to a word, {ROWS_PER_PASS} rows "
             f"interleaved per group of four inputs",
-            dsp,
+            f"!({host})",
         )
-        host = host_condition(ctx.prefix)
         wide_rows = np.zeros((n_out, host_row(k_in)), np.int16)
         wide_rows[:, :k_in] = self.weights
         host_w = ctx.const(
@@ -682,12 +688,6 @@ class Int8Layer:
             f"{self.name} weights, int8 values as int16 [{n_out}][{k_in}], a row per output padded to "
             f"{host_row(k_in)} with 0",
             host,
-        )
-        rows = ctx.const(
-            f"{self.name}#int8rows",
-            self.weights.astype(np.int8),
-            f"{self.name} weights, int8 [{n_out}][{k_in}], a row per output",
-            f"!({dsp}) && !({host})",
         )
         b = ctx.const(
             f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
@@ -707,14 +707,15 @@ class Int8Layer:
         ]
         for run in row_blocks(n_out, groups):
             lines += _dsp_pass(run, groups, w, b, pairs, (odd, barrier), finish)
-        return [
-            *lines,
+        lines += [
             f"#elif {host}",
             *_host_lines(src, (wide, host_w, b, sums), self.weights.shape, finish),
             "#else",
-            *_portable_lines(src, (rows, b), self.weights.shape, finish),
-            "#endif",
         ]
+        byte = ctx.function("byte", byte_source)
+        for run in row_blocks(n_out, groups):
+            lines += _portable_pass(run, groups, w, b, src, byte, finish)
+        return [*lines, "#endif"]
 
     def _finish(self, ctx: EmitContext, dst: str) -> str:
         """The statement storing output ``n`` from its sum ``acc`` (a format string of ``acc`` and ``n``): a
@@ -875,17 +876,23 @@ def _host_lines(
     ]
 
 
-def _portable_lines(src: str, arrays: tuple[str, str], shape: tuple[int, ...], finish: str) -> list[str]:
-    """The portable loop (``arrays``: the int8 weights [N][K] and the biases): a dot product per output
-    over ``src``."""
-    rows, b = arrays
-    n_out, k_in = shape
+def _portable_pass(
+    run: RowBlocks, groups: int, w: str, b: str, src: str, byte: str, finish: str
+) -> list[str]:
+    """The portable loop over one run of blocks: a dot product per output, reading its packed words."""
+    r = run.rows
+    n = _index(_block(run), "i")
+    word = _index(str(run.offset), f"{r * groups} * b", f"{r} * g + i" if r > 1 else "g")
     return [
-        f"for (uint32_t n = 0u; n < {n_out}u; ++n) {{",
-        f"    int32_t acc = {b}[n];",
-        f"    for (uint32_t k = 0u; k < {k_in}u; ++k) {{",
-        f"        acc += (int32_t){src}[k] * (int32_t){rows}[n][k];",
+        f"for (int b = 0; b < {run.count}; ++b) {{",
+        f"    for (int i = 0; i < {r}; ++i) {{",
+        f"        int32_t acc = {b}[{n}];",
+        f"        for (int g = 0; g < {groups}; ++g) {{",
+        f"            const uint32_t u = (uint32_t){w}[{word}];",
+        *(f"            acc += (int32_t){src}[{_index(f'{WORD} * g', str(j))}] * {byte}(u, {j}u);"
+          for j in range(WORD)),
+        "        }",
+        f"        {finish.format(acc='acc', n=n)}",
         "    }",
-        f"    {finish.format(acc='acc', n='n')}",
         "}",
-    ]
+    ]  # fmt: skip
