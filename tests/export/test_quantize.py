@@ -3,6 +3,7 @@ bit."""
 
 from __future__ import annotations
 
+import json
 import platform
 import re
 import subprocess
@@ -367,3 +368,23 @@ def test_int8_full_rejects_layers_joined_by_anything_but_relu() -> None:
     model = mlp_model([4, 8, 2], ["Sigmoid", "Tanh"], 0)
     with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* not supported with int8"):
         full_integer.plan(to_ir(model), np.zeros((4, 4), np.float32))
+
+
+def test_a_report_naming_int8_with_the_weight_only_schemes_description_is_refused(tmp_path: Path) -> None:
+    """An export whose report says ``int8`` but describes the weight-only scheme (int8's meaning before it
+    named the full-integer scheme) is refused in one line, not modelled with the wrong arithmetic."""
+    from embedrl.export.errors import ExportError
+    from embedrl.export.reference import REPORT_FILE, precision_of
+
+    def report(scheme: str) -> Path:
+        folder = tmp_path / scheme
+        folder.mkdir()
+        content = {"quantize": "int8", "verification": {"quantization": {"scheme": quantize.SCHEMES[scheme]}}}
+        (folder / REPORT_FILE).write_text(json.dumps(content))
+        return folder
+
+    assert precision_of(report("int8")) == "int8"
+    with pytest.raises(
+        ExportError, match=r"its 'int8' is 'int8 weights per output channel.*export the policy again$"
+    ):
+        precision_of(report("int8-weights"))
