@@ -486,7 +486,46 @@ cannot overflow, and the final clamp to int8 gives what the unclamped value woul
 
 
 def requantize_source(prefix: str) -> str:
-    """The C of :func:`requantize`, then the output zero point and the clamp (int32 in, int8 out)."""
+    """The C of :func:`requantize`, then the output zero point and the clamp (int32 in, int8 out): every
+    piece below, in order (``{prefix}_requantize`` takes any shift)."""
+    return "\n\n".join(piece(prefix) for piece in (clamp_source, right_source, general_source))
+
+
+def clamp_source(prefix: str) -> str:
+    """The output zero point and the clamp to int8 (the ReLU's lower end)."""
+    return f"""/* The output zero point added to a requantised r, clamped to [low, 127] (low above -128: the
+ * ReLU). */
+static inline int8_t {prefix}_clamp(int32_t r, int32_t zero, int32_t low)
+{{
+    int32_t q = r + zero;
+    q = q > {INT8_MAX} ? {INT8_MAX} : q;
+    q = q < low ? low : q; /* two conditional moves, no branch */
+    return (int8_t)q;
+}}"""
+
+
+def right_source(prefix: str) -> str:
+    """The requantisation for shift < 0, branch-free (with the zero point and the clamp)."""
+    return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp, for shift < 0: both roundings in one 64-bit
+ * sum. With c = 1 if acc < 0 (then gemmlowp's high is negative, or 0 whatever the rounding), the result is
+ * floor((acc m + 2^30 - c 2^31 + 2^(30 - shift)) / 2^(31 - shift)), taken as u = acc m + (c ? -2^30 :
+ * 2^30), w = floor(u / 2^31) (fits an int32), then ((w >> (-shift - 1)) + 1) >> 1; then the zero point and
+ * the clamp. No branch: a layer whose shifts are all negative calls it directly, and a compiler may
+ * vectorise a loop of it. */
+static inline int8_t {prefix}_requantize_right(int32_t acc, int32_t m, int32_t shift, int32_t zero,
+                                               int32_t low)
+{{
+    /* -2^30 if acc < 0, else 2^30: its high word is acc's sign, its low word acc's bit 31 and 2^30 */
+    const uint32_t low_word = ((uint32_t)acc & 0x80000000u) | 0x40000000u;
+    const int64_t nudge = (int64_t)(acc >> 31) * ((int64_t)1 << 32) + (int64_t)low_word;
+    const int32_t w = (int32_t)(((int64_t)acc * (int64_t)m + nudge) >> 31);
+    return {prefix}_clamp(((w >> (-shift - 1)) + 1) >> 1, zero, low);
+}}"""
+
+
+def general_source(prefix: str) -> str:
+    """gemmlowp's steps for any shift, and ``{prefix}_requantize`` choosing between the two forms: emitted
+    only for a layer with a shift >= 0."""
     return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
  * [-31, 30]), operation by operation: saturating left shift for shift > 0, SaturatingRoundingDoublingHighMul
  * (m > 0: it never saturates; gemmlowp's nudge and truncating division are (x m + 2^30) >> 31 rounding down),
@@ -508,30 +547,6 @@ static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift
     const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
     const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
     return r > {REQUANT_CLAMP - 1} ? {REQUANT_CLAMP - 1} : (r < -{REQUANT_CLAMP} ? -{REQUANT_CLAMP} : r);
-}}
-
-/* The output zero point added to a requantised r, clamped to [low, 127] (low above -128: the ReLU). */
-static inline int8_t {prefix}_clamp(int32_t r, int32_t zero, int32_t low)
-{{
-    int32_t q = r + zero;
-    q = q > {INT8_MAX} ? {INT8_MAX} : q;
-    q = q < low ? low : q; /* two conditional moves, no branch */
-    return (int8_t)q;
-}}
-
-/* The same for shift < 0, both roundings in one 64-bit sum: with c = 1 if acc < 0 (then gemmlowp's high is
- * negative, or 0 whatever the rounding), the result is floor((acc m + 2^30 - c 2^31 + 2^(30 - shift)) /
- * 2^(31 - shift)), taken as u = acc m + (c ? -2^30 : 2^30), w = floor(u / 2^31) (fits an int32), then
- * ((w >> (-shift - 1)) + 1) >> 1; then the zero point and the clamp. No branch: a layer whose shifts are
- * all negative calls it directly, and a compiler may vectorise a loop of it. */
-static inline int8_t {prefix}_requantize_right(int32_t acc, int32_t m, int32_t shift, int32_t zero,
-                                               int32_t low)
-{{
-    /* -2^30 if acc < 0, else 2^30: its high word is acc's sign, its low word acc's bit 31 and 2^30 */
-    const uint32_t low_word = ((uint32_t)acc & 0x80000000u) | 0x40000000u;
-    const int64_t nudge = (int64_t)(acc >> 31) * ((int64_t)1 << 32) + (int64_t)low_word;
-    const int32_t w = (int32_t)(((int64_t)acc * (int64_t)m + nudge) >> 31);
-    return {prefix}_clamp(((w >> (-shift - 1)) + 1) >> 1, zero, low);
 }}
 
 /* Any shift: the branch-free form for shift < 0, the general one otherwise. */
@@ -556,10 +571,12 @@ def dsp_condition(prefix: str) -> str:
 
 def byte_source(prefix: str) -> str:
     """Portable loop: int8 value ``j`` (0-3, least significant first) of a packed weight word."""
-    return f"""static inline int32_t {prefix}_byte(uint32_t u, uint32_t j)
+    return f"""#if !({host_condition(prefix)})
+static inline int32_t {prefix}_byte(uint32_t u, uint32_t j)
 {{
     return (int32_t)(((u >> (8u * j)) & 0xFFu) ^ 0x80u) - 128;
-}}"""
+}}
+#endif"""
 
 
 def odd_source(prefix: str) -> str:
@@ -725,9 +742,10 @@ class Int8Layer:
         if self.out_scale is not None:
             s = ctx.const(f"{self.name}#int8scale", self.out_scale, f"{self.name} output scales [{n_out}]")
             return f"{dst}[{{n}}] = (float){{acc}} * {s}[{{n}}];"
-        requant = ctx.function("requantize", requantize_source)
-        if bool(np.all(self.shift < 0)):
-            requant = f"{requant}_right"
+        ctx.function("clamp", clamp_source)
+        requant = ctx.function("requantize_right", right_source)
+        if not bool(np.all(self.shift < 0)):
+            requant = ctx.function("requantize", general_source)
         m = ctx.const(f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers")
         sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
         low = self.out_zero if self.relu else INT8_MIN
