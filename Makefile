@@ -119,7 +119,7 @@ BENCH_HIL_EXCHANGES ?= 6000
 bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/bench
 	$(VENV)/bin/embedrl bench-env --steps $(BENCH_ENV_STEPS) --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
-	for q in int8 q15; do \
+	for q in int8 int8-weights q15; do \
 	    $(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-$$q --force --episodes 0 \
 	        --quantize $$q && $(VENV)/bin/embedrl bench-export --export-dir $(OUT)/bench/td3-$$q \
 	        --json $(OUT)/bench/export-$$q.json || exit 1; \

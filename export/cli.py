@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -61,6 +62,22 @@ def _param_count(text: str) -> int:
     if not 1 <= value <= MAX_PARAMS:
         raise argparse.ArgumentTypeError(f"expected a count within 1..{MAX_PARAMS:,}, got {text!r}")
     return value
+
+
+QUANTIZE_METAVAR = "{int8,int8-weights,q15}"
+"""The schemes of ``--quantize`` as its help lists them (:data:`embedrl.export.quantize.SCHEMES`)."""
+
+
+def _scheme(text: str) -> str:
+    """A ``--quantize`` scheme; a former name is taken as the scheme it now names, with a one-line note."""
+    from embedrl.export.quantize import RENAMED, SCHEMES
+
+    if text in RENAMED:
+        print(f"note: --quantize {text} is now --quantize {RENAMED[text]}", file=sys.stderr)
+        return RENAMED[text]
+    if text not in SCHEMES:
+        raise argparse.ArgumentTypeError(f"invalid choice: {text!r} (choose from {', '.join(SCHEMES)})")
+    return text
 
 
 def _tolerance(text: str) -> float:
@@ -367,9 +384,11 @@ def _add_precision_arguments(p: Any) -> None:
     )
     p.add_argument(
         "--quantize",
-        choices=["int8", "q15", "int8-full"],
-        help="int8: int8 weights per output channel, float activations; q15: 16-bit fixed point (no FPU); "
-        "int8-full: int8 weights and activations, int32 sums (DSP instructions on Cortex-M4/M7)",
+        type=_scheme,
+        metavar=QUANTIZE_METAVAR,
+        help="int8: int8 weights and activations, int32 sums (DSP instructions on Cortex-M4/M7); "
+        "int8-weights: int8 weights per output channel, float activations (recurrent policies too); "
+        "q15: 16-bit fixed point (no FPU)",
     )
     p.add_argument(
         "--target",

@@ -165,7 +165,8 @@ class _Context:
         """Deterministic math helpers emitted so far: name -> C definition."""
         self.declarations: list[str] = []
         self._symbols: dict[str, str] = {}
-        self.const_bytes = 0
+        self._bytes: dict[str, int] = {}
+        """Bytes of const data by the condition they are compiled under ("" for always)."""
 
     def ref(self, value: str) -> str:
         if self.graph.is_constant(value):
@@ -178,7 +179,14 @@ class _Context:
             return f"{self.prefix}_b{where}[r]"  # the block's copy of the input, or its buffer
         return where if not where.isdigit() else f"{self.prefix}_buf{where}"
 
-    def const(self, key: str, array: np.ndarray, comment: str) -> str:
+    @property
+    def const_bytes(self) -> int:
+        """Bytes of const data in one build: the unconditional arrays and those of the first condition
+        declared (alternatives declared under other conditions are not counted)."""
+        conditional = [n for condition, n in self._bytes.items() if condition]
+        return self._bytes.get("", 0) + (conditional[0] if conditional else 0)
+
+    def const(self, key: str, array: np.ndarray, comment: str, condition: str = "") -> str:
         if key in self._symbols:
             return self._symbols[key]
         symbol = f"{self.prefix}_w{len(self._symbols)}_{_sanitize(key.split('#')[0])}"
@@ -186,7 +194,7 @@ class _Context:
         ctype = _INTEGER_CTYPES.get(np.asarray(array).dtype.name, "float")
         integer = ctype != "float"
         a = np.asarray(array) if integer else np.asarray(array, dtype=np.float32)
-        self.const_bytes += a.size * a.itemsize
+        self._bytes[condition] = self._bytes.get(condition, 0) + a.size * a.itemsize
         dims = "".join(f"[{d}]" for d in a.shape)
         lines = [f"/* {comment} */", f"static const {ctype} {symbol}{dims} = {{"]
         rows = a.reshape(1, -1) if a.ndim == 1 else a
@@ -208,6 +216,8 @@ class _Context:
                 ]
                 lines.append(f"    }}{sep}")
         lines.append("};")
+        if condition:
+            lines = [f"#if {condition}", *lines, "#endif"]
         self.declarations.append("\n".join(lines))
         return symbol
 
@@ -264,9 +274,9 @@ def _interface_block(up: str, interface: Interface | None) -> str:
 
 QUANTIZED_NOTE = {
     None: "",
-    "int8": ", int8 weights per output channel, float32 activations",
+    "int8-weights": ", int8 weights per output channel, float32 activations",
     "q15": ", 16-bit fixed point (int16 weights and activations, int64 sums)",
-    "int8-full": ", full-integer int8 (int8 weights and activations, int32 sums, gemmlowp requantisation)",
+    "int8": ", full-integer int8 (int8 weights and activations, int32 sums, gemmlowp requantisation)",
 }
 
 
@@ -286,7 +296,7 @@ def generate(
     finite (default zeros); ``{NAME}_SAFE_ACTION`` in the header gives it to the CAN node's watchdog.
     ``interface`` adds a named index constant per observation and action field (``{NAME}_OBS_X``) and
     the sample time. ``provenance`` lines (e.g. hashes) go into both file headers.
-    ``quantize`` is None, "int8", "q15" or "int8-full"; q15 and int8-full need the integer ``section``
+    ``quantize`` is None, "int8", "int8-weights" or "q15"; int8 and q15 need the integer ``section``
     planned by :func:`export.quantize.plan_section`. ``checks=False`` leaves out the finite checks of the
     observation and the result, so ``{name}_step`` returns whatever the graph computes, NaN included: a probe
     of one op's NaN semantics for verification (:mod:`embedrl.export.nan_check`), never a deployable policy.

@@ -1,4 +1,4 @@
-"""``--quantize int8-full``: full-integer int8 for the MLP chain, and its exact Python model.
+"""``--quantize int8``: full-integer int8 for the MLP chain, and its exact Python model.
 
 The chain of Gemm/MatMul layers (with ReLU between them, see :func:`embedrl.export.fixed_point.chain`) runs
 in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
@@ -16,7 +16,8 @@ in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
 
 Only the edges are float: the section's input is checked finite (else the safe action), scaled, offset by the
 zero point, clamped and rounded into int8 once. Integer sums are exact in any order, so the portable C (a dot
-product per output) and the Cortex-M4/M7 DSP loop (``__sxtb16`` + ``__smlad``, two multiply-adds per
+product per output over an int16 copy of the input, which gcc vectorises on the host) and the Cortex-M4/M7
+DSP loop (``__sxtb16`` + ``__smlad``, two multiply-adds per
 instruction) give the bits of the int64 NumPy model here. A layer whose scales the encoding cannot hold (a
 multiplier exponent outside [-31, 30], a bias or a sum beyond int32) is refused, naming the layer.
 """
@@ -42,12 +43,15 @@ from embedrl.export.ops.linear import (
     SHIFT_RANGE,
     WORD,
     Int8Layer,
+    dsp_condition,
+    host_condition,
+    host_row,
     padded,
     quantize_multiplier,
 )
 
 F = np.float32
-SCHEME = "int8-full"
+SCHEME = "int8"
 
 
 @dataclass(frozen=True)
@@ -120,13 +124,15 @@ class IntegerSection:
         return [max(widths[0::2])] + ([max(widths[1::2])] if len(widths) > 1 else [])
 
     def ram_bytes(self) -> int:
-        """RAM of the int8 buffers and, on DSP cores, of a layer input's int16 pairs."""
+        """RAM of the int8 buffers and of a layer input as int16 (on DSP cores its pairs in whole words, on
+        x86-64 the host loop's padded copy and its int32 sums): the largest build's."""
         pairs = max(padded(w) for w in self.widths()) // WORD
-        return sum(self.buffer_sizes()) + 2 * 4 * pairs
+        host = 2 * max(host_row(w) for w in self.widths()) + 4 * self.outputs()
+        return sum(self.buffer_sizes()) + max(2 * 4 * pairs, host)
 
     def c_includes(self, prefix: str) -> list[str]:
         """The ACLE header of the DSP loop, on the cores that have it, among the file's includes."""
-        return [f"#if {_dsp_condition(prefix)}", "#include <arm_acle.h>", "#endif"]
+        return [f"#if {dsp_condition(prefix)}", "#include <arm_acle.h>", "#endif"]
 
     def c_lines(self, ctx: EmitContext) -> tuple[list[str], list[str]]:
         """The section's C and the declarations of its buffers (and of the DSP switch)."""
@@ -134,13 +140,18 @@ class IntegerSection:
         qbufs = [f"{p}_q0", f"{p}_q1"]
         pairs = max(padded(w) for w in self.widths()) // WORD
         decls = [
-            f"/* The DSP loop on cores with the ACLE SIMD32 intrinsics (Cortex-M4, M7); -D{up}_PORTABLE: the",
-            " * portable loop. Both give the same bits (integer sums). */",
-            f"#if {_dsp_condition(p)}",
+            "/* The DSP loop on cores with the ACLE SIMD32 intrinsics (Cortex-M4, M7); on x86-64 the host",
+            f" * loop; elsewhere, or with -D{up}_PORTABLE, the portable loop. All give the same bits",
+            " * (integer sums). */",
+            f"#if {dsp_condition(p)}",
             f"#define {up}_DSP 1",
             f"static int32_t {p}_pairs[{2 * pairs}]; /* per input word: its even, then odd bytes (int16) */",
             "#else",
             f"#define {up}_DSP 0",
+            "#endif",
+            f"#if {host_condition(p)}",
+            f"static int16_t {p}_wide[{max(host_row(w) for w in self.widths())}]; /* a layer's input */",
+            f"static int32_t {p}_sums[{self.outputs()}]; /* a layer's sums */",
             "#endif",
             *(f"static int8_t {buf}[{size}];" for buf, size in zip(qbufs, self.buffer_sizes(), strict=False)),
         ]
@@ -167,15 +178,8 @@ class IntegerSection:
         for j, layer in enumerate(self.layers):
             last = j == len(self.layers) - 1
             dst = out_ref if last else qbufs[(j + 1) % 2]
-            lines += layer.c_lines(ctx, qbufs[j % 2], dst, f"{p}_pairs")
+            lines += layer.c_lines(ctx, qbufs[j % 2], dst, (f"{p}_pairs", f"{p}_wide", f"{p}_sums"))
         return lines, decls
-
-
-def _dsp_condition(prefix: str) -> str:
-    """When the DSP loop is compiled: the core has the ACLE SIMD32 intrinsics, and no -D<PREFIX>_PORTABLE."""
-    return (
-        f"defined(__ARM_FEATURE_DSP) && defined(__ARM_FEATURE_SIMD32) && !defined({prefix.upper()}_PORTABLE)"
-    )
 
 
 def quantize_input(x: np.ndarray, quant: Activation) -> np.ndarray:

@@ -318,7 +318,7 @@ def _observation_range(export_dir: Path, report: dict[str, Any]) -> tuple[np.nda
     return space.low, space.high
 
 
-WEIGHT_BYTES = {None: 4, "int8": 1, "int8-full": 1, "q15": 2}
+WEIGHT_BYTES = {None: 4, "int8": 1, "int8-weights": 1, "q15": 2}
 """Bytes per matrix weight in the generated C, per precision."""
 
 

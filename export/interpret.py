@@ -79,7 +79,9 @@ def run(
             continue
         emitter = EMITTERS[node.op]
         if precision == "int8" and not emitter.quantizable:
-            raise UnsupportedOpError(f"{node.op} node '{node.name}' is not supported with --quantize int8")
+            raise UnsupportedOpError(
+                f"{node.op} node '{node.name}' is not supported with --quantize int8-weights"
+            )
         inputs = [get(name) for name in node.inputs if name]
         result = emitter.reference(node, inputs, graph.constants, precision)
         if len(node.outputs) == 1:

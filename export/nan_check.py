@@ -36,6 +36,7 @@ from embedrl.export.codegen import generate
 from embedrl.export.errors import BuildError, VerificationError
 from embedrl.export.ir import Graph, Node
 from embedrl.export.ops import EMITTERS
+from embedrl.export.quantize import WEIGHTS_ONLY
 from embedrl.export.verify import TOLERANCE
 
 FINITE_SCALE = 0.5
@@ -68,8 +69,8 @@ def check(
     if not probes:
         return summary
     rng = np.random.default_rng(seed)
-    # The float ops around an integer section (q15, int8-full) use int8's helpers.
-    precision = {None: None, "int8": "int8", "q15": "int8", "int8-full": "int8"}[quantize]
+    # The float ops around an integer section (q15, int8) are the int8-weights scheme's.
+    precision = None if quantize is None else WEIGHTS_ONLY
     with owned_temporary_folder("embedrl-nan-") as tmp:
         library = _compile([_one_op(graph, node, k, precision) for k, node in enumerate(probes)], Path(tmp))
         for k, node in enumerate(probes):

@@ -78,8 +78,8 @@ class ExportOptions:
     targets: tuple[str, ...] = ()
     """Cortex-M targets to build, run under QEMU and measure (names in export.target.TARGETS)."""
     quantize: str | None = None
-    """None (float32), "int8", "q15" or "int8-full" (see export.quantize, export.fixed_point,
-    export.full_integer)."""
+    """None (float32), "int8", "int8-weights" or "q15" (see export.full_integer, export.quantize,
+    export.fixed_point)."""
     limits: Limits = field(default_factory=Limits)
     """How large a model is accepted (checked before it is read)."""
     obs_range: tuple[tuple[float, float], ...] | None = None
@@ -713,7 +713,7 @@ def _qdq_check(
     if worst > found["tolerance_steps"]:
         layer = found["layers"][found["max_layer_steps"].index(worst)]
         raise VerificationError(
-            f"the int8-full C's layer '{layer}' is {worst:.2f} steps from onnxruntime running the QDQ model "
+            f"the int8 C's layer '{layer}' is {worst:.2f} steps from onnxruntime running the QDQ model "
             f"on the same int8 input (allowed {found['tolerance_steps']:g})"
         )
     return found

@@ -1,4 +1,7 @@
-"""``--quantize int8``: int8 weights per output channel, float32 activations, and the exact model.
+"""``--quantize int8-weights``: int8 weights per output channel, float32 activations, and the exact model.
+
+(``--quantize int8`` is the full-integer scheme, :mod:`embedrl.export.full_integer`; this one keeps what it
+cannot run: recurrent cells, non-ReLU hidden activations, policies too coarse for int8 activations.)
 
 Scheme: each Gemm/MatMul weight column (one output) is scaled symmetrically to int8,
 ``q = round(w / s)`` with ``s = max|w| / 127``; the layer computes ``acc = sum_k x[k] * q[k][n]`` in
@@ -28,15 +31,19 @@ from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.ops import EMITTERS
 
+WEIGHTS_ONLY = "int8-weights"
+"""The weight-only scheme's name (this module)."""
+RENAMED = {"int8-full": full_integer.SCHEME}
+"""Former scheme names the command line still accepts, and the scheme each now names."""
 SCHEMES = {
-    "int8": "int8 weights per output channel (symmetric), float32 activations",
+    full_integer.SCHEME: "full-integer int8: int8 weights (per-channel symmetric) and activations "
+    "(calibrated scale and zero point), int32 sums, gemmlowp requantisation",
+    WEIGHTS_ONLY: "int8 weights per output channel (symmetric), float32 activations",
     "q15": "16-bit fixed point: int16 weights (per-channel power-of-two scales) and activations, int64 sums",
-    "int8-full": "full-integer int8: int8 weights (per-channel symmetric) and activations (calibrated "
-    "scale and zero point), int32 sums, gemmlowp requantisation",
 }
 SECTIONS: dict[str, Callable[[Graph, np.ndarray], Section]] = {
     "q15": fixed_point.plan,
-    "int8-full": full_integer.plan,
+    full_integer.SCHEME: full_integer.plan,
 }
 """Schemes that run the layer chain as an integer section, and how each plans it from calibration
 observations."""
@@ -45,8 +52,8 @@ observations."""
 def plan_section(
     graph: Graph, scheme: str | None, calibration: np.ndarray, given: full_integer.Given | None = None
 ) -> Section | None:
-    """The scheme's integer section calibrated on ``calibration`` (None for float32 and int8), or, for
-    int8-full, quantised as ``given`` (a QDQ model's own quantisation)."""
+    """The scheme's integer section calibrated on ``calibration`` (None for float32 and int8-weights), or,
+    for int8, quantised as ``given`` (a QDQ model's own quantisation)."""
     if given is not None:
         if scheme != full_integer.SCHEME:
             raise UnsupportedOpError(
@@ -66,7 +73,7 @@ def check_supported(graph: Graph) -> None:
     for node in graph.nodes:
         if node.op not in SUPPORTED:
             raise UnsupportedOpError(
-                f"{node.op} node '{node.name}' is not supported with --quantize int8; "
+                f"{node.op} node '{node.name}' is not supported with --quantize {WEIGHTS_ONLY}; "
                 f"supported: {', '.join(sorted(SUPPORTED))}"
             )
 
@@ -74,8 +81,8 @@ def check_supported(graph: Graph) -> None:
 def evaluate(graph: Graph, obs: np.ndarray, section: Section | None = None) -> np.ndarray:
     """The quantised policy's actions for a batch of observations [B, obs_dim], bit-exact with the C.
 
-    Without ``section`` the int8 scheme; with it, the integer section (q15, int8-full) replaces its nodes. A
-    recurrent graph takes the rows as one sequence from zero state.
+    Without ``section`` the int8-weights scheme; with it, the integer section (int8, q15) replaces its
+    nodes. A recurrent graph takes the rows as one sequence from zero state.
     """
     if graph.states:
         return interpret.run_sequence(graph, obs, "int8")

@@ -2,9 +2,9 @@
 
 float32: the export's ``policy.onnx`` under onnxruntime (the C agrees within the verification
 tolerance), a recurrent policy's state carried from call to call as the C carries it
-(:class:`OnnxPolicy`). int8, q15 and int8-full: the Python model of the quantised arithmetic
+(:class:`OnnxPolicy`). int8, int8-weights and q15: the Python model of the quantised arithmetic
 (:func:`export.quantize.evaluate`),
-which the C equals bit for bit; an integer section (q15, int8-full) is planned again from the export's own
+which the C equals bit for bit; an integer section (int8, q15) is planned again from the export's own
 calibration observations (``test/observations.npy``), exactly as the export planned it.
 """
 
@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
@@ -26,25 +27,43 @@ from embedrl.export.onnx_import import load_onnx
 REPORT_FILE = "export_report.json"
 OBSERVATIONS_FILE = "observations.npy"
 """The verification observations (float32), in the export's ``test/``."""
-PRECISIONS = ("float32", "int8", "q15", "int8-full")
+PRECISIONS = ("float32", "int8", "int8-weights", "q15")
 
 Policy = Callable[[np.ndarray], np.ndarray]
 
 
 def precision_of(export_dir: Path) -> str:
-    """``float32``, ``int8``, ``q15`` or ``int8-full``, as the export's report records it (float32 without a
-    report)."""
+    """``float32``, ``int8``, ``int8-weights`` or ``q15``, as the export's report records it (float32
+    without a report)."""
     report = export_dir / REPORT_FILE
     if not report.is_file():
         return "float32"
     try:
-        quantized = json.loads(report.read_text()).get("quantize")
+        content = json.loads(report.read_text())
+        quantized = content.get("quantize")
     except (OSError, ValueError, AttributeError) as exc:
         raise ExportError(f"{report}: not readable ({exc})") from None
     precision = quantized or "float32"
     if precision not in PRECISIONS:
         raise ExportError(f"{report}: unknown precision {precision!r}; known: {', '.join(PRECISIONS)}")
+    check_scheme(content, report)
     return str(precision)
+
+
+def check_scheme(content: Any, report: Path) -> None:
+    """The scheme the report names is the one its verification describes: an export whose ``quantize``
+    names another scheme than this tool's of that name (``int8`` once named the weight-only scheme) is
+    refused, not run under the wrong arithmetic."""
+    name = content.get("quantize")
+    try:
+        described = content["verification"]["quantization"]["scheme"]
+    except (KeyError, TypeError):
+        return
+    if name in quantize.SCHEMES and described != quantize.SCHEMES[name]:
+        raise ExportError(
+            f"{report}: its '{name}' is {described!r}, not this tool's {name} ({quantize.SCHEMES[name]}); "
+            "export the policy again"
+        )
 
 
 class OnnxPolicy:

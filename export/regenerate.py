@@ -104,6 +104,7 @@ def _generated(
     from embedrl.export.pipeline import tool_version
     from embedrl.export.qdq import lowered
     from embedrl.export.quantize import plan_section
+    from embedrl.export.reference import check_scheme
 
     report: dict[str, Any] = read_json(export_dir / "export_report.json")
     tool = f"embedrl {tool_version()}"
@@ -112,6 +113,7 @@ def _generated(
     onnx_path = export_dir / "policy.onnx"
     graph, given = lowered(load_onnx(onnx_path))
     quantize = report["quantize"]
+    check_scheme(report, export_dir / "export_report.json")
     observations = np.load(export_dir / OBSERVATIONS, allow_pickle=False).astype(np.float32)
     if observations.ndim != 2 or observations.shape[1] != graph.size(graph.input):
         raise ValueError(f"{OBSERVATIONS} holds {observations.shape}, not rows of the policy's observations")

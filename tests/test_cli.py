@@ -345,3 +345,30 @@ def test_an_export_folder_is_created_with_the_users_umask(tmp_path: Path, umask:
     assert len(files) > 5
     assert {oct(stat.S_IMODE(p.stat().st_mode)) for p in folders} == {oct(0o777 & ~umask)}
     assert {oct(stat.S_IMODE(p.stat().st_mode) & 0o666) for p in files} == {oct(0o666 & ~umask)}
+
+
+def test_quantize_names_the_full_integer_scheme_and_takes_its_former_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``--quantize int8`` is full-integer, ``int8-weights`` the weight-only scheme; ``int8-full`` still
+    parses, as int8, with a one-line note; anything else is a one-line usage error."""
+    from embedrl.export.cli import QUANTIZE_METAVAR
+    from embedrl.export.quantize import SCHEMES, WEIGHTS_ONLY
+
+    assert "{" + ",".join(SCHEMES) + "}" == QUANTIZE_METAVAR and WEIGHTS_ONLY in SCHEMES
+    parser = build_parser()
+    source, out = str(tmp_path / "agent.zip"), ["--out", str(tmp_path / "out")]
+    assert parser.parse_args(["export", source, *out, "--quantize", "int8"]).quantize == "int8"
+    assert (
+        parser.parse_args(["export", source, *out, "--quantize", "int8-weights"]).quantize == "int8-weights"
+    )
+    assert capsys.readouterr().err == ""
+    assert parser.parse_args(["export", source, *out, "--quantize", "int8-full"]).quantize == "int8"
+    assert capsys.readouterr().err == "note: --quantize int8-full is now --quantize int8\n"
+    with pytest.raises(SystemExit) as stop:
+        main(["export", source, *out, "--quantize", "int4"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert (
+        "invalid choice: 'int4' (choose from int8, int8-weights, q15)" in err and len(err.splitlines()) == 1
+    )

@@ -64,8 +64,9 @@ class EmitContext(Protocol):
         """C expression for the array holding ``value`` (a buffer, the input, or a constant)."""
         ...
 
-    def const(self, key: str, array: np.ndarray, comment: str) -> str:
-        """Declare a ``static const`` float (or int8) array, 1-D or 2-D, once and return its symbol."""
+    def const(self, key: str, array: np.ndarray, comment: str, condition: str = "") -> str:
+        """Declare a ``static const`` float (or integer) array, 1-D or 2-D, once and return its symbol;
+        with a ``condition`` (a preprocessor expression), the array is compiled only where it holds."""
         ...
 
     def literal(self, value: float) -> str:

@@ -486,7 +486,46 @@ cannot overflow, and the final clamp to int8 gives what the unclamped value woul
 
 
 def requantize_source(prefix: str) -> str:
-    """The C of :func:`requantize`, then the output zero point and the clamp (int32 in, int8 out)."""
+    """The C of :func:`requantize`, then the output zero point and the clamp (int32 in, int8 out): every
+    piece below, in order (``{prefix}_requantize`` takes any shift)."""
+    return "\n\n".join(piece(prefix) for piece in (clamp_source, right_source, general_source))
+
+
+def clamp_source(prefix: str) -> str:
+    """The output zero point and the clamp to int8 (the ReLU's lower end)."""
+    return f"""/* The output zero point added to a requantised r, clamped to [low, 127] (low above -128: the
+ * ReLU). */
+static inline int8_t {prefix}_clamp(int32_t r, int32_t zero, int32_t low)
+{{
+    int32_t q = r + zero;
+    q = q > {INT8_MAX} ? {INT8_MAX} : q;
+    q = q < low ? low : q; /* two conditional moves, no branch */
+    return (int8_t)q;
+}}"""
+
+
+def right_source(prefix: str) -> str:
+    """The requantisation for shift < 0, branch-free (with the zero point and the clamp)."""
+    return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp, for shift < 0: both roundings in one 64-bit
+ * sum. With c = 1 if acc < 0 (then gemmlowp's high is negative, or 0 whatever the rounding), the result is
+ * floor((acc m + 2^30 - c 2^31 + 2^(30 - shift)) / 2^(31 - shift)), taken as u = acc m + (c ? -2^30 :
+ * 2^30), w = floor(u / 2^31) (fits an int32), then ((w >> (-shift - 1)) + 1) >> 1; then the zero point and
+ * the clamp. No branch: a layer whose shifts are all negative calls it directly, and a compiler may
+ * vectorise a loop of it. */
+static inline int8_t {prefix}_requantize_right(int32_t acc, int32_t m, int32_t shift, int32_t zero,
+                                               int32_t low)
+{{
+    /* -2^30 if acc < 0, else 2^30: its high word is acc's sign, its low word acc's bit 31 and 2^30 */
+    const uint32_t low_word = ((uint32_t)acc & 0x80000000u) | 0x40000000u;
+    const int64_t nudge = (int64_t)(acc >> 31) * ((int64_t)1 << 32) + (int64_t)low_word;
+    const int32_t w = (int32_t)(((int64_t)acc * (int64_t)m + nudge) >> 31);
+    return {prefix}_clamp(((w >> (-shift - 1)) + 1) >> 1, zero, low);
+}}"""
+
+
+def general_source(prefix: str) -> str:
+    """gemmlowp's steps for any shift, and ``{prefix}_requantize`` choosing between the two forms: emitted
+    only for a layer with a shift >= 0."""
     return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
  * [-31, 30]), operation by operation: saturating left shift for shift > 0, SaturatingRoundingDoublingHighMul
  * (m > 0: it never saturates; gemmlowp's nudge and truncating division are (x m + 2^30) >> 31 rounding down),
@@ -510,36 +549,34 @@ static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift
     return r > {REQUANT_CLAMP - 1} ? {REQUANT_CLAMP - 1} : (r < -{REQUANT_CLAMP} ? -{REQUANT_CLAMP} : r);
 }}
 
-/* The same for shift < 0, both roundings in one 64-bit sum: with c = 1 if acc < 0 (then gemmlowp's high is
- * negative, or 0 whatever the rounding), the result is floor((acc m + 2^30 - c 2^31 + 2^(30 - shift)) /
- * 2^(31 - shift)), taken as u = acc m + (c ? -2^30 : 2^30), w = floor(u / 2^31) (fits an int32), then
- * ((w >> (-shift - 1)) + 1) >> 1. Plus the output zero point, clamped to [low, 127] (low above -128: the
- * ReLU). */
+/* Any shift: the branch-free form for shift < 0, the general one otherwise. */
 static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
 {{
-    int32_t r;
-    if (shift < 0) {{
-        /* -2^30 if acc < 0, else 2^30: its high word is acc's sign, its low word acc's bit 31 and 2^30 */
-        const uint32_t low_word = ((uint32_t)acc & 0x80000000u) | 0x40000000u;
-        const int64_t nudge = (int64_t)(acc >> 31) * ((int64_t)1 << 32) + (int64_t)low_word;
-        const int32_t w = (int32_t)(((int64_t)acc * (int64_t)m + nudge) >> 31);
-        r = ((w >> (-shift - 1)) + 1) >> 1;
-    }} else {{
-        r = {prefix}_requantize_general(acc, m, shift);
-    }}
-    int32_t q = r + zero;
-    q = q > {INT8_MAX} ? {INT8_MAX} : q;
-    q = q < low ? low : q; /* two conditional moves, no branch */
-    return (int8_t)q;
+    return shift < 0 ? {prefix}_requantize_right(acc, m, shift, zero, low)
+                     : {prefix}_clamp({prefix}_requantize_general(acc, m, shift), zero, low);
 }}"""
+
+
+def host_condition(prefix: str) -> str:
+    """When the host loop is compiled: x86-64, and no -D<PREFIX>_PORTABLE."""
+    return f"defined(__x86_64__) && !defined({prefix.upper()}_PORTABLE)"
+
+
+def dsp_condition(prefix: str) -> str:
+    """When the DSP loop is compiled: the core has the ACLE SIMD32 intrinsics, and no -D<PREFIX>_PORTABLE."""
+    return (
+        f"defined(__ARM_FEATURE_DSP) && defined(__ARM_FEATURE_SIMD32) && !defined({prefix.upper()}_PORTABLE)"
+    )
 
 
 def byte_source(prefix: str) -> str:
     """Portable loop: int8 value ``j`` (0-3, least significant first) of a packed weight word."""
-    return f"""static inline int32_t {prefix}_byte(uint32_t u, uint32_t j)
+    return f"""#if !({host_condition(prefix)})
+static inline int32_t {prefix}_byte(uint32_t u, uint32_t j)
 {{
     return (int32_t)(((u >> (8u * j)) & 0xFFu) ^ 0x80u) - 128;
-}}"""
+}}
+#endif"""
 
 
 def odd_source(prefix: str) -> str:
@@ -640,20 +677,34 @@ class Int8Layer:
         r = requantize(acc, self.multiplier, self.shift) + self.out_zero
         return np.asarray(np.clip(r, self.out_zero if self.relu else INT8_MIN, INT8_MAX))
 
-    def c_lines(self, ctx: EmitContext, src: str, dst: str, pairs: str) -> list[str]:
+    def c_lines(self, ctx: EmitContext, src: str, dst: str, scratch: tuple[str, str, str]) -> list[str]:
         """C reading the int8 array ``src`` (padded to whole words) and writing ``dst`` (int8, or the float
-        output if last). The weights are packed words (:func:`pack_weights`), read in the same order by both
-        loops. Portable C: a dot product per output. DSP (Cortex-M4/M7): the input unpacked once into
-        ``pairs`` (per word: its even bytes, then its odd bytes, as int16 pairs, ``__sxtb16``), then four
-        outputs per pass sharing each load of the input, each weight word two ``__sxtb16`` and two
-        ``__smlad`` (four multiply-adds); each output requantised once, when its sum is complete."""
+        output if last); ``scratch`` names the DSP loop's int16 pairs, the host loop's int16 input and its
+        int32 sums. DSP (Cortex-M4/M7): packed weight words (:func:`pack_weights`), the input unpacked once
+        into ``pairs`` (per word: its even bytes, then its odd bytes, as int16 pairs, ``__sxtb16``), then
+        four outputs per pass sharing each load of the input, each weight word two ``__sxtb16`` and two
+        ``__smlad`` (four multiply-adds); each output requantised once, when its sum is complete. x86-64:
+        :func:`_host_lines`, over int16 rows of its own. Every other core: a dot product per output over the
+        packed words. Each build compiles only its own weight array."""
+        pairs, wide, sums = scratch
         n_out, k_in = self.weights.shape
         groups = padded(k_in) // WORD
+        host = host_condition(ctx.prefix)
         w = ctx.const(
             f"{self.name}#int8full",
             pack_weights(self.weights),
             f"{self.name} weights, int8 [{n_out}][{k_in}] packed four to a word, {ROWS_PER_PASS} rows "
             f"interleaved per group of four inputs",
+            f"!({host})",
+        )
+        wide_rows = np.zeros((n_out, host_row(k_in)), np.int16)
+        wide_rows[:, :k_in] = self.weights
+        host_w = ctx.const(
+            f"{self.name}#int16rows",
+            wide_rows,
+            f"{self.name} weights, int8 values as int16 [{n_out}][{k_in}], a row per output padded to "
+            f"{host_row(k_in)} with 0",
+            host,
         )
         b = ctx.const(
             f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
@@ -673,19 +724,28 @@ class Int8Layer:
         ]
         for run in row_blocks(n_out, groups):
             lines += _dsp_pass(run, groups, w, b, pairs, (odd, barrier), finish)
-        lines.append("#else")
+        lines += [
+            f"#elif {host}",
+            *_host_lines(src, (wide, host_w, b, sums), self.weights.shape, finish),
+            "#else",
+        ]
         byte = ctx.function("byte", byte_source)
         for run in row_blocks(n_out, groups):
             lines += _portable_pass(run, groups, w, b, src, byte, finish)
         return [*lines, "#endif"]
 
     def _finish(self, ctx: EmitContext, dst: str) -> str:
-        """The statement storing output ``n`` from its sum ``acc`` (a format string of ``acc`` and ``n``)."""
+        """The statement storing output ``n`` from its sum ``acc`` (a format string of ``acc`` and ``n``): a
+        layer whose shifts are all negative (the usual case) calls the branch-free requantisation, which
+        the portable loop's pass over the sums lets a compiler vectorise."""
         n_out = self.weights.shape[0]
         if self.out_scale is not None:
             s = ctx.const(f"{self.name}#int8scale", self.out_scale, f"{self.name} output scales [{n_out}]")
             return f"{dst}[{{n}}] = (float){{acc}} * {s}[{{n}}];"
-        requant = ctx.function("requantize", requantize_source)
+        ctx.function("clamp", clamp_source)
+        requant = ctx.function("requantize_right", right_source)
+        if not bool(np.all(self.shift < 0)):
+            requant = ctx.function("requantize", general_source)
         m = ctx.const(f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers")
         sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
         low = self.out_zero if self.relu else INT8_MIN
@@ -775,6 +835,63 @@ def _dsp_pass(
         lines += [f"    {line}" for line in _dsp_group(r, "", g, pairs, odd)]
     lines += [f"    {finish.format(acc=f'a{i}', n=_index(_block(run), str(i)))}" for i in range(r)]
     return [*lines, "}"]
+
+
+HOST_ROWS = 8
+"""Outputs the host loop sums in one pass over the input (each input vector loaded once for all of them)."""
+HOST_LANES = 16
+"""int16 values in an AVX2 vector: the host loop's rows of weights are padded to whole vectors."""
+
+
+def host_row(k: int) -> int:
+    """The host loop's row length for ``k`` inputs: whole :data:`HOST_LANES` vectors."""
+    return -(-k // HOST_LANES) * HOST_LANES
+
+
+def _host_lines(
+    src: str, arrays: tuple[str, str, str, str], shape: tuple[int, ...], finish: str
+) -> list[str]:
+    """The host loop (x86-64; ``arrays``: the int16 input, the int16 weights [N][K padded], the biases, the
+    int32 sums): ``src`` widened to int16 once, :data:`HOST_ROWS` outputs summed per pass over whole
+    vectors of the input (the padding's weights are 0), the rest one per pass, then every output from its
+    sum in a pass of its own. gcc vectorises the sums (``pmaddwd``, 8 multiply-adds per SSE2 instruction,
+    16 per AVX2 one) and, under AVX2, the requantisation."""
+    wide, rows, b, sums = arrays
+    n_out, k_in = shape
+    row, whole = host_row(k_in), n_out - n_out % HOST_ROWS
+    at = [_index("n", f"{i}u" if i else "") for i in range(HOST_ROWS)]
+    lines = [
+        f"for (uint32_t k = 0u; k < {k_in}u; ++k) {{",
+        f"    {wide}[k] = (int16_t){src}[k];",
+        "}",
+    ]
+    if whole:
+        lines += [
+            f"for (uint32_t n = 0u; n < {whole}u; n += {HOST_ROWS}u) {{",
+            *(f"    int32_t a{i} = {b}[{at[i]}];" for i in range(HOST_ROWS)),
+            f"    for (uint32_t k = 0u; k < {row}u; ++k) {{",
+            f"        const int32_t v = (int32_t){wide}[k];",
+            *(f"        a{i} += v * (int32_t){rows}[{at[i]}][k];" for i in range(HOST_ROWS)),
+            "    }",
+            *(f"    {sums}[{at[i]}] = a{i};" for i in range(HOST_ROWS)),
+            "}",
+        ]
+    if whole < n_out:
+        lines += [
+            f"for (uint32_t n = {whole}u; n < {n_out}u; ++n) {{",
+            f"    int32_t a0 = {b}[n];",
+            f"    for (uint32_t k = 0u; k < {row}u; ++k) {{",
+            f"        a0 += (int32_t){wide}[k] * (int32_t){rows}[n][k];",
+            "    }",
+            f"    {sums}[n] = a0;",
+            "}",
+        ]
+    return [
+        *lines,
+        f"for (uint32_t n = 0u; n < {n_out}u; ++n) {{",
+        f"    {finish.format(acc=f'{sums}[n]', n='n')}",
+        "}",
+    ]
 
 
 def _portable_pass(

@@ -295,7 +295,7 @@ class LSTM(Recurrent):
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         constants = {k: ctx.constant(k) for k in node.inputs[W : B + 1] if k}
-        m = self.matrices(node, constants, ctx.quantize or "float32")  # type: ignore[arg-type]
+        m = self.matrices(node, constants, "int8" if ctx.quantize else "float32")  # type: ignore[arg-type]
         wc, rc, sw, sr = self._declare(node, ctx, m, "i, o, f, c")
         bc = ctx.const(
             f"{node.name}#B", (m.b[0] + m.b[1]).astype(F), f"LSTM '{node.name}' bias (input + recurrent)"
@@ -392,7 +392,7 @@ class GRU(Recurrent):
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         constants = {k: ctx.constant(k) for k in node.inputs[W : B + 1] if k}
-        m = self.matrices(node, constants, ctx.quantize or "float32")  # type: ignore[arg-type]
+        m = self.matrices(node, constants, "int8" if ctx.quantize else "float32")  # type: ignore[arg-type]
         wc, rc, sw, sr = self._declare(node, ctx, m, "z, r, h")
         hidden = n
         bzr = (m.b[0] + m.b[1])[: 2 * hidden].astype(F)

@@ -1,4 +1,4 @@
-"""Extreme observations into the generated C, in float32, int8 and q15, under UBSan and ASan.
+"""Extreme observations into the generated C, in float32, int8-weights, q15 and int8, under UBSan and ASan.
 
 Every finite or non-finite input: no sanitizer report (the process aborts on the first), a non-finite
 observation returns POLICY_ERR_OBS_NOT_FINITE with the export's safe action, and a finite one returns an
@@ -43,7 +43,7 @@ def extreme_observations(seed: int = 0) -> np.ndarray:
     return np.concatenate([single, mixes, bits]).astype(np.float32)
 
 
-@pytest.fixture(scope="module", params=["float32", "int8", "q15"])
+@pytest.fixture(scope="module", params=["float32", "int8-weights", "q15", "int8"])
 def sanitized_policy(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory, exported: Exported
 ) -> Path:

@@ -66,7 +66,7 @@ def test_a_quantised_export_is_checked_against_its_own_reference(precision: str,
     data = json.loads(out.read_text())
     assert data["precision"] == precision and data["reference_max_abs_diff_from_c"] <= 1e-5
     assert data["onnxruntime_max_abs_diff_from_c"] > 0
-    assert data["model_weight_bytes"] == 12 * {"int8": 1, "int8-full": 1, "q15": 2}[precision]
+    assert data["model_weight_bytes"] == 12 * {"int8": 1, "int8-weights": 1, "q15": 2}[precision]
 
 
 def test_bench_export_needs_an_export_folder(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -1,5 +1,5 @@
 """Full-integer int8 keeps the shipped policies' closed-loop result: on 200 episodes from seeds training
-never used, the int8-full C succeeds within 1 percentage point of the float policy (TD3 and SAC)."""
+never used, the int8 C succeeds within 1 percentage point of the float policy (TD3 and SAC)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ HELD_OUT_SEED = 1000
 """The closed loop's first episode seed: training seeds its environments with 1 (policies/static/*.json)."""
 EPISODES = 200
 MAX_GAP_PP = 1.0
-"""How far the int8-full success rate may be from the float policy's, in percentage points."""
+"""How far the int8 success rate may be from the float policy's, in percentage points."""
 
 pytestmark = pytest.mark.slow
 
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 def test_int8_full_keeps_the_closed_loop_within_one_point_on_held_out_seeds(
     algo: str, exported: Callable[..., Path]
 ) -> None:
-    out = exported(POLICIES / f"{algo}.zip", "--quantize", "int8-full", "--seed", str(HELD_OUT_SEED),
+    out = exported(POLICIES / f"{algo}.zip", "--quantize", "int8", "--seed", str(HELD_OUT_SEED),
                    "--episodes", str(EPISODES))  # fmt: skip
     report = json.loads((out / "export_report.json").read_text())
     loop = report["closed_loop"]

@@ -29,12 +29,12 @@ OK, ACT_NOT_FINITE = 0, 2
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-@pytest.mark.parametrize("quantize", [None, "int8"])
+@pytest.mark.parametrize("quantize", [None, "int8-weights"])
 def test_every_op_keeps_onnx_nan_semantics(case: str, quantize: str | None) -> None:
     nodes, inits, out_dim = CASES[case]
     graph = to_ir(make_model(nodes, inits, N, out_dim))
     if quantize and any(not EMITTERS[n.op].quantizable for n in graph.nodes):
-        pytest.skip("no int8 code for this op")
+        pytest.skip("no int8-weights code for this op")
     result = nan_check.check(graph, quantize, 17)
     computing = [n for n in graph.nodes if not EMITTERS[n.op].alias]
     assert result["ops"] + len(result["skipped"]) == len(computing)
@@ -43,7 +43,7 @@ def test_every_op_keeps_onnx_nan_semantics(case: str, quantize: str | None) -> N
 
 
 @pytest.mark.parametrize("kind", ["LSTM", "GRU"])
-@pytest.mark.parametrize("quantize", [None, "int8"])
+@pytest.mark.parametrize("quantize", [None, "int8-weights"])
 def test_recurrent_cells_keep_nan_in_their_output_and_state(kind: str, quantize: str | None) -> None:
     # onnxruntime's cells return finite numbers for a NaN input; ONNX's reference and the C give NaN.
     result = nan_check.check(to_ir(_cell_model(kind)), quantize, 17)
@@ -155,7 +155,7 @@ def _nan_in_a_hidden_layer() -> onnx.ModelProto:
 @pytest.mark.parametrize(
     ("model", "clamped"), [(_nan_at_zero_unclamped, True), (_nan_in_a_hidden_layer, False)]
 )
-@pytest.mark.parametrize("quantize", [None, "int8"])
+@pytest.mark.parametrize("quantize", [None, "int8-weights"])
 def test_a_policy_nan_where_sampling_never_looks_gives_the_safe_action(
     model: object, clamped: bool, quantize: str | None, tmp_path: Path
 ) -> None:
@@ -186,7 +186,7 @@ def test_an_int8_full_section_refuses_a_nan_before_converting_it(tmp_path: Path)
     graph = to_ir(mlp_model([N, 8, 2]))
     samples = np.random.default_rng(0).uniform(-1, 1, size=(500, N)).astype(F)
     section = full_integer.plan(graph, samples)
-    files = generate(graph, quantize="int8-full", section=section, checks=False)
+    files = generate(graph, quantize="int8", section=section, checks=False)
     policy = _compiled(files, tmp_path, N, 2)
     x = samples[0].copy()
     policy(x)

@@ -1,4 +1,4 @@
-"""A QDQ-quantised ONNX from elsewhere (onnxruntime's ``quantize_static``) exports to int8-full C that runs
+"""A QDQ-quantised ONNX from elsewhere (onnxruntime's ``quantize_static``) exports to int8 C that runs
 the model's own int8 weights and activation scales, verified against onnxruntime running that QDQ model;
 what the integer C cannot run is refused in one line."""
 
@@ -78,7 +78,7 @@ def test_the_qdq_exports_c_is_generated_again_byte_for_byte(qdq_export: Path) ->
 def test_a_qdq_model_keeps_its_own_quantisation_and_refuses_another(
     qdq_model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    for scheme in ("int8", "q15"):
+    for scheme in ("int8-weights", "q15"):
         assert main(["export", str(qdq_model), "--scenario", "static", "--out", str(tmp_path / scheme),
                      "--quantize", scheme, "--episodes", "0"]) == 2  # fmt: skip
         err = capsys.readouterr().err

@@ -1,7 +1,11 @@
-"""--quantize int8: the Python model of the arithmetic and the generated C agree bit for bit."""
+"""--quantize int8-weights, q15 and int8: the Python model of the arithmetic and the generated C agree bit for
+bit."""
 
 from __future__ import annotations
 
+import json
+import platform
+import re
 import subprocess
 import tempfile
 from pathlib import Path
@@ -9,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 import pytest
-from hypothesis import given, settings
+from hypothesis import given, reject, settings
 from hypothesis import strategies as st
 from onnx import helper
 
@@ -32,10 +36,10 @@ from tests.export.helpers import make_model, mlp_model
 ACTIVATIONS = ("Relu", "Tanh", "Sigmoid", "LeakyRelu", "Identity")
 
 
-def _compile_int8(model: onnx.ModelProto, tmp: Path) -> build.CPolicy:
+def _compile_int8_weights(model: onnx.ModelProto, tmp: Path) -> build.CPolicy:
     graph = to_ir(model)
     (tmp / "c").mkdir()
-    for filename, text in generate(graph, quantize="int8").items():
+    for filename, text in generate(graph, quantize="int8-weights").items():
         (tmp / "c" / filename).write_text(text)
     build.make("lib", tmp / "c", tmp / "b")
     return build.CPolicy(
@@ -53,12 +57,14 @@ def _compile_int8(model: onnx.ModelProto, tmp: Path) -> build.CPolicy:
         )
     )
 )
-def test_generated_int8_c_equals_the_python_model_bit_for_bit(spec: tuple[list[int], list[str], int]) -> None:
+def test_generated_int8_weights_c_equals_the_python_model_bit_for_bit(
+    spec: tuple[list[int], list[str], int],
+) -> None:
     widths, acts, seed = spec
     model = mlp_model(widths, acts, seed)
     x = np.random.default_rng(seed).normal(scale=3.0, size=(200, widths[0])).astype(np.float32)
     with tempfile.TemporaryDirectory() as tmp:
-        policy = _compile_int8(model, Path(tmp))
+        policy = _compile_int8_weights(model, Path(tmp))
         got, codes = policy.batch(x)
         assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
         assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
@@ -66,7 +72,7 @@ def test_generated_int8_c_equals_the_python_model_bit_for_bit(spec: tuple[list[i
     assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x)) == 0
 
 
-def test_int8_stays_close_to_float() -> None:
+def test_int8_weights_stay_close_to_float() -> None:
     import onnxruntime as ort
 
     model = mlp_model([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
@@ -92,10 +98,12 @@ def test_deterministic_exp_and_tanh_are_accurate() -> None:
     assert tanh_det(np.array([9.5, -30.0], np.float32)).tolist() == [1.0, -1.0]
 
 
-def test_int8_rejects_ops_without_an_exact_model() -> None:
+def test_int8_weights_reject_ops_without_an_exact_model() -> None:
     model = make_model([helper.make_node("Softplus", ["x"], ["y"], name="sp")], {}, 6, 6)
-    with pytest.raises(UnsupportedOpError, match="Softplus node 'sp' is not supported with --quantize int8"):
-        generate(to_ir(model), quantize="int8")
+    with pytest.raises(
+        UnsupportedOpError, match="Softplus node 'sp' is not supported with --quantize int8-weights"
+    ):
+        generate(to_ir(model), quantize="int8-weights")
 
 
 def test_quantised_closed_loop_rule_is_two_percentage_points() -> None:
@@ -167,7 +175,7 @@ def _compile_int8_full(
     graph = to_ir(model)
     section = full_integer.plan(graph, calibration)
     (tmp / "c").mkdir()
-    for filename, text in generate(graph, quantize="int8-full", section=section).items():
+    for filename, text in generate(graph, quantize="int8", section=section).items():
         (tmp / "c" / filename).write_text(text)
     build.make("lib", tmp / "c", tmp / "b")
     policy = build.CPolicy(
@@ -264,12 +272,60 @@ def test_generated_int8_full_c_equals_the_integer_model_bit_for_bit(spec: tuple[
     rng = np.random.default_rng(seed)
     calibration = rng.normal(scale=2.0, size=(300, widths[0])).astype(np.float32)
     x = rng.normal(scale=3.0, size=(2000, widths[0])).astype(np.float32)  # wider than calibrated: saturation
+    try:
+        full_integer.plan(to_ir(model), calibration)
+    except UnrepresentableRangeError as refusal:  # a dead ReLU layer's range, say: refused, naming the layer
+        assert re.match(r"^int8: layer '.*' output \d+: ", str(refusal))
+        reject()
     with tempfile.TemporaryDirectory() as tmp:
         policy, section = _compile_int8_full(model, calibration, Path(tmp))
         got, codes = policy.batch(x)
         assert got.tobytes() == policy.rows(x)[0].tobytes()  # the batched entry point, row by row
     assert not codes.any()
     assert verify.bitwise_mismatches(got, quantize.evaluate(to_ir(model), x, section)) == 0
+
+
+HOST_BUILDS = ("-O0", "-O2", "-O3", "-O2 -DPOLICY_ONE_TARGET", "-O2 -DPOLICY_PORTABLE")
+"""The host loop at every level, in its baseline (SSE2) build alone, and the portable loop on the host."""
+
+
+def test_int8_full_host_and_portable_loops_give_the_models_bits_at_every_level(tmp_path: Path) -> None:
+    """Outputs not a multiple of the host loop's rows, inputs not a multiple of its vectors, saturated
+    inputs: every build gives the integer model's bits."""
+    model = mlp_model([7, 37, 19, 3], ["Relu", "Relu", "Tanh"], 5)
+    rng = np.random.default_rng(5)
+    calibration = rng.normal(scale=2.0, size=(300, 7)).astype(np.float32)
+    x = rng.normal(scale=3.0, size=(3000, 7)).astype(np.float32)
+    graph = to_ir(model)
+    section = full_integer.plan(graph, calibration)
+    want = quantize.evaluate(graph, x, section)
+    (tmp_path / "c").mkdir()
+    for filename, text in generate(graph, quantize="int8", section=section).items():
+        (tmp_path / "c" / filename).write_text(text)
+    for k, opt in enumerate(HOST_BUILDS):
+        build.make("lib", tmp_path / "c", tmp_path / f"b{k}", opt=opt)
+        policy = build.CPolicy(tmp_path / f"b{k}" / "libpolicy.so", "policy", 7, 3)
+        assert verify.bitwise_mismatches(policy.rows(x)[0], want) == 0, opt
+
+
+@pytest.mark.skipif(platform.machine() != "x86_64", reason="the host loop is x86-64's")
+def test_int8_full_host_loop_multiplies_with_pmaddwd(tmp_path: Path) -> None:
+    """The host build's step sums int16 pairs with pmaddwd (gcc's vectorised dot product), in the
+    baseline and the AVX2 clone; the portable loop does not."""
+    model = mlp_model([6, 100, 100, 2], ["Relu", "Relu", "Tanh"], 3)
+    graph = to_ir(model)
+    section = full_integer.plan(graph, np.random.default_rng(0).normal(size=(200, 6)).astype(np.float32))
+    (tmp_path / "c").mkdir()
+    for filename, text in generate(graph, quantize="int8", section=section).items():
+        (tmp_path / "c" / filename).write_text(text)
+    counts = {}
+    for opt in ("-O2", "-O2 -DPOLICY_PORTABLE"):
+        build.make("obj", tmp_path / "c", tmp_path / opt.replace(" ", ""), opt=opt)
+        objects = list((tmp_path / opt.replace(" ", "")).glob("*.o"))
+        text = subprocess.run(["objdump", "-d", *map(str, objects)], capture_output=True, text=True).stdout
+        counts[opt] = (text.count("\tpmaddwd"), text.count("\tvpmaddwd"))
+    assert counts["-O2"][0] > 0 and counts["-O2"][1] > 0
+    assert counts["-O2 -DPOLICY_PORTABLE"] == (0, 0)
 
 
 def test_int8_full_is_close_to_float_within_the_calibrated_range() -> None:
@@ -303,12 +359,32 @@ def test_int8_full_refuses_a_scale_it_cannot_represent_naming_the_layer(bias: fl
     graph = to_ir(model)
     calibration = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
     with pytest.raises(
-        UnrepresentableRangeError, match=rf"^int8-full: layer '{graph.nodes[0].name}' output 3: {why}"
+        UnrepresentableRangeError, match=rf"^int8: layer '{graph.nodes[0].name}' output 3: {why}"
     ):
         full_integer.plan(graph, calibration)
 
 
 def test_int8_full_rejects_layers_joined_by_anything_but_relu() -> None:
     model = mlp_model([4, 8, 2], ["Sigmoid", "Tanh"], 0)
-    with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* not supported with int8-full"):
+    with pytest.raises(UnsupportedOpError, match=r"Sigmoid node .* not supported with int8"):
         full_integer.plan(to_ir(model), np.zeros((4, 4), np.float32))
+
+
+def test_a_report_naming_int8_with_the_weight_only_schemes_description_is_refused(tmp_path: Path) -> None:
+    """An export whose report says ``int8`` but describes the weight-only scheme (int8's meaning before it
+    named the full-integer scheme) is refused in one line, not modelled with the wrong arithmetic."""
+    from embedrl.export.errors import ExportError
+    from embedrl.export.reference import REPORT_FILE, precision_of
+
+    def report(scheme: str) -> Path:
+        folder = tmp_path / scheme
+        folder.mkdir()
+        content = {"quantize": "int8", "verification": {"quantization": {"scheme": quantize.SCHEMES[scheme]}}}
+        (folder / REPORT_FILE).write_text(json.dumps(content))
+        return folder
+
+    assert precision_of(report("int8")) == "int8"
+    with pytest.raises(
+        ExportError, match=r"its 'int8' is 'int8 weights per output channel.*export the policy again$"
+    ):
+        precision_of(report("int8-weights"))

@@ -259,7 +259,7 @@ def test_int8_recurrent_weights_are_bit_for_bit_their_model_over_a_sequence(
     obs = _observations(seed=5)
     c_dir = tmp_path / "c"
     c_dir.mkdir()
-    for filename, text in generate(graph, "policy", quantize="int8").items():
+    for filename, text in generate(graph, "policy", quantize="int8-weights").items():
         (c_dir / filename).write_text(text)
     runs = {}
     for opt in ("-O0", "-O3"):

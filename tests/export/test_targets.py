@@ -206,17 +206,24 @@ def test_unknown_target_and_renamed_policy_are_rejected(
     assert result.returncode != 0 and "unknown TARGET=avr" in result.stderr
 
 
-def test_int8_firmware_is_bit_exact_on_qemu_and_fits_14_kb(tmp_path: Path) -> None:
+def test_int8_weights_firmware_is_bit_exact_on_qemu_and_fits_14_kb(tmp_path: Path) -> None:
     code, out = _export(
-        tmp_path, [6, 100, 100, 2], "--quantize", "int8", "--target", "cortex-m4", "--target", "cortex-m3"
+        tmp_path,
+        [6, 100, 100, 2],
+        "--quantize",
+        "int8-weights",
+        "--target",
+        "cortex-m4",
+        "--target",
+        "cortex-m3",
     )
     assert code == 0
     report = json.loads((out / "export_report.json").read_text())
-    assert report["quantize"] == "int8"
+    assert report["quantize"] == "int8-weights"
     assert report["verification"]["quantization"]["model_mismatches"] == 0
     for name in ("cortex-m4", "cortex-m3"):
         t = report["targets"][name]
-        assert t["quantize"] == "int8" and t["bit_exact_with_model"] is True
+        assert t["quantize"] == "int8-weights" and t["bit_exact_with_model"] is True
         assert t["ram_bytes"] <= 1024
     assert report["targets"]["cortex-m4"]["flash_bytes"] <= 14 * 1024
     assert "int8_t" in (out / "c" / "policy.c").read_text()
@@ -294,11 +301,11 @@ def test_make_reads_a_relative_policy_dir_from_where_it_was_started_and_refuses_
 def test_int8_full_dsp_and_portable_loops_give_the_models_bits_at_every_level(
     tmp_path: Path, widths: list[int]
 ) -> None:
-    """The Cortex-M4 image of an int8-full export: the DSP loop at -O0, -O2 (the export's build, checked
+    """The Cortex-M4 image of an int8 export: the DSP loop at -O0, -O2 (the export's build, checked
     against the Python model) and -O3, and the portable loop on the same core, print the same action bits.
     The first shape has outputs left over from the 4-row passes (23 = 5 x 4 + 2 + 1) and groups of four
     inputs left over from the unrolled loop (41 inputs: 11 groups)."""
-    code, out = _export(tmp_path, widths, "--quantize", "int8-full", "--target", "cortex-m4")
+    code, out = _export(tmp_path, widths, "--quantize", "int8", "--target", "cortex-m4")
     assert code == 0
     report = json.loads((out / "export_report.json").read_text())
     assert report["targets"]["cortex-m4"]["bit_exact_with_model"] is True

@@ -142,18 +142,18 @@ def test_c_that_is_not_the_generators_is_never_measured(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow  # an export per precision, each measured
-@pytest.mark.parametrize("precision", ["int8", "q15", "int8-full"])
+@pytest.mark.parametrize("precision", ["int8-weights", "q15", "int8"])
 def test_every_gap_of_a_quantised_policy_has_its_reason(exported: Exported, precision: str) -> None:
     export = exported(SHIPPED_TD3, "--episodes", "0", "--quantize", precision)
     summary = facts.coverage(export, facts.load_export(export), {"generated_c": facts.IDENTICAL})
     assert not isinstance(summary, str), summary
     policy = _file(summary, "policy.c")
     assert policy["gaps"] and all(g["reason"] for g in policy["gaps"]), policy["gaps"]
-    # int8-full keeps its requantisation for scales of 1/2 or more out of line and unreached: ~14 lines
+    # int8 keeps its requantisation for scales of 1/2 or more out of line and unreached: ~14 lines
     assert policy["lines"]["covered"] >= 0.85 * policy["lines"]["count"]
-    # NaN, +inf and -inf refused at the entry; an integer section never makes a non-finite result (int8 keeps
-    # float activations: its overflow probes do)
+    # NaN, +inf and -inf refused at the entry; an integer section never makes a non-finite result
+    # (int8-weights keeps float activations: its overflow probes do)
     assert summary["probes"]["codes"]["1"] == 18 and ("2" in summary["probes"]["codes"]) == (
-        precision == "int8"
+        precision == "int8-weights"
     )
     assert coverage.check(summary)[0]

@@ -3,7 +3,7 @@
 Fast: the instruction figures' parsing and the cycle model's classes (the serial framing's own unit tests
 are C, in ``make -C runtime_c test``). Slow: the firmware node on the host over python-can's ``slcan``
 interface alone (no kernel CAN), then lock-step episodes through ``vcan0`` in the sandbox on the M4F
-(float32, int8, q15) and the M3, and the node-side fault classes against the firmware.
+(float32, int8-weights, q15) and the M3, and the node-side fault classes against the firmware.
 """
 
 from __future__ import annotations
@@ -260,7 +260,7 @@ def _step_lines(diag: Path) -> int:
 
 @pytest.fixture(scope="module")
 def quantized_exports(exported: Exported) -> dict[str, Path]:
-    return {p: exported(SHIPPED_TD3, "--episodes", "0", "--quantize", p) for p in ("int8", "q15")}
+    return {p: exported(SHIPPED_TD3, "--episodes", "0", "--quantize", p) for p in ("int8-weights", "q15")}
 
 
 @pytest.mark.slow
@@ -293,7 +293,7 @@ def test_three_lock_step_episodes_with_the_firmware_node_on_the_m4f(
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("precision", ["int8", "q15"])
+@pytest.mark.parametrize("precision", ["int8-weights", "q15"])
 def test_quantized_policies_on_the_firmware_node_match_their_models(
     guest: Guest, quantized_exports: dict[str, Path], tmp_path: Path, precision: str
 ) -> None:

@@ -18,13 +18,13 @@ from tests.hil.conftest import SHIPPED_TD3
 @marks_its_users("slow")  # four exports, cppcheck's MISRA addon over each deployed node
 def exports(exported: Exported) -> dict[str, Path]:
     out = {}
-    for precision in ("float32", "int8", "q15", "int8-full"):
+    for precision in ("float32", "int8-weights", "q15", "int8"):
         quantize = [] if precision == "float32" else ["--quantize", precision]
         out[precision] = exported(SHIPPED_TD3, "--episodes", "0", *quantize)
     return out
 
 
-@pytest.mark.parametrize("precision", ["float32", "int8", "q15", "int8-full"])
+@pytest.mark.parametrize("precision", ["float32", "int8-weights", "q15", "int8"])
 def test_every_finding_on_the_deployed_node_is_explained(exports: dict[str, Path], precision: str) -> None:
     result = misra.check(exports[precision])
     assert result.unexplained == []

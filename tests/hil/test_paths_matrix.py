@@ -3,8 +3,8 @@
 Sources: each algorithm's shipped SB3 zip, the moving-shelf and two-robot scenarios' policies, and an
 ONNX from elsewhere (input ``x``, output ``y``, no embedrl metadata) exported by a relative path from
 another working folder into a folder whose path has spaces. Each source is exported once per precision
-(float32, int8, q15) with the closed loop skipped; the HIL run then compares the node with the export's
-own reference for that precision (:mod:`embedrl.export.reference`).
+(float32, int8-weights, q15) with the closed loop skipped; the HIL run then compares the node with the
+export's own reference for that precision (:mod:`embedrl.export.reference`).
 
 Every source x precision through the Python reference node, and through the compiled C node over vcan in
 the shared guest (``--sandbox auto``), plus rows under QEMU that cover every precision, every scenario and
@@ -39,17 +39,17 @@ SOURCES = {
     "moving-shelf td3": ("moving-shelf", POLICIES / "moving-shelf" / "td3.zip"),
     "two-robots td3": ("two-robots", POLICIES / "two-robots" / "td3.zip"),
 }
-PRECISIONS = ("float32", "int8", "q15")
+PRECISIONS = ("float32", "int8-weights", "q15")
 PYTHON_ROWS = list(itertools.product(SOURCES, PRECISIONS))
 """Every source at every precision through the Python node."""
 C_ROWS = [(s, p, "auto") for s, p in itertools.product(SOURCES, PRECISIONS)] + [
     ("td3", "float32", "qemu"),
-    ("onnx", "int8", "qemu"),
+    ("onnx", "int8-weights", "qemu"),
     ("sac", "q15", "qemu"),
-    ("ddpg", "int8", "qemu"),
+    ("ddpg", "int8-weights", "qemu"),
     ("ppo", "q15", "qemu"),
     ("moving-shelf td3", "float32", "qemu"),
-    ("two-robots td3", "int8", "qemu"),
+    ("two-robots td3", "int8-weights", "qemu"),
 ]
 """The slow suite: (source, precision, sandbox) through the C node."""
 

@@ -1,4 +1,4 @@
-"""A QDQ-quantised ONNX from elsewhere, exported to int8-full C, closes the loop over vcan on the C node as
+"""A QDQ-quantised ONNX from elsewhere, exported to int8 C, closes the loop over vcan on the C node as
 the simulation does with the same C (and on the Python node running its integer model)."""
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ def test_a_qdq_export_passes_hil_on_every_node(
 ) -> None:
     guest: Guest | None = request.getfixturevalue("guest") if node == "c" else None
     report = hil(guest, qdq_export, tmp_path, "--node", node, "--episodes", "1", "--seed", "3")
-    assert report["precision"] == "int8-full"
+    assert report["precision"] == "int8"
     assert report["outcomes_differing_from_simulation"] == [] and report["faults"] == 0
     assert report["max_action_abs_diff"] <= CAN_RESOLUTION  # the same integers; the signal's resolution
 
