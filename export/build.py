@@ -91,11 +91,12 @@ def _without_spaces(*folders: Path) -> Iterator[list[Path]]:
         yield aliases
 
 
-def compiler(target: str = "host") -> dict[str, str]:
+def compiler(target: str = "host", goal: str = "flags") -> dict[str, str]:
     """The compiler command and flags the Makefile uses for ``target`` (``host`` or a Cortex-M target of
-    ``runtime_c/cortex_m/targets.mk``), and the compiler's version line."""
+    ``runtime_c/cortex_m/targets.mk``), and the compiler's version line; ``goal`` ``coverage-flags``: those
+    of the coverage builds (clang's, ``make coverage`` and ``coverage-node``)."""
     flags = subprocess.run(
-        ["make", "--no-print-directory", "-s", "-C", str(RUNTIME_C), "flags", f"TARGET={target}"],
+        ["make", "--no-print-directory", "-s", "-C", str(RUNTIME_C), goal, f"TARGET={target}"],
         env=_own_make_env(),
         capture_output=True,
         text=True,

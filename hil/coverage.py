@@ -27,6 +27,8 @@ BINARY = "policy_node"
 FOLDER_SUFFIX = ".coverage"
 """The coverage folder of a HIL report ``NAME.json`` is ``NAME.coverage`` beside it."""
 LLVM_PROFDATA = "llvm-profdata-19"
+FLAGS_GOAL = "coverage-flags"
+"""The make goal that prints the coverage builds' compiler and flags."""
 
 
 def folder_of(report: Path) -> Path:
@@ -41,7 +43,10 @@ def is_coverage_file(path: Path) -> bool:
 
 def keep(written: Path, binary: Path, folder: Path) -> dict[str, Any]:
     """Copy the readable raw profiles in ``written`` and the instrumented ``binary`` into ``folder``; the
-    record the HIL report keeps (file names relative to ``folder``, their digests, the unreadable ones)."""
+    record the HIL report keeps (file names relative to ``folder``, their digests, the unreadable ones, the
+    compiler and flags the node was built with)."""
+    from embedrl.export import build
+
     profiles = sorted(written.glob("*.profraw")) if written.is_dir() else []
     readable = [p for p in profiles if _readable(p)]
     folder.mkdir(parents=True, exist_ok=True)
@@ -54,6 +59,7 @@ def keep(written: Path, binary: Path, folder: Path) -> dict[str, Any]:
         "binary": {"file": BINARY, "sha256": sha256(folder / BINARY)},
         "profiles": [{"file": p.name, "sha256": sha256(folder / p.name)} for p in readable],
         "unreadable": [p.name for p in profiles if p not in readable],
+        "compiler": build.compiler(goal=FLAGS_GOAL),
     }
 
 

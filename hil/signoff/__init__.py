@@ -49,7 +49,7 @@ def gather(
         "back_to_back": back_to_back.links(export_dir, export, verification[0], hils),
     }
     tool = gathered["coding_standard"]["tool"]
-    gathered["conditions"] = conditions.measurement_conditions(export, hils, tool)
+    gathered["conditions"] = conditions.measurement_conditions(export, hils, tool, gathered["coverage"])
     gathered["verdict"] = checks.verdict(gathered, hils)
     return gathered
 

@@ -43,12 +43,27 @@ _PROTOTYPE = re.compile(r"^((?:const |unsigned )?\w+\s*\*?\s*)(\w+)\((.*)\);\s*$
 
 
 def measurement_conditions(
-    export: dict[str, Any], hils: list[tuple[str, dict[str, Any]]], coding_tool: str
+    export: dict[str, Any],
+    hils: list[tuple[str, dict[str, Any]]],
+    coding_tool: str,
+    coverage: dict[str, Any] | str | None = None,
 ) -> dict[str, Any]:
-    """The compilers per target, the tools, and per artefact its command, date and embedrl commit."""
+    """The compilers per target (and the coverage builds of ``coverage``, the report's measured coverage: the
+    verification vectors' and C tests', each merged HIL run's node), the tools, and per artefact its
+    command, date and embedrl commit."""
+    unknown = {"command": None, "version": None}
     compilers = [{"target": "host", **export["compiler"]}]
     for name, t in export.get("targets", {}).items():
-        compilers.append({"target": name, **(t.get("compiler") or {"command": None, "version": None})})
+        compilers.append({"target": name, **(t.get("compiler") or unknown)})
+    if isinstance(coverage, dict):
+        compilers.append({"target": "host, coverage: verification vectors and C tests", "key": "coverage",
+                          **coverage["compiler"]})  # fmt: skip
+        hil_runs = [s for s in coverage["sources"] if s["source"].startswith("HIL run")]
+        for n, source in enumerate(hil_runs):
+            compilers.append({
+                "target": f"host, coverage: the node of {source['source']}", "key": f"coverage-hil-{n}",
+                "again": "run it again with --coverage", **(source.get("compiler") or unknown),
+            })  # fmt: skip
     made = [_made("export folder (export_report.json)", export.get("provenance") or {}, export["tool"])]
     for name, h in hils:
         made.append(_made(f"HIL report {name}", h.get("provenance") or {}, None))

@@ -28,13 +28,12 @@ import numpy as np
 
 from embedrl.common import owned_temporary_folder
 from embedrl.export.build import RUNTIME_C
+from embedrl.hil.coverage import FLAGS_GOAL
 
 GOAL_LINES = 100.0
 GOAL_BRANCHES = 100.0
 GOAL_MCDC = 95.0
 REASONS = RUNTIME_C / "coverage_reasons.toml"
-CLANG = "clang-19"
-"""The compiler ``make coverage`` uses (its COV_CC default)."""
 TEST_DOUBLES = RUNTIME_C / "tests"
 """The C tests and their doubles (the fake policy's policy.c among them): measured, never reported."""
 TEST_CAN = TEST_DOUBLES / "can_static"
@@ -83,6 +82,9 @@ class HilProfile:
     profiles: tuple[Path, ...]
     left_out: int = 0
     """Profiles the run found empty or cut short (a node process killed by SIGKILL) and did not keep."""
+    compiler: dict[str, str] | None = None
+    """The node's compiler version line and command with flags, as the HIL report records them (None: a
+    report that does not)."""
 
 
 @dataclass(frozen=True)
@@ -136,10 +138,12 @@ def measure(
                             (cov / "coverage.lcov").read_text(), f"{name}.c", load_reasons())  # fmt: skip
         codes = [int(line.split()[2]) for line in (cov / "policy_steps.txt").read_text().splitlines()
                  if line.startswith("A ")]  # fmt: skip
-    summary["compiler"] = _version(CLANG)
+    summary["compiler"] = build.compiler(goal=FLAGS_GOAL)
     summary["sources"] = [{"source": s, "profiles": 1} for s in UNIT_SOURCES] + [
-        {"source": f"HIL run {h.report}", "profiles": len(h.profiles), "left_out": h.left_out} for h in hil
-    ]
+        {"source": f"HIL run {h.report}", "profiles": len(h.profiles), "left_out": h.left_out,
+         "compiler": h.compiler}
+        for h in hil
+    ]  # fmt: skip
     summary["probes"] = {"rows": len(rows), "verification_rows": len(observations),
                          "codes": {str(c): codes.count(c) for c in sorted(set(codes))}}  # fmt: skip
     return summary
@@ -169,12 +173,6 @@ def merge_hil(cov: Path, hil: tuple[HilProfile, ...]) -> None:
             raise BuildError(f"{argv[0]} {argv[1]} of the HIL runs' profiles failed: {why}")
         if out is not None:
             (cov / out).write_text(result.stdout)
-
-
-def _version(tool: str) -> str:
-    """The first line of ``tool --version`` (the measurement conditions)."""
-    result = subprocess.run([tool, "--version"], capture_output=True, text=True)
-    return (result.stdout.strip().splitlines() or [tool])[0]
 
 
 def load_reasons(path: Path = REASONS) -> list[Reason]:

@@ -216,7 +216,8 @@ def coverage(
             not_merged.append({"report": name, "why": str(exc), "failed": bool(data.get("coverage"))})
             continue
         left_out = len(data["coverage"].get("unreadable", []))
-        merged.append(measured.HilProfile(name, binary, tuple(profiles), left_out))
+        compiler = data["coverage"].get("compiler")
+        merged.append(measured.HilProfile(name, binary, tuple(profiles), left_out, compiler))
     try:
         summary = measured.measure(export_dir / "c", export["name"], observations, tuple(merged))
     except BuildError as exc:

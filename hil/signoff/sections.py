@@ -277,8 +277,9 @@ def coverage(facts: dict[str, Any]) -> str:
     codes = ", ".join(f"code {k}: {n:,}" for k, n in p["codes"].items())
     return (
         "<p>clang's source-based coverage (<code>make -C runtime_c coverage</code>: "
-        f"{escape(c['compiler'])}, "
-        "<code>-fprofile-instr-generate -fcoverage-mapping -fcoverage-mcdc</code>, llvm-cov-19 export). The "
+        f"{escape(c['compiler']['version'])}, "
+        "<code>-fprofile-instr-generate -fcoverage-mapping -fcoverage-mcdc</code>, llvm-cov-19 export; the "
+        "flags in full under measurement conditions). The "
         f"policy ran on {p['verification_rows']:,} verification observations and "
         f"{p['rows'] - p['verification_rows']} probes (NaN, +/-inf, +/-1e4, +/-FLT_MAX at each position; "
         f"every position at FLT_MAX with equal and alternating signs): {codes}. "
@@ -322,8 +323,8 @@ def conditions(facts: dict[str, Any]) -> str:
     """The compilers and flags per target, the tools, and the command, date and commit of each artefact."""
     c = facts["conditions"]
     compilers = [
-        [cell(r["target"]), cell(r["version"] or "not recorded (export again)", f"compiler-{r['target']}"),
-         cell(r["command"] or "-")]
+        [cell(r["target"]), cell(r["version"] or f"not recorded ({r.get('again', 'export again')})",
+                                 f"compiler-{r.get('key', r['target'])}"), cell(r["command"] or "-")]
         for r in c["compilers"]
     ]  # fmt: skip
     made = [
@@ -335,7 +336,7 @@ def conditions(facts: dict[str, Any]) -> str:
         f'<p>Made with <b data-key="embedrl-version">{escape(c["tool"])}</b>; MISRA checked with '
         f"{escape(c['coding_tool'])}. Every figure below was measured with the compilers and flags of this "
         "table (the host library for the numerical verification, each Cortex-M image for the target "
-        "figures).</p>"
+        "figures, clang's coverage builds for the coverage).</p>"
         + table(["target", "compiler", "flags"], compilers)
         + "<h3>What made each artefact</h3><p class=\"note\">The commit is embedrl's source; \"modified "
         "files\": the checkout differed from it.</p>"

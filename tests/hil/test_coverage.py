@@ -68,7 +68,11 @@ def test_the_node_and_its_can_glue_reach_the_goal_or_say_why_not(measured: dict[
         "; 5 gap(s), each with its reason; merged from the verification vectors, the C tests (no HIL run "
         "with coverage)"
     )
-    assert measured["compiler"].startswith("Debian clang")
+    assert measured["compiler"]["version"].startswith("Debian clang")
+    assert (
+        measured["compiler"]["command"].startswith("clang-19 ")
+        and "-fcoverage-mcdc" in measured["compiler"]["command"]
+    )
 
 
 def _export_json(source: Path, branches: list[list[int]], mcdc: list[list[Any]]) -> dict[str, Any]:

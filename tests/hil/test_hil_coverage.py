@@ -21,7 +21,7 @@ from embedrl.hil.errors import HilError
 from embedrl.hil.options import RunOptions
 from embedrl.hil.run import add_to_chain, run
 from embedrl.hil.sandbox import Guest
-from embedrl.hil.signoff import coverage, facts, sections
+from embedrl.hil.signoff import conditions, coverage, facts, sections
 from tests.conftest import Exported
 from tests.hil.conftest import SHIPPED_TD3
 
@@ -97,6 +97,30 @@ def test_the_report_names_the_hil_run_among_the_sources_it_merged(fault_run: dic
     page = sections.coverage({"coverage": fault_run["merged"]})
     assert 'data-key="coverage-sources">Profiles merged from the verification vectors' in page
     assert "HIL run hil/hil.json" in page
+
+
+def test_the_measurement_conditions_list_the_coverage_builds(fault_run: dict[str, Any]) -> None:
+    export = facts.load_export(fault_run["export"])
+    recorded_build = fault_run["data"]["coverage"]["compiler"]
+    assert recorded_build["command"].startswith("clang-19 -std=c99 -O0 -g -fprofile-instr-generate ")
+    assert "-fcoverage-mcdc" in recorded_build["command"]
+    assert recorded_build["version"].startswith("Debian clang version 19")
+    merged = conditions.measurement_conditions(export, [], "cppcheck", fault_run["merged"])
+    rows = {r["target"]: r for r in merged["compilers"]}
+    unit = rows["host, coverage: verification vectors and C tests"]
+    hil = rows["host, coverage: the node of HIL run hil/hil.json"]
+    assert (unit["command"], unit["version"]) == (hil["command"], hil["version"]) == (
+        recorded_build["command"], recorded_build["version"])  # fmt: skip
+    alone = conditions.measurement_conditions(export, [], "cppcheck", fault_run["alone"])
+    assert [r["target"] for r in alone["compilers"]] == ["host", unit["target"]]  # no HIL run merged
+    page = sections.conditions({"conditions": merged})
+    assert f'data-key="compiler-coverage-hil-0">{recorded_build["version"]}' in page
+    without = {
+        **fault_run["merged"],
+        "sources": [{**s, "compiler": None} for s in fault_run["merged"]["sources"]],
+    }
+    page = sections.conditions({"conditions": conditions.measurement_conditions(export, [], "c", without)})
+    assert 'data-key="compiler-coverage-hil-0">not recorded (run it again with --coverage)' in page
 
 
 def test_verify_chain_names_a_changed_or_missing_coverage_file(
