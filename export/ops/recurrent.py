@@ -177,7 +177,7 @@ class Recurrent(Emitter):
             lines = [f"{out} = {bias};"]
             for matrix, _, vector, length in terms:
                 lines += [
-                    f"for (int k = 0; k < {length}; ++k) {{",
+                    f"for (uint32_t k = 0u; k < {length}u; ++k) {{",
                     f"    {out} += {matrix}[{row}][k] * {vector};",
                     "}",
                 ]
@@ -186,7 +186,7 @@ class Recurrent(Emitter):
         for t, (matrix, scale, vector, length) in enumerate(terms):
             lines += [
                 f"float {tag}_sum{t} = 0.0f;",
-                f"for (int k = 0; k < {length}; ++k) {{",
+                f"for (uint32_t k = 0u; k < {length}u; ++k) {{",
                 f"    {tag}_sum{t} += (float){matrix}[{row}][k] * {vector};",
                 "}",
             ]
@@ -308,9 +308,9 @@ class LSTM(Recurrent):
             "acc[g]", f"{bc}[{row}]", [(wc, sw, f"{x}[k]", features), (rc, sr, f"{h}[k]", n)], row, "gate"
         )
         return [
-            f"for (int j = 0; j < {n}; ++j) {{",
+            f"for (uint32_t j = 0u; j < {n}u; ++j) {{",
             f"    float acc[{self.gates}];",
-            f"    for (int g = 0; g < {self.gates}; ++g) {{",
+            f"    for (uint32_t g = 0u; g < {self.gates}u; ++g) {{",
             *("        " + line for line in sums),
             "    }",
             f"    const float c_next = {sig}(acc[2]) * {c}[j] + {sig}(acc[0]) * {tanh}(acc[3]);",
@@ -423,15 +423,15 @@ class GRU(Recurrent):
             "{",
             f"float zg[{n}];",
             f"float rg[{n}];",
-            f"for (int j = 0; j < {n}; ++j) {{",
+            f"for (uint32_t j = 0u; j < {n}u; ++j) {{",
             "    float acc[2];",
-            "    for (int g = 0; g < 2; ++g) {",
+            "    for (uint32_t g = 0u; g < 2u; ++g) {",
             *("        " + line for line in gates),
             "    }",
             f"    zg[j] = {sig}(acc[0]);",
             f"    rg[j] = {sig}(acc[1]);",
             "}",
-            f"for (int j = 0; j < {n}; ++j) {{",
+            f"for (uint32_t j = 0u; j < {n}u; ++j) {{",
             "    float wn;",
             "    float rn;",
             *("    " + line for line in wn),
