@@ -13,6 +13,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from string import Template
 
 import numpy as np
 
@@ -44,6 +45,9 @@ RESERVED_NAMES = frozenset(f"{C_KEYWORDS} {STANDARD_HEADERS} {RUNTIME_FILES}".sp
 """Names a generated ``{name}.h``/``{name}_step`` would collide with."""
 
 
+HOST_STEM = "_host"
+"""``{name}_host.c`` and ``{name}_host.h``: the batch entry point, built only into the host's programs."""
+HOST_SUFFIX = f"{HOST_STEM}.c"
 BATCH_ROWS = 8
 """Observations ``{name}_step_batch`` runs through the network together."""
 TARGET_CLONES = ("default", "avx2")
@@ -290,7 +294,9 @@ def generate(
     interface: Interface | None = None,
     checks: bool = True,
 ) -> dict[str, str]:
-    """Generate ``{name}.h`` and ``{name}.c`` for ``graph``.
+    """Generate ``{name}.h`` and ``{name}.c`` for ``graph`` (the deployable policy), and ``{name}_host.h`` and
+    ``{name}_host.c``: the batch entry point ``{name}_step_batch`` for the host's verification and benchmarks,
+    which includes ``{name}.c`` (a program is built from one of the two sources, never both).
 
     ``safe_action`` is written instead of the action when the observation or the result is not
     finite (default zeros); ``{NAME}_SAFE_ACTION`` in the header gives it to the CAN node's watchdog.
@@ -336,7 +342,8 @@ def generate(
     source = _source(banner, name, ctx, body, [*states, *buffers, *int16_decls], ram, checks, includes)
     return {
         f"{name}.h": _header(banner, graph, name, safe, interface),
-        f"{name}.c": source + (_batch_source(name, ctx, block) if block is not None else _row_batch(name)),
+        f"{name}.c": source,
+        **_host_files(banner, name, ctx, block),
     }
 
 
@@ -396,149 +403,188 @@ def _body(graph: Graph, ctx: _Context, section: Section | None) -> tuple[list[st
     return body, int16_decls
 
 
-def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: Interface | None) -> str:
-    up = name.upper()
-    safe_text = ", ".join(c_float(v) for v in safe)
-    return f"""{banner}
-#ifndef {up}_H
-#define {up}_H
+HEADER = Template("""$banner
+#ifndef ${up}_H
+#define ${up}_H
 
-#define {up}_OBS_DIM {graph.size(graph.input)}
-#define {up}_ACT_DIM {graph.size(graph.output)}
-#define {up}_STATE_DIM {graph.state_size} /* floats carried from one step to the next (0: no memory) */
-{_interface_block(up, interface)}
-/* What {name}_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
-#define {up}_SAFE_ACTION {{{safe_text}}}
+#define ${up}_OBS_DIM ${obs_dim}
+#define ${up}_ACT_DIM ${act_dim}
+#define ${up}_STATE_DIM ${state_dim} /* floats carried from one step to the next (0: no memory) */
+$interface
+/* What ${name}_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
+#define ${up}_SAFE_ACTION {$safe}
 
-/* Return codes of {name}_step. */
-#define {up}_OK 0
-#define {up}_ERR_OBS_NOT_FINITE 1 /* an observation was NaN or infinite: safe action written */
-#define {up}_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
+/* Return codes of ${name}_step. */
+#define ${up}_OK 0
+#define ${up}_ERR_OBS_NOT_FINITE 1 /* an observation was NaN or infinite: safe action written */
+#define ${up}_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
 
-/* Run the policy on one observation. Writes {up}_ACT_DIM actions and returns {up}_OK, or writes the
- * safe action ({safe_text}) and returns an error code: no NaN ever leaves it.
- * A recurrent policy ({up}_STATE_DIM > 0) reads its state and keeps the next one for the next call; a
+/* Run the policy on one observation. Writes ${up}_ACT_DIM actions and returns ${up}_OK, or writes the
+ * safe action ($safe) and returns an error code: no NaN ever leaves it.
+ * A recurrent policy (${up}_STATE_DIM > 0) reads its state and keeps the next one for the next call; a
  * non-finite observation leaves the state as it was, a non-finite result resets it. */
-int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM]);
+int ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM]);
 
 /* Start a new episode: the recurrent state back to zero (nothing to do for a policy without memory).
  * Call it at start-up, at each episode start and whenever the safe state is entered. */
-void {name}_reset(void);
+void ${name}_reset(void);
 
-/* Run the policy on n observations (obs: n rows of {up}_OBS_DIM, act: n rows of {up}_ACT_DIM, row-major),
- * each row's actions bit for bit those of {name}_step, which also gives each row's code in status[] (if
+#endif /* ${up}_H */
+""")  # noqa: E501 (the comment on the safe action, as it reads in the header)
+"""``{name}.h``: the deployable policy's interface."""
+
+HOST_HEADER = Template("""$banner
+#ifndef ${up}_HOST_H
+#define ${up}_HOST_H
+
+#include "${name}.h"
+
+/* Run the policy on n observations (obs: n rows of ${up}_OBS_DIM, act: n rows of ${up}_ACT_DIM, row-major),
+ * each row's actions bit for bit those of ${name}_step, which also gives each row's code in status[] (if
  * not NULL). Returns the number of rows answered with the safe action. For host-side evaluation: it
- * reads each weight once per block of {BATCH_ROWS} rows, from its own buffers (not reentrant either).
+ * reads each weight once per block of $rows rows, from its own buffers (not reentrant either).
  * With memory, the rows are one sequence: consecutive steps, the state carried from each to the next. */
-int {name}_step_batch(int n, const float *obs, float *act, int *status);
+int ${name}_step_batch(int n, const float *obs, float *act, int *status);
 
-#endif /* {up}_H */
-"""
+#endif /* ${up}_HOST_H */
+""")
+"""``{name}_host.h``: the host-only batch entry point of ``{name}_host.c``."""
 
+HOST_SOURCE = Template("""$banner
+/* Host only (verification, benchmarks, coverage on the build machine), never deployed: the batch entry
+ * point over the deployable ${name}.c, which this file includes so that it reads the same weights and
+ * helpers (static in ${name}.c). A program is built from this file or from ${name}.c, never both. */
+#include "${name}_host.h"
 
-def _batch_source(name: str, ctx: _Context, block: tuple[list[str], str]) -> str:
-    """The block of rows and ``{name}_step_batch`` over blocks, the finite checks per row after it."""
-    up = name.upper()
-    sizes = [ctx.graph.size(ctx.graph.input), *ctx.plan.buffer_sizes]
-    names = ["obs", *(str(i) for i in range(len(ctx.plan.buffer_sizes)))]
-    buffers = "\n".join(
-        f"static float {name}_b{b}[{BATCH_ROWS}][{size}];" for b, size in zip(names, sizes, strict=True)
-    )
-    lines, out = block
-    indented = "\n".join(("    " + line) if line else "" for line in lines)
-    return f"""
-/* A block of rows ({4 * BATCH_ROWS * sum(sizes)} bytes, {name}_step_batch only): the observations, then the
- * step's buffers, one row each. */
-{buffers}
+#include "${name}.c"
+$body""")
+"""``{name}_host.c``: :data:`HOST_HEADER`'s function, after the deployable source."""
 
-{up}_TARGETS
-static void {name}_block(int rows)
-{{
-    (void)rows; /* a graph of shape-only ops computes nothing */
-{indented}
-}}
-
-/* Each row's code as {name}_step returns it, and its actions or the safe action. */
-static int {name}_finish(const float obs[{up}_OBS_DIM], const float out[{up}_ACT_DIM],
-                         float act[{up}_ACT_DIM])
-{{
-    for (int i = 0; i < {up}_OBS_DIM; ++i) {{
-        if (!{name}_finite(obs[i])) {{
-            return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
-        }}
-    }}
-    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        if (!{name}_finite(out[i])) {{
-            return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
-        }}
-    }}
-    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        act[i] = out[i];
-    }}
-    return {up}_OK;
-}}
-
-int {name}_step_batch(int n, const float *obs, float *act, int *status)
-{{
-    int refused = 0;
-    for (int start = 0; start < n; start += {BATCH_ROWS}) {{
-        const int rows = n - start < {BATCH_ROWS} ? n - start : {BATCH_ROWS};
-        for (int r = 0; r < rows; ++r) {{
-            for (int i = 0; i < {up}_OBS_DIM; ++i) {{
-                {name}_bobs[r][i] = obs[(start + r) * {up}_OBS_DIM + i];
-            }}
-        }}
-        {name}_block(rows);
-        for (int r = 0; r < rows; ++r) {{
-            const int row = start + r;
-            const int code = {name}_finish(&obs[row * {up}_OBS_DIM], {out}, &act[row * {up}_ACT_DIM]);
-            if (status != NULL) {{
-                status[row] = code;
-            }}
-            refused += code != {up}_OK ? 1 : 0;
-        }}
-    }}
-    return refused;
-}}
-"""
-
-
-def _row_batch(name: str) -> str:
-    """``{name}_step_batch`` as one step per row (q15: its int16 section works on one row)."""
-    up = name.upper()
-    return f"""
-int {name}_step_batch(int n, const float *obs, float *act, int *status)
-{{
-    int refused = 0;
-    for (int row = 0; row < n; ++row) {{
-        const int code = {name}_step(&obs[row * {up}_OBS_DIM], &act[row * {up}_ACT_DIM]);
-        if (status != NULL) {{
-            status[row] = code;
-        }}
-        refused += code != {up}_OK ? 1 : 0;
-    }}
-    return refused;
-}}
-"""
-
-
-def _targets(up: str) -> str:
-    """The step's function attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl
-    has none), compiled by gcc, one clone per instruction set in :data:`TARGET_CLONES`, the CPU's picked
-    when the program loads. No clone has a fused multiply-add instruction, so each rounds every product
-    and sum of the source's fixed order and all give the same bits. The clones weigh vectorising by gcc's
-    dynamic cost model: -O2's default takes no loop that needs a remainder after its whole vectors, which
-    leaves a pass over 100 outputs to SSE."""
-    clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
-    return f"""/* x86-64 glibc, gcc: compiled for each of {", ".join(TARGET_CLONES)}, the CPU's picked at load
+TARGETS = Template("""
+/* x86-64 glibc, gcc: compiled for each of $names, the CPU's picked at load
  * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
- * order and all give the same bits. -D{up}_ONE_TARGET: the compiler's target only. */
+ * order and all give the same bits. -D${up}_ONE_TARGET: the compiler's target only. */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \\
-    !defined({up}_ONE_TARGET)
-#define {up}_TARGETS __attribute__((target_clones({clones}), optimize("vect-cost-model=dynamic")))
+    !defined(${up}_ONE_TARGET)
+#define ${up}_TARGETS __attribute__((target_clones($clones), optimize("vect-cost-model=dynamic")))
 #else
-#define {up}_TARGETS
-#endif"""
+#define ${up}_TARGETS
+#endif
+""")
+"""The block's function attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl has
+none), compiled by gcc, one clone per instruction set in :data:`TARGET_CLONES`, the CPU's picked when the
+program loads. No clone has a fused multiply-add instruction, so each rounds every product and sum of the
+source's fixed order and all give the same bits. The clones weigh vectorising by gcc's dynamic cost model:
+-O2's default takes no loop that needs a remainder after its whole vectors, which leaves a pass over 100
+outputs to SSE."""
+
+BLOCK_BATCH = Template("""
+/* A block of rows ($bytes bytes, ${name}_step_batch only): the observations, then the step's buffers, one
+ * row each. */
+$buffers
+${up}_TARGETS
+static void ${name}_block(uint32_t rows)
+{
+    (void)rows; /* a graph of shape-only ops computes nothing */
+$block
+}
+
+/* Each row's code as ${name}_step returns it, and its actions or the safe action. */
+static int ${name}_finish(const float obs[${up}_OBS_DIM], const float out[${up}_ACT_DIM],
+                         float act[${up}_ACT_DIM])
+{
+    for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; ++i) {
+        if (!${name}_finite(obs[i])) {
+            return ${name}_safe(act, ${up}_ERR_OBS_NOT_FINITE);
+        }
+    }
+    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+        if (!${name}_finite(out[i])) {
+            return ${name}_safe(act, ${up}_ERR_ACT_NOT_FINITE);
+        }
+    }
+    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+        act[i] = out[i];
+    }
+    return ${up}_OK;
+}
+
+int ${name}_step_batch(int n, const float *obs, float *act, int *status)
+{
+    int refused = 0;
+    for (int start = 0; start < n; start += $rows) {
+        const int rows = n - start < $rows ? n - start : $rows;
+        for (int r = 0; r < rows; ++r) {
+            for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; ++i) {
+                ${name}_bobs[r][i] = obs[(size_t)(start + r) * ${up}_OBS_DIM + i];
+            }
+        }
+        ${name}_block((uint32_t)rows);
+        for (int r = 0; r < rows; ++r) {
+            const size_t row = (size_t)(start + r);
+            const int code = ${name}_finish(&obs[row * ${up}_OBS_DIM], $out, &act[row * ${up}_ACT_DIM]);
+            if (status != NULL) {
+                status[row] = code;
+            }
+            refused += code != ${up}_OK ? 1 : 0;
+        }
+    }
+    return refused;
+}
+""")
+"""``{name}_step_batch`` over blocks of :data:`BATCH_ROWS` rows (float32 and int8), the finite checks per row
+after the block."""
+
+ROW_BATCH = Template("""
+int ${name}_step_batch(int n, const float *obs, float *act, int *status)
+{
+    int refused = 0;
+    for (int i = 0; i < n; ++i) {
+        const size_t row = (size_t)i;
+        const int code = ${name}_step(&obs[row * ${up}_OBS_DIM], &act[row * ${up}_ACT_DIM]);
+        if (status != NULL) {
+            status[row] = code;
+        }
+        refused += code != ${up}_OK ? 1 : 0;
+    }
+    return refused;
+}
+""")
+"""``{name}_step_batch`` as one step per row (q15 and int8-full: an integer section works on one row; a
+recurrent policy: each step depends on the one before)."""
+
+
+def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: Interface | None) -> str:
+    up = name.upper()
+    return HEADER.substitute(
+        banner=banner, up=up, name=name, obs_dim=graph.size(graph.input), act_dim=graph.size(graph.output),
+        state_dim=graph.state_size, interface=_interface_block(up, interface),
+        safe=", ".join(c_float(v) for v in safe),
+    )  # fmt: skip
+
+
+def _host_files(banner: str, name: str, ctx: _Context, block: tuple[list[str], str] | None) -> dict[str, str]:
+    """``{name}_host.h`` and ``{name}_host.c``: the batch entry point, for the host's builds only."""
+    up = name.upper()
+    if block is None:
+        body = ROW_BATCH.substitute(name=name, up=up)
+    else:
+        sizes = [ctx.graph.size(ctx.graph.input), *ctx.plan.buffer_sizes]
+        names = ["obs", *(str(i) for i in range(len(ctx.plan.buffer_sizes)))]
+        buffers = "\n".join(
+            f"static float {name}_b{b}[{BATCH_ROWS}][{size}];" for b, size in zip(names, sizes, strict=True)
+        )
+        lines, out = block
+        clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
+        targets = TARGETS.substitute(up=up, names=", ".join(TARGET_CLONES), clones=clones)
+        body = targets + BLOCK_BATCH.substitute(
+            name=name, up=up, bytes=4 * BATCH_ROWS * sum(sizes), buffers=buffers, rows=BATCH_ROWS, out=out,
+            block="\n".join(("    " + line) if line else "" for line in lines),
+        )  # fmt: skip
+    return {
+        f"{name}{HOST_STEM}.h": HOST_HEADER.substitute(banner=banner, up=up, name=name, rows=BATCH_ROWS),
+        f"{name}{HOST_SUFFIX}": HOST_SOURCE.substitute(banner=banner, name=name, body=body),
+    }
 
 
 def _state_lines(name: str, ctx: _Context) -> tuple[str, str, str]:
@@ -551,15 +597,86 @@ def _state_lines(name: str, ctx: _Context) -> tuple[str, str, str]:
         n, src = graph.size(read), ctx.ref(write)
         reset.append(f"    (void)memset({name}_state{k}, 0, sizeof {name}_state{k});")
         check += [
-            f"    for (int i = 0; i < {n}; ++i) {{",
+            f"    for (uint32_t i = 0u; i < {n}u; ++i) {{",
             f"        if (!{name}_finite({src}[i])) {{",
             f"            {name}_reset();",
             f"            return {name}_safe(act, {name.upper()}_ERR_ACT_NOT_FINITE);",
             "        }",
             "    }",
         ]
-        keep += [f"    for (int i = 0; i < {n}; ++i) {{", f"        {name}_state{k}[i] = {src}[i];", "    }"]
+        keep += [
+            f"    for (uint32_t i = 0u; i < {n}u; ++i) {{",
+            f"        {name}_state{k}[i] = {src}[i];",
+            "    }",
+        ]
     return "\n".join(reset), "\n".join(check) + "\n", "\n".join(keep) + "\n"
+
+
+SOURCE = Template("""$banner
+#include "${name}.h"
+
+#include <math.h>
+#include <stdint.h>
+#include <string.h>
+$includes
+$declarations
+
+static const float ${name}_safe_action[${up}_ACT_DIM] = ${up}_SAFE_ACTION;
+
+/* Scratch buffers ($ram bytes). */
+$buffers
+$helpers
+/* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
+ * compiler assume that no NaN or infinity exists and drop isfinite(). */
+static int ${name}_finite(float x)
+{
+    union {
+        float f;
+        uint32_t u;
+    } bits;
+    bits.f = x;
+    return (bits.u & 0x7f800000u) != 0x7f800000u;
+}
+
+static int ${name}_safe(float act[${up}_ACT_DIM], int code)
+{
+    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+        act[i] = ${name}_safe_action[i];
+    }
+    return code;
+}
+
+void ${name}_reset(void)
+{
+$reset
+}
+
+int ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM])
+{
+$check_obs$body
+$check_act$check_state$keep_state    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+        act[i] = ${out}[i];
+    }
+    return ${up}_OK;
+}
+""")
+"""``{name}.c``: the deployable policy (weights, buffers, helpers, ``{name}_reset`` and ``{name}_step``)."""
+
+CHECK_OBS = Template("""    for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; ++i) {
+        if (!${name}_finite(obs[i])) {
+            return ${name}_safe(act, ${up}_ERR_OBS_NOT_FINITE);
+        }
+    }
+""")
+"""The step's refusal of a non-finite observation."""
+
+CHECK_ACT = Template("""    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+        if (!${name}_finite(${out}[i])) {
+            ${reset}return ${name}_safe(act, ${up}_ERR_ACT_NOT_FINITE);
+        }
+    }
+""")
+"""The step's refusal of a non-finite result (``reset``: the recurrent state's reset first, if any)."""
 
 
 def _source(
@@ -575,67 +692,17 @@ def _source(
     up = name.upper()
     out_ref = ctx.ref(ctx.graph.output)
     reset, check_state, keep_state = _state_lines(name, ctx)
-    check_obs = f"""    for (int i = 0; i < {up}_OBS_DIM; ++i) {{
-        if (!{name}_finite(obs[i])) {{
-            return {name}_safe(act, {up}_ERR_OBS_NOT_FINITE);
-        }}
-    }}
-"""
+    check_obs = CHECK_OBS.substitute(up=up, name=name)
     act_bad = f"{name}_reset();\n            " if ctx.graph.states else ""
-    check_act = f"""    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        if (!{name}_finite({out_ref}[i])) {{
-            {act_bad}return {name}_safe(act, {up}_ERR_ACT_NOT_FINITE);
-        }}
-    }}
-"""
+    check_act = CHECK_ACT.substitute(up=up, name=name, out=out_ref, reset=act_bad)
     if not checks:
         check_obs = check_act = check_state = ""
-    safe_decl = f"static const float {name}_safe_action[{up}_ACT_DIM] = {up}_SAFE_ACTION;"
-    indented = "\n".join(("    " + line) if line else "" for line in body)
-    return f"""{banner}
-#include "{name}.h"
-
-#include <math.h>
-#include <stdint.h>
-#include <string.h>
-{"".join(chr(10) + line for line in includes)}{chr(10) if includes else ""}
-{chr(10).join(ctx.declarations)}
-
-{safe_decl}
-
-/* Scratch buffers ({ram} bytes). */
-{chr(10).join(buffers) if buffers else "/* none */"}
-{"".join(chr(10) + h + chr(10) for h in ctx.helpers.values())}
-/* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
- * compiler assume that no NaN or infinity exists and drop isfinite(). */
-static int {name}_finite(float x)
-{{
-    uint32_t bits;
-    (void)memcpy(&bits, &x, sizeof bits);
-    return (bits & 0x7f800000u) != 0x7f800000u;
-}}
-
-static int {name}_safe(float act[{up}_ACT_DIM], int code)
-{{
-    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        act[i] = {name}_safe_action[i];
-    }}
-    return code;
-}}
-
-void {name}_reset(void)
-{{
-{reset}
-}}
-
-{_targets(up)}
-{up}_TARGETS
-int {name}_step(const float obs[{up}_OBS_DIM], float act[{up}_ACT_DIM])
-{{
-{check_obs}{indented}
-{check_act}{check_state}{keep_state}    for (int i = 0; i < {up}_ACT_DIM; ++i) {{
-        act[i] = {out_ref}[i];
-    }}
-    return {up}_OK;
-}}
-"""
+    return SOURCE.substitute(
+        banner=banner, name=name, up=up, ram=ram, reset=reset, out=out_ref,
+        includes="".join("\n" + line for line in includes) + ("\n" if includes else ""),
+        declarations="\n".join(ctx.declarations),
+        buffers="\n".join(buffers) if buffers else "/* none */",
+        helpers="".join("\n" + h + "\n" for h in ctx.helpers.values()),
+        check_obs=check_obs, check_act=check_act, check_state=check_state, keep_state=keep_state,
+        body="\n".join(("    " + line) if line else "" for line in body),
+    )  # fmt: skip

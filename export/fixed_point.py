@@ -79,13 +79,13 @@ class FixedSection:
         lines = [
             f"/* 16-bit fixed point: {len(self.layers)} layer(s); "
             f"input with {self.in_frac} fractional bits */",
-            f"for (int i = 0; i < {self.layers[0].weights.shape[1]}; ++i) {{",
+            f"for (uint32_t i = 0u; i < {self.layers[0].weights.shape[1]}u; ++i) {{",
             f"    if (!{p}_finite({src_ref}[i])) {{",
             f"        return {p}_safe(act, {p.upper()}_ERR_ACT_NOT_FINITE); "
             "/* never converted to an integer */",
             "    }",
             f"    float v = {src_ref}[i] * {scale};",
-            "    v = v > 32767.0f ? 32767.0f : (v < -32767.0f ? -32767.0f : v);",
+            "    v = (v > 32767.0f) ? 32767.0f : ((v < -32767.0f) ? -32767.0f : v);",
             "    v = v + 0.5f;",
             "    int32_t q = (int32_t)v;",
             "    if ((float)q > v) {",

@@ -160,13 +160,13 @@ class IntegerSection:
         lines = [
             f"/* full-integer int8: {len(self.layers)} layer(s); input scale {self.quant.scale:.9g}, "
             f"zero point {self.quant.zero} */",
-            f"for (int i = 0; i < {self.widths()[0]}; ++i) {{",
+            f"for (uint32_t i = 0u; i < {self.widths()[0]}u; ++i) {{",
             f"    if (!{p}_finite({src_ref}[i])) {{",
             f"        return {p}_safe(act, {up}_ERR_ACT_NOT_FINITE); /* never converted to an integer */",
             "    }",
             f"    float v = {src_ref}[i] * {inverse};",
             f"    v = v + {zero};",
-            "    v = v > 127.0f ? 127.0f : (v < -128.0f ? -128.0f : v);",
+            "    v = (v > 127.0f) ? 127.0f : ((v < -128.0f) ? -128.0f : v);",
             "    v = v + 0.5f;",
             "    int32_t q = (int32_t)v;",
             "    if ((float)q > v) {",

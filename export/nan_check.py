@@ -32,7 +32,7 @@ from onnx import helper, numpy_helper
 
 from embedrl.common import owned_temporary_folder
 from embedrl.export import build
-from embedrl.export.codegen import generate
+from embedrl.export.codegen import HOST_SUFFIX, generate
 from embedrl.export.errors import BuildError, VerificationError
 from embedrl.export.ir import Graph, Node
 from embedrl.export.ops import EMITTERS
@@ -125,14 +125,11 @@ def _compile(modules: Sequence[dict[str, str]], folder: Path) -> ctypes.CDLL:
     for files in modules:
         for filename, text in files.items():
             (folder / filename).write_text(text)
-            if filename.endswith(".c"):
+            if filename.endswith(".c") and not filename.endswith(HOST_SUFFIX):  # the step only
                 sources.append(str(folder / filename))
-    # One instruction set per module: every clone rounds the same operations alike (see codegen._targets).
-    one_target = [f"-DNAN_OP{k}_ONE_TARGET" for k in range(len(modules))]
     command = [
         *shlex.split(build.compiler()["command"]),
         *PROBE_FLAGS,
-        *one_target,
         "-o",
         str(folder / "probes.so"),
     ]

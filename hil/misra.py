@@ -4,9 +4,13 @@ against MISRA C:2012 with cppcheck's MISRA addon (Debian's cppcheck; rule number
 texts are not distributed), as one program so that a macro or function used in another file counts.
 
 Every finding must be explained by an entry of the deviation log (``runtime_c/misra_deviations.toml``):
-a rule (or a cppcheck check id), the files it covers, why, and for hand-written files the exact number of
-findings, so that a new violation, or a fixed one left in the log, fails the check. Generated files take
-no count: their findings scale with the network and the interface, the entry covers the construct.
+a rule (or a cppcheck check id), the files it covers, why, and the exact number of findings, so that a new
+violation, or a fixed one left in the log, fails the check. Hand-written files name one number. A required
+rule in generated files names one number per precision of the policy (``count = {int8 = 7}``, none
+for a precision not named): such findings come from the fixed helpers a precision brings (the requantisation
+of int8), not from the network's size. Only an advisory rule's entry for generated files may go
+without a count, when its findings scale with the network or the interface (one per weight table, per
+early return, per macro of the header); its reason says so.
 
 The host node's platform files (``node/main.c``, SocketCAN, POSIX clock) are a test harness on Linux, not
 deployed, and are not checked.
@@ -15,6 +19,7 @@ deployed, and are not checked.
 from __future__ import annotations
 
 import fnmatch
+import json
 import shutil
 import subprocess
 import tomllib
@@ -25,6 +30,7 @@ from typing import Any
 
 from embedrl.common import owned_temporary_folder
 from embedrl.export.build import RUNTIME_C
+from embedrl.export.codegen import HOST_SUFFIX
 from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.contract.sources import folder, write
 from embedrl.hil.errors import HilError
@@ -42,7 +48,13 @@ MISRA_BOARD = "stm32f4"
 CPPCHECK = ("cppcheck", "--addon=misra", "--std=c99", "--platform=arm32-wchar_t4", "-D__ARM_FP=4", "-q")
 """A 32-bit Arm target with an FPU (the start-up code's FPU branch is analysed too)."""
 GENERATED_PREFIXES = ("c/", "can/")
-"""Labels of generated files: their deviations take no count."""
+"""Labels of generated files: their deviations count per precision, or not at all for an advisory rule."""
+THIRD_PARTY = ("can/policy_dbc.c", "can/policy_dbc.h")
+"""cantools' codec, generated from the DBC by a third party's generator: its entries take no count (its
+findings grow with the interface's signals)."""
+PRECISIONS = ("float32", "int8", "int8-weights", "q15")
+"""The precisions of a generated policy (``embedrl export --quantize``; float32 without it)."""
+EXPORT_REPORT = "export_report.json"
 
 
 @dataclass(frozen=True)
@@ -61,7 +73,15 @@ class Deviation:
     why: str
     """Opens with the rule's category in MISRA C:2012, ``(A)`` advisory, ``(R)`` required or ``(M)``
     mandatory; a cppcheck check of its own has none."""
-    count: int | None
+    count: int | dict[str, int] | None
+    """The findings it covers: one number (hand-written files), one per precision (a required rule in
+    generated files; a precision not named has none) or None (an advisory rule in generated files)."""
+
+    def expected(self, precision: str) -> int | None:
+        """The findings this entry covers in an export of ``precision``; None: not counted."""
+        if isinstance(self.count, dict):
+            return self.count.get(precision, 0)
+        return self.count
 
     @property
     def category(self) -> str | None:
@@ -79,9 +99,11 @@ class Result:
     deviations: list[Deviation]
     unexplained: list[str]
     """One line per finding without a deviation, or per count that no longer holds."""
+    precision: str = "float32"
 
     def to_json(self) -> dict[str, Any]:
         per_rule = Counter((f.rule, f.file) for f in self.findings)
+        found = covered_by(self.findings, self.deviations)
         return {
             "tool": cppcheck_version(),
             "checked": sorted({f.file for f in self.findings} | set(_checked_labels())),
@@ -91,15 +113,18 @@ class Result:
             ],
             "at": [{"rule": f.rule, "file": f.file, "line": f.line} for f in self.findings],
             "categories": {d.rule: d.category for d in self.deviations if d.category},
+            "precision": self.precision,
             "deviations": [
                 {
                     "rule": d.rule,
                     "files": list(d.files),
                     "why": d.why,
-                    "count": d.count,
+                    "count": d.expected(self.precision),
+                    "count_by_precision": d.count if isinstance(d.count, dict) else None,
+                    "found": found[k],
                     "category": d.category,
                 }
-                for d in self.deviations
+                for k, d in enumerate(self.deviations)
             ],
             "unexplained": self.unexplained,
         }
@@ -108,37 +133,68 @@ class Result:
 def load_deviations(path: Path = DEVIATIONS) -> list[Deviation]:
     entries = tomllib.loads(path.read_text()).get("deviation", [])
     return [
-        Deviation(str(e["rule"]), tuple(e["files"]), str(e["why"]).strip(), e.get("count")) for e in entries
+        Deviation(str(e["rule"]), tuple(e["files"]), str(e["why"]).strip(), _count(e.get("count"), path))
+        for e in entries
     ]
+
+
+def _count(value: Any, path: Path) -> int | dict[str, int] | None:
+    if isinstance(value, dict):
+        unknown = sorted(set(value) - set(PRECISIONS))
+        if unknown:
+            known = ", ".join(PRECISIONS)
+            raise HilError(f"{path}: count names unknown precision(s) {unknown}; known: {known}")
+        return {str(k): int(v) for k, v in value.items()}
+    return None if value is None else int(value)
+
+
+def precision_of(export_dir: Path) -> str:
+    """The precision of the export's policy, from its report (float32 without --quantize)."""
+    try:
+        report = json.loads((export_dir / EXPORT_REPORT).read_text())
+    except (OSError, ValueError) as e:
+        raise HilError(f"{export_dir} is not an export folder: no readable {EXPORT_REPORT} ({e})") from None
+    return str(report.get("quantize") or "float32")
 
 
 def check(export_dir: Path, deviations: list[Deviation] | None = None) -> Result:
     """The firmware node with the export's policy and the CAN code of its interface, against the log."""
     deviations = load_deviations() if deviations is None else deviations
+    precision = precision_of(export_dir)
     findings = run_cppcheck(export_dir)
-    return Result(findings, deviations, unexplained(findings, deviations))
+    return Result(findings, deviations, unexplained(findings, deviations, precision), precision)
 
 
-def unexplained(findings: list[Finding], deviations: list[Deviation]) -> list[str]:
-    """Findings no deviation covers, and counted deviations whose count is not what was found."""
-    problems = []
-    covered: Counter[tuple[int, str]] = Counter()
-    for f in findings:
-        match = next((k for k, d in enumerate(deviations) if d.rule == f.rule and _covers(d, f.file)), None)
-        if match is None:
-            problems.append(f"{f.file}:{f.line}: {f.rule} has no deviation")
-        else:
-            covered[(match, f.file)] += 1
+def unexplained(
+    findings: list[Finding], deviations: list[Deviation], precision: str = "float32"
+) -> list[str]:
+    """Findings no deviation covers, and counted deviations whose count (for an export of ``precision``) is
+    not what was found."""
+    problems = [
+        f"{f.file}:{f.line}: {f.rule} has no deviation" for f in findings if _entry(f, deviations) is None
+    ]
+    covered = covered_by(findings, deviations)
     for k, d in enumerate(deviations):
-        if d.count is None:
+        expected = d.expected(precision)
+        if expected is None:
             continue
-        found = sum(n for (index, _), n in covered.items() if index == k)
-        if found != d.count:
-            change = "a new violation" if found > d.count else "fixed: lower the count or drop the entry"
-            problems.append(
-                f"{d.rule} in {', '.join(d.files)}: {found} findings, the log says {d.count} ({change})"
-            )
+        found = covered[k]
+        if found != expected:
+            change = "a new violation" if found > expected else "fixed: lower the count or drop the entry"
+            files = ", ".join(d.files) + (f" ({precision})" if isinstance(d.count, dict) else "")
+            problems.append(f"{d.rule} in {files}: {found} findings, the log says {expected} ({change})")
     return problems
+
+
+def covered_by(findings: list[Finding], deviations: list[Deviation]) -> Counter[int]:
+    """How many findings each deviation (by index) explains: a finding counts for the first that covers it."""
+    return Counter(k for f in findings if (k := _entry(f, deviations)) is not None)
+
+
+def _entry(finding: Finding, deviations: list[Deviation]) -> int | None:
+    return next(
+        (k for k, d in enumerate(deviations) if d.rule == finding.rule and _covers(d, finding.file)), None
+    )
 
 
 def _covers(deviation: Deviation, label: str) -> bool:
@@ -160,7 +216,7 @@ def run_cppcheck(export_dir: Path) -> list[Finding]:
         sources = [
             *(RUNTIME_C / s for s in FIRMWARE_SOURCES),
             *sorted(can.glob("*.c")),
-            *sorted((export_dir / "c").glob("*.c")),
+            *sorted(p for p in (export_dir / "c").glob("*.c") if not p.name.endswith(HOST_SUFFIX)),
         ]
         board = RUNTIME_C / "cortex_m" / "boards" / MISRA_BOARD
         includes = [RUNTIME_C / "node", RUNTIME_C / "cortex_m", board, can, export_dir / "c"]

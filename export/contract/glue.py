@@ -131,13 +131,13 @@ def _encode_cases(plan: Layout) -> list[str]:
     for k, (name, _, slots) in enumerate(plan.action):
         m = _c_name(name)
         stores = "\n".join(
-            f"        msg.{_c_name(s.signal)} = {db}_{m}_{_c_name(s.signal)}_encode("
-            f"(double)saturate(act[{s.index}], {c_float(s.field.low)}, {c_float(s.field.high)}, &saturated));"
+            f"        msg.{_c_name(s.signal)} = {db}_{m}_{_c_name(s.signal)}_encode((double)clamp_to_range("
+            f"act[{s.index}], {c_float(s.field.low)}, {c_float(s.field.high)}, &saturated));"
             for s in slots
         )
         encode_cases.append(f"""    case {k}u: {{ /* {name}: {", ".join(s.field.name for s in slots)} */
         struct {db}_{m}_t msg;
-        memset(&msg, 0, sizeof msg);
+        (void)memset(&msg, 0, sizeof msg);
         msg.counter = counter;
         msg.step = step;
 {stores}
@@ -151,8 +151,8 @@ def _glue_source(banner: str, plan: Layout) -> str:
     db = DATABASE_NAME
     decode_cases, encode_cases = _decode_cases(plan), _encode_cases(plan)
     bounds = " &&\n           ".join(
-        f"is_finite(act[{s.index}]) && act[{s.index}] >= {c_float(s.field.low - s.scale / 2)} && "
-        f"act[{s.index}] <= {c_float(s.field.high + s.scale / 2)}"
+        f"is_finite(act[{s.index}]) && (act[{s.index}] >= {c_float(s.field.low - s.scale / 2)}) && "
+        f"(act[{s.index}] <= {c_float(s.field.high + s.scale / 2)})"
         for s in plan.action_slots
     )
     return f"""{banner}#include "policy_io.h"
@@ -172,21 +172,24 @@ policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[
 }}
 
 /* v within [lo, hi]; anything else (NaN included) is moved to the nearest bound and counted. */
-static float saturate(float v, float lo, float hi, unsigned *count)
+static float clamp_to_range(float v, float lo, float hi, unsigned *count)
 {{
-    if (v >= lo && v <= hi) {{
+    if ((v >= lo) && (v <= hi)) {{
         return v;
     }}
     *count += 1u;
-    return v > hi ? hi : lo;
+    return (v > hi) ? hi : lo;
 }}
 
 /* A bit test of the exponent: it holds under -ffast-math, where comparisons may assume no NaN. */
 static bool is_finite(float v)
 {{
-    uint32_t bits;
-    memcpy(&bits, &v, sizeof bits);
-    return (bits & 0x7F800000u) != 0x7F800000u;
+    union {{
+        float f;
+        uint32_t u;
+    }} bits;
+    bits.f = v;
+    return (bits.u & 0x7F800000u) != 0x7F800000u;
 }}
 
 bool policy_io_action_ok(const float act[POLICY_ACT_DIM])
@@ -198,7 +201,7 @@ unsigned policy_io_encode_action(unsigned part, const float act[POLICY_ACT_DIM],
                                  uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES])
 {{
     unsigned saturated = 0u;
-    memset(data, 0, POLICY_IO_FRAME_BYTES);
+    (void)memset(data, 0, POLICY_IO_FRAME_BYTES);
     switch (part) {{
 {chr(10).join(encode_cases)}
     default:

@@ -58,7 +58,7 @@ def helper_source(prefix: str, name: str) -> str:
     operation the NumPy functions above."""
     if name == "exp_det":
         lo, hi = c_float(EXP_CLAMP[0]), c_float(EXP_CLAMP[1])
-        steps = "\n".join(f"    p = p * f + {c_float(float(c))};" for c in reversed(EXP2_POLY[:-1]))
+        steps = "\n".join(f"    p = (p * f) + {c_float(float(c))};" for c in reversed(EXP2_POLY[:-1]))
         return f"""/* exp(x) from IEEE float operations only: the same bits anywhere. */
 static float {prefix}_exp_det(float x)
 {{
@@ -70,8 +70,8 @@ static float {prefix}_exp_det(float x)
     if ((in.u & 0x7fffffffu) > 0x7f800000u) {{
         return x; /* NaN stays NaN (and is never converted to an integer) */
     }}
-    x = x < {lo} ? {lo} : (x > {hi} ? {hi} : x);
-    const float t = x * {c_float(float(LOG2E))};
+    const float clamped = (x < {lo}) ? {lo} : ((x > {hi}) ? {hi} : x);
+    const float t = clamped * {c_float(float(LOG2E))};
     const float t_half = t + 0.5f;
     int32_t n = (int32_t)t_half;
     if ((float)n > t_half) {{
@@ -84,16 +84,16 @@ static float {prefix}_exp_det(float x)
         uint32_t u;
         float f;
     }} two_n;
-    two_n.u = (uint32_t)(n + 127) << 23; /* 2^n exactly: n is within [-125, 127] */
+    two_n.u = ((uint32_t)n + 127u) << 23u; /* 2^n exactly: n is within [-125, 127], n + 127 within [2, 254] */
     return p * two_n.f;
 }}"""
     if name == "tanh_det":
         return f"""static float {prefix}_tanh_det(float x)
 {{
-    const float a = x < 0.0f ? -x : x;
-    float t = 1.0f - 2.0f / ({prefix}_exp_det(a + a) + 1.0f);
-    t = a > {c_float(TANH_SATURATION)} ? 1.0f : t;
-    return x < 0.0f ? -t : t;
+    const float a = (x < 0.0f) ? -x : x;
+    float t = 1.0f - (2.0f / ({prefix}_exp_det(a + a) + 1.0f));
+    t = (a > {c_float(TANH_SATURATION)}) ? 1.0f : t;
+    return (x < 0.0f) ? -t : t;
 }}"""
     return f"""static float {prefix}_sigmoid_det(float x)
 {{

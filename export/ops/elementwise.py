@@ -33,7 +33,7 @@ class Unary(Emitter):
             expr = f"{ctx.helper(self.helper)}({x}[i])"
         else:
             expr = self.expression.format(x=f"{x}[i]", **self.formats(node, ctx))
-        return [f"for (int i = 0; i < {n}; ++i) {{", f"    {y}[i] = {expr};", "}"]
+        return [f"for (uint32_t i = 0u; i < {n}u; ++i) {{", f"    {y}[i] = {expr};", "}"]
 
     def formats(self, node: Node, ctx: EmitContext) -> dict[str, str]:
         return {}
@@ -55,7 +55,7 @@ class Unary(Emitter):
 
 class Relu(Unary):
     q15_float = frozenset({"after"})  # action post-processing after a q15 section
-    expression = "{x} < 0.0f ? 0.0f : {x}"  # NaN < 0 is false: NaN stays NaN
+    expression = "({x} < 0.0f) ? 0.0f : {x}"  # NaN < 0 is false: NaN stays NaN
 
     def exact(self, node: Node, x: np.ndarray) -> np.ndarray:
         return np.asarray(np.maximum(x, 0))
@@ -66,7 +66,7 @@ class Relu(Unary):
 
 class LeakyRelu(Unary):
     attrs: ClassVar[Mapping[str, AttrValue]] = {"alpha": 0.01}
-    expression = "{x} >= 0.0f ? {x} : {alpha} * {x}"
+    expression = "({x} >= 0.0f) ? {x} : ({alpha} * {x})"
 
     def formats(self, node: Node, ctx: EmitContext) -> dict[str, str]:
         return {"alpha": ctx.literal(float(node.attr("alpha", 0.01)))}
@@ -132,7 +132,7 @@ class Clip(Unary):
 
     def emit(self, node: Node, ctx: EmitContext, n: int) -> list[str]:
         x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
-        lines = [f"for (int i = 0; i < {n}; ++i) {{", f"    float v = {x}[i];"]
+        lines = [f"for (uint32_t i = 0u; i < {n}u; ++i) {{", f"    float v = {x}[i];"]
         names = ("min", "max")
         for k, bound in enumerate(node.inputs[1:3]):
             array = ctx.constant(bound) if bound else None
@@ -140,7 +140,7 @@ class Clip(Unary):
                 continue
             lit = ctx.literal(float(array.reshape(-1)[0]))
             op = "<" if names[k] == "min" else ">"
-            lines.append(f"    v = v {op} {lit} ? {lit} : v;")
+            lines.append(f"    v = (v {op} {lit}) ? {lit} : v;")
         lines += [f"    {y}[i] = v;", "}"]
         return lines
 
@@ -189,7 +189,7 @@ class Binary(Emitter):
             ref = ctx.ref(node.inputs[1])
             b = f"{ref}[0]" if ctx.size(node.inputs[1]) == 1 else f"{ref}[i]"
         expr = self.select.format(a=a, b=b) if self.select else f"{a} {self.operator} {b}"
-        return [f"for (int i = 0; i < {n}; ++i) {{", f"    {y}[i] = {expr};", "}"]
+        return [f"for (uint32_t i = 0u; i < {n}u; ++i) {{", f"    {y}[i] = {expr};", "}"]
 
     @staticmethod
     def numpy(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -11,6 +11,7 @@ registers per pass (:func:`dot_order_source`), adding each output's terms in the
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -56,7 +57,7 @@ def per_row(lines: list[str], rows: str | None) -> list[str]:
     """``lines`` once per row of a block (``rows`` its C row count), or as they are for one observation."""
     if rows is None:
         return lines
-    return [f"for (int r = 0; r < {rows}; ++r) {{", *(f"    {line}" for line in lines), "}"]
+    return [f"for (uint32_t r = 0u; r < {rows}; ++r) {{", *(f"    {line}" for line in lines), "}"]
 
 
 DOT_ROWS = (8, 4, 2, 1)
@@ -89,7 +90,7 @@ def _dot_input(r: int, xk: str, row: str, cast: str, ctype: str) -> list[str]:
         "{",
         f"    const float xk = {xk};",
         f"    const {ctype} *row = {row}; /* the pass's {r} weights of this input */",
-        *(f"    a{i} = a{i} + xk * {cast}row[{i}];" for i in range(r)),
+        *(f"    a{i} = a{i} + (xk * {cast}row[{i}]);" for i in range(r)),
         "}",
     ]
 
@@ -115,12 +116,12 @@ def _dot_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str) -> 
             )
         ]
         lines += [
-            f"for (int n = {first}; n < {first + r * count}; n += {r}) {{",
+            f"for (uint32_t n = {first}u; n < {first + r * count}u; n += {r}u) {{",
             *(f"    float a{i} = {init.replace('[n]', f'[{at[i]}]')};" for i in range(r)),
         ]
         if whole:
             lines += [
-                f"    for (int k = 0; k < {whole}; k += {step}) {{",
+                f"    for (uint32_t k = 0u; k < {whole}u; k += {step}u) {{",
                 *(f"        {b}" for b in body),
                 "    }",
             ]
@@ -158,26 +159,26 @@ def _input_major_lines(
     # never reassociates it, so the result does not depend on the optimisation level or vector width.
     # In a block of rows the row loop runs inside the pass over k: each row's sums are the same, and the
     # K_BLOCK weight rows of a pass are read from memory once for the whole block.
-    lines = per_row([f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {init};", "}"], rows)
+    lines = per_row([f"for (uint32_t n = 0u; n < {n}u; ++n) {{", f"    {y}[n] = {init};", "}"], rows)
     full = k - k % K_BLOCK
     if full:
-        ks = ["k", *(f"k + {j}" for j in range(1, K_BLOCK))]  # no "k + 0": MISRA 2.2 (no effect)
-        terms = " + ".join(f"x{j} * {cast}{w}[{kj}][n]" for j, kj in enumerate(ks))
+        ks = ["k", *(f"k + {j}u" for j in range(1, K_BLOCK))]  # no "k + 0": MISRA 2.2 (no effect)
+        terms = " + ".join(f"(x{j} * {cast}{w}[{kj}][n])" for j, kj in enumerate(ks))
         block = [
             *[f"const float x{j} = {x}[{kj}];" for j, kj in enumerate(ks)],
-            f"for (int n = 0; n < {n}; ++n) {{",
+            f"for (uint32_t n = 0u; n < {n}u; ++n) {{",
             f"    {y}[n] = {y}[n] + {terms};",
             "}",
         ]
         lines += [
-            f"for (int k = 0; k < {full}; k += {K_BLOCK}) {{",
+            f"for (uint32_t k = 0u; k < {full}u; k += {K_BLOCK}u) {{",
             *(f"    {line}" for line in per_row(block, rows)),
             "}",
         ]
     for k0 in range(full, k):
         step = [
-            f"for (int n = 0; n < {n}; ++n) {{",
-            f"    {y}[n] = {y}[n] + {x}[{k0}] * {cast}{w}[{k0}][n];",
+            f"for (uint32_t n = 0u; n < {n}u; ++n) {{",
+            f"    {y}[n] = {y}[n] + ({x}[{k0}] * {cast}{w}[{k0}][n]);",
             "}",
         ]
         lines += per_row(step, rows)
@@ -201,12 +202,12 @@ def _quantized_lines(
     qsym = ctx.const(node.inputs[1] + "#int8", q, f"{node.name} weights, int8, input-major [{k}][{n}]")
     ssym = ctx.const(node.inputs[1] + "#scale", scale, f"{node.name} per-output scales [{n}]")
     lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)", rows=ctx.rows, order=_order(ctx))
-    scaled = f"{ssym}[n] * {y}[n]"
+    scaled = f"({ssym}[n] * {y}[n])"
     return [
         *lines,
         *per_row(
             [
-                f"for (int n = 0; n < {n}; ++n) {{",
+                f"for (uint32_t n = 0u; n < {n}u; ++n) {{",
                 f"    {y}[n] = {bias + ' + ' if bias else ''}{scaled};",
                 "}",
             ],
@@ -231,6 +232,15 @@ class Q15Layer:
     out_frac: int | None
     """Fractional bits of the int16 output; None for the last layer, whose output is float."""
     relu: bool
+
+    def __post_init__(self) -> None:
+        bound = int(np.max(np.abs(self.bias), initial=0)) + self.weights.shape[1] * Q15_MAX * Q15_MAX
+        shifts = self.shifts() if self.out_frac is not None else np.ones(1, np.int64)
+        if bound >= Q15_ACC_OFFSET or np.any(shifts < 1) or np.any(shifts > Q15_MAX_SHIFT):
+            raise UnsupportedOpError(
+                f"{self.name}: its q15 sums (up to {bound:.3g}) or rounding shifts (1..{Q15_MAX_SHIFT}) are "
+                "out of range for 16-bit fixed point; export it in float32 or int8"
+            )
 
     def shifts(self) -> np.ndarray:
         assert self.out_frac is not None
@@ -259,21 +269,30 @@ class Q15Layer:
         b = ctx.const(f"{self.name}#q15bias", self.bias, f"{self.name} bias in accumulator units [{n_out}]")
         lines = [
             f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''} */",
-            f"for (int n = 0; n < {n_out}; ++n) {{",
+            f"for (uint32_t n = 0u; n < {n_out}u; ++n) {{",
             f"    int64_t acc = {b}[n];",
-            f"    for (int k = 0; k < {k_in}; ++k) {{",
-            f"        acc += (int32_t){src}[k] * (int32_t){w}[n][k];",
+            f"    for (uint32_t k = 0u; k < {k_in}u; ++k) {{",
+            f"        const int32_t product = (int32_t){src}[k] * (int32_t){w}[n][k]; /* exact */",
+            "        acc += product;",
             "    }",
         ]
         if self.out_frac is None:
             s = ctx.const(f"{self.name}#q15scale", self.out_scale(), f"{self.name} output scales [{n_out}]")
             return [*lines, f"    {dst}[n] = (float)acc * {s}[n];", "}"]
         sh = ctx.const(f"{self.name}#q15shift", self.shifts().astype(np.uint8), f"{self.name} shifts")
-        clamp = "r > 32767 ? 32767 : (r < " + ("0 ? 0" if self.relu else "-32767 ? -32767") + " : r)"
+        clamp = "(r > 32767) ? 32767 : ((r < " + ("0) ? 0" if self.relu else "-32767) ? -32767") + " : r)"
         return [
             *lines,
-            f"    const int sh = {sh}[n];",
-            "    const int64_t r = (acc + ((int64_t)1 << (sh - 1))) >> sh; /* round, arithmetic shift */",
+            f"    const uint32_t sh = {sh}[n];",
+            "    /* round: floor((acc + 2^(sh - 1)) / 2^sh), on acc + 2^62 (never negative), unsigned */",
+            f"    const uint64_t offset = {Q15_ACC_OFFSET:#x}u;",
+            "    const uint64_t one = 1u;",
+            "    const uint32_t half_shift = sh - 1u;",
+            "    const uint64_t half = one << half_shift;",
+            "    const uint64_t biased = ((uint64_t)acc + offset) + half;",
+            "    const uint64_t shifted = biased >> sh;",
+            "    const uint64_t base = offset >> sh;",
+            "    const int64_t r = (int64_t)shifted - (int64_t)base;",
             f"    {dst}[n] = (int16_t)({clamp});",
             "}",
         ]
@@ -281,6 +300,12 @@ class Q15Layer:
 
 Q15_MAX = 32767
 """int16 activations and weights are kept within +-Q15_MAX (symmetric)."""
+Q15_ACC_OFFSET = 1 << 62
+"""Added to a q15 sum before its rounding shift, so that the shift runs on an unsigned value (MISRA C:2012
+rule 10.1: no shift of a signed value) and divides by 2^sh rounding down, as an arithmetic shift does: exact
+for every sum within +-2^62, which each :class:`Q15Layer` checks of its weights and bias."""
+Q15_MAX_SHIFT = 61
+"""The largest rounding shift: 2^62 is a multiple of 2^sh, and the shifted sum stays below 2^63."""
 
 
 class Linear(Emitter):
@@ -376,7 +401,7 @@ class Gemm(Linear):
             scaled += f" + {ctx.literal(beta)} * {bias}"
         return [
             *lines,
-            *per_row([f"for (int n = 0; n < {n}; ++n) {{", f"    {y}[n] = {scaled};", "}"], ctx.rows),
+            *per_row([f"for (uint32_t n = 0u; n < {n}u; ++n) {{", f"    {y}[n] = {scaled};", "}"], ctx.rows),
         ]
 
     def reference(
@@ -539,20 +564,20 @@ static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift
     int64_t x = acc;
     if (shift > 0) {{
         x = x * ((int64_t)1 << shift);
-        x = x > INT32_MAX ? INT32_MAX : (x < INT32_MIN ? INT32_MIN : x);
+        x = (x > INT32_MAX) ? INT32_MAX : ((x < INT32_MIN) ? INT32_MIN : x);
     }}
     const int32_t high = (int32_t)((x * (int64_t)m + ((int64_t)1 << 30)) >> 31);
-    const int32_t right = shift > 0 ? 0 : -shift;
+    const int32_t right = (shift > 0) ? 0 : -shift;
     const int32_t mask = (int32_t)((1u << (uint32_t)right) - 1u);
     const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
     const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
-    return r > {REQUANT_CLAMP - 1} ? {REQUANT_CLAMP - 1} : (r < -{REQUANT_CLAMP} ? -{REQUANT_CLAMP} : r);
+    return (r > {REQUANT_CLAMP - 1}) ? {REQUANT_CLAMP - 1} : ((r < -{REQUANT_CLAMP}) ? -{REQUANT_CLAMP} : r);
 }}
 
 /* Any shift: the branch-free form for shift < 0, the general one otherwise. */
 static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
 {{
-    return shift < 0 ? {prefix}_requantize_right(acc, m, shift, zero, low)
+    return (shift < 0) ? {prefix}_requantize_right(acc, m, shift, zero, low)
                      : {prefix}_clamp({prefix}_requantize_general(acc, m, shift), zero, low);
 }}"""
 
@@ -715,11 +740,11 @@ class Int8Layer:
         lines = [
             f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''}, int8 x int8 -> int32 */",
             f"#if {up}_DSP",
-            f"for (int g = 0; g < {groups}; ++g) {{",
+            f"for (uint32_t g = 0u; g < {groups}u; ++g) {{",
             "    uint32_t u;",
-            f"    (void)memcpy(&u, &{src}[{WORD} * g], sizeof u);",
-            f"    {pairs}[2 * g] = __sxtb16((int32_t)u);",
-            f"    {pairs}[2 * g + 1] = {odd}((int32_t)u);",
+            f"    (void)memcpy(&u, &{src}[{WORD}u * g], sizeof u);",
+            f"    {pairs}[2u * g] = __sxtb16((int32_t)u);",
+            f"    {pairs}[2u * g + 1u] = {odd}((int32_t)u);",
             "}",
         ]
         for run in row_blocks(n_out, groups):
@@ -753,9 +778,17 @@ class Int8Layer:
 
 
 def _index(*terms: str) -> str:
-    """A C sum of the terms that are not empty or "0" (no ``+ 0``: MISRA 2.2)."""
-    kept = [t for t in terms if t not in ("", "0")]
-    return " + ".join(kept) if kept else "0"
+    """A C sum of the terms that are not empty or "0" (no ``+ 0``: MISRA 2.2), its integer literals unsigned
+    as the loop counters they combine with (MISRA 10.4: no signed and unsigned operands in one operation)."""
+    kept = [_UNSIGNED_LITERAL.sub(r"\1u", t) for t in terms if t not in ("", "0")]
+    total = " + ".join(kept)
+    if " + " in total:  # the products of a sum in parentheses (MISRA 12.1)
+        total = _PRODUCT.sub(r"(\1)", total)
+    return total or "0u"
+
+
+_UNSIGNED_LITERAL = re.compile(r"\b(\d+)\b(?!u)")
+_PRODUCT = re.compile(r"\b(\w+ \* \w+)\b")
 
 
 def _block(run: RowBlocks) -> str:
@@ -818,13 +851,13 @@ def _dsp_pass(
     whole = groups - groups % step
     body = [f"{barrier}();" if j else "" for j in range(step)]
     lines = [
-        f"for (int b = 0; b < {run.count}; ++b) {{ /* {r} output(s) per pass, {4 * r} multiply-adds per "
-        f"group of four inputs in {2 * r} SMLAD */",
+        f"for (uint32_t b = 0u; b < {run.count}u; ++b) {{ /* {r} output(s) per pass, {4 * r} multiply-adds "
+        f"per group of four inputs in {2 * r} SMLAD */",
         f"    const int32_t *w = &{w}[{_index(str(run.offset), f'{r * groups} * b')}];",
         *(f"    int32_t a{i} = {b}[{_index(_block(run), str(i))}];" for i in range(r)),
     ]
     if whole:
-        lines += [f"    for (int g = 0; g < {whole}; g += {step}) {{"]
+        lines += [f"    for (uint32_t g = 0u; g < {whole}u; g += {step}u) {{"]
         for j in range(step):
             lines += [
                 f"        {line}"
@@ -902,10 +935,10 @@ def _portable_pass(
     n = _index(_block(run), "i")
     word = _index(str(run.offset), f"{r * groups} * b", f"{r} * g + i" if r > 1 else "g")
     return [
-        f"for (int b = 0; b < {run.count}; ++b) {{",
-        f"    for (int i = 0; i < {r}; ++i) {{",
+        f"for (uint32_t b = 0u; b < {run.count}u; ++b) {{",
+        f"    for (uint32_t i = 0u; i < {r}u; ++i) {{",
         f"        int32_t acc = {b}[{n}];",
-        f"        for (int g = 0; g < {groups}; ++g) {{",
+        f"        for (uint32_t g = 0u; g < {groups}u; ++g) {{",
         f"            const uint32_t u = (uint32_t){w}[{word}];",
         *(f"            acc += (int32_t){src}[{_index(f'{WORD} * g', str(j))}] * {byte}(u, {j}u);"
           for j in range(WORD)),

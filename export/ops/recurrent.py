@@ -177,7 +177,7 @@ class Recurrent(Emitter):
             lines = [f"{out} = {bias};"]
             for matrix, _, vector, length in terms:
                 lines += [
-                    f"for (int k = 0; k < {length}; ++k) {{",
+                    f"for (uint32_t k = 0u; k < {length}u; ++k) {{",
                     f"    {out} += {matrix}[{row}][k] * {vector};",
                     "}",
                 ]
@@ -186,11 +186,11 @@ class Recurrent(Emitter):
         for t, (matrix, scale, vector, length) in enumerate(terms):
             lines += [
                 f"float {tag}_sum{t} = 0.0f;",
-                f"for (int k = 0; k < {length}; ++k) {{",
+                f"for (uint32_t k = 0u; k < {length}u; ++k) {{",
                 f"    {tag}_sum{t} += (float){matrix}[{row}][k] * {vector};",
                 "}",
             ]
-            parts.append(f"{scale}[{row}] * {tag}_sum{t}")
+            parts.append(f"({scale}[{row}] * {tag}_sum{t})")
         return [*lines, f"{out} = {bias} + {' + '.join(parts)};"]
 
     @staticmethod
@@ -303,17 +303,17 @@ class LSTM(Recurrent):
         x, h, c = (ctx.ref(node.inputs[p]) for p in (X, INITIAL_H, INITIAL_C))
         sig, tanh = ctx.helper("sigmoid_det"), ctx.helper("tanh_det")
         features = ctx.size(node.inputs[X])
-        row = f"g * {n} + j"
+        row = f"(g * {n}u) + j"
         sums = self.sum_c(
             "acc[g]", f"{bc}[{row}]", [(wc, sw, f"{x}[k]", features), (rc, sr, f"{h}[k]", n)], row, "gate"
         )
         return [
-            f"for (int j = 0; j < {n}; ++j) {{",
+            f"for (uint32_t j = 0u; j < {n}u; ++j) {{",
             f"    float acc[{self.gates}];",
-            f"    for (int g = 0; g < {self.gates}; ++g) {{",
+            f"    for (uint32_t g = 0u; g < {self.gates}u; ++g) {{",
             *("        " + line for line in sums),
             "    }",
-            f"    const float c_next = {sig}(acc[2]) * {c}[j] + {sig}(acc[0]) * {tanh}(acc[3]);",
+            f"    const float c_next = ({sig}(acc[2]) * {c}[j]) + ({sig}(acc[0]) * {tanh}(acc[3]));",
             f"    const float h_next = {sig}(acc[1]) * {tanh}(c_next);",
             *self._outputs_c(node, ctx, ("h_next", "h_next", "c_next")),
             "}",
@@ -405,7 +405,7 @@ class GRU(Recurrent):
         sig, tanh = ctx.helper("sigmoid_det"), ctx.helper("tanh_det")
         features = ctx.size(node.inputs[X])
         before = int(node.attr("linear_before_reset", 0)) != 0
-        gate_row, n_row = f"g * {n} + j", f"{2 * hidden} + j"
+        gate_row, n_row = f"(g * {n}u) + j", f"{2 * hidden}u + j"
         gates = self.sum_c(
             "acc[g]",
             f"{bc}[{gate_row}]",
@@ -413,31 +413,31 @@ class GRU(Recurrent):
             gate_row,
             "gate",
         )
-        wn = self.sum_c("wn", f"{bc}[{2 * hidden} + j]", [(wc, sw, f"{x}[k]", features)], n_row, "wn")
+        wn = self.sum_c("wn", f"{bc}[{2 * hidden}u + j]", [(wc, sw, f"{x}[k]", features)], n_row, "wn")
         # The candidate's recurrent term sums over every unit's reset gate (linear_before_reset=0), so the
         # gates of all units come first.
         recurrent = f"{h}[k]" if before else f"(rg[k] * {h}[k])"
-        rn = self.sum_c("rn", f"{bc}[{3 * hidden} + j]", [(rc, sr, recurrent, n)], n_row, "rn")
-        cand = f"{tanh}(wn + rg[j] * rn)" if before else f"{tanh}(wn + rn)"
+        rn = self.sum_c("rn", f"{bc}[{3 * hidden}u + j]", [(rc, sr, recurrent, n)], n_row, "rn")
+        cand = f"{tanh}(wn + (rg[j] * rn))" if before else f"{tanh}(wn + rn)"
         return [
             "{",
             f"float zg[{n}];",
             f"float rg[{n}];",
-            f"for (int j = 0; j < {n}; ++j) {{",
+            f"for (uint32_t j = 0u; j < {n}u; ++j) {{",
             "    float acc[2];",
-            "    for (int g = 0; g < 2; ++g) {",
+            "    for (uint32_t g = 0u; g < 2u; ++g) {",
             *("        " + line for line in gates),
             "    }",
             f"    zg[j] = {sig}(acc[0]);",
             f"    rg[j] = {sig}(acc[1]);",
             "}",
-            f"for (int j = 0; j < {n}; ++j) {{",
+            f"for (uint32_t j = 0u; j < {n}u; ++j) {{",
             "    float wn;",
             "    float rn;",
             *("    " + line for line in wn),
             *("    " + line for line in rn),
             f"    const float cand = {cand};",
-            f"    const float h_next = (1.0f - zg[j]) * cand + zg[j] * {h}[j];",
+            f"    const float h_next = ((1.0f - zg[j]) * cand) + (zg[j] * {h}[j]);",
             *self._outputs_c(node, ctx, ("h_next", "h_next")),
             "}",
             "}",

@@ -34,8 +34,6 @@ CALLS = {
     "_step": (9, "once per sample period, when an observation is complete (node_on_frame)",
               "one inference; a non-finite observation or result writes the safe action and returns an "
               "error"),
-    "_step_batch": (10, "host-side verification only (the firmware's link drops it)",
-                    "n rows, each bit for bit policy_step's"),
 }  # fmt: skip
 """Each public function of node.h and the generated policy header (``_step``: ``<name>_step``): its place in
 the call order, when it is called and what it does. A test keeps it complete."""

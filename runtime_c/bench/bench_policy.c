@@ -16,7 +16,11 @@
 #include <stdlib.h>
 #include <time.h>
 
-#include "policy.h"
+#if defined(PEER) || defined(POLICY_WITHOUT_HOST_FILE)
+#include "policy.h" /* an export from before the host file declares policy_step_batch here */
+#else
+#include "policy_host.h" /* policy_step, and the host-only policy_step_batch */
+#endif
 
 #if defined(PEER)
 void peer(int batch, const float obs[][POLICY_OBS_DIM], float act[][POLICY_ACT_DIM]);

@@ -74,6 +74,8 @@ def test_export_of_a_trained_policy_is_verified(algo: str, models: dict[str, Pat
     assert sorted(report["files"]) == sorted([
         "c/policy.c",
         "c/policy.h",
+        "c/policy_host.c",
+        "c/policy_host.h",
         *can_code,
         "interface.json",
         "policy.onnx",

@@ -59,7 +59,8 @@ def test_generated_code_matches_the_golden_files(request: pytest.FixtureRequest)
         assert text == (GOLDEN / name).read_text(), f"{name} differs from its golden file"
 
 
-def test_golden_files_compile_standalone_with_strict_flags(tmp_path: Path) -> None:
+@pytest.mark.parametrize("source", ["policy.c", "policy_host.c"])
+def test_golden_files_compile_standalone_with_strict_flags(tmp_path: Path, source: str) -> None:
     cmd = [
         "cc",
         "-std=c99",
@@ -72,7 +73,7 @@ def test_golden_files_compile_standalone_with_strict_flags(tmp_path: Path) -> No
         "-Werror",
         "-pedantic",
         "-c",
-        str(GOLDEN / "policy.c"),
+        str(GOLDEN / source),
         "-o",
         str(tmp_path / "policy.o"),
     ]
@@ -97,7 +98,7 @@ def test_no_malloc_no_stdio_and_named_layers() -> None:
 
 def test_name_prefixes_every_symbol(tmp_path: Path) -> None:
     files = generate(to_ir(tiny_model()), name="left")
-    assert sorted(files) == ["left.c", "left.h"]
+    assert sorted(files) == ["left.c", "left.h", "left_host.c", "left_host.h"]
     assert "#define LEFT_OBS_DIM 3" in files["left.h"] and "int left_step(" in files["left.h"]
     assert "policy" not in files["left.c"].split("*/", 1)[1]
     # Two policies link into one program.

@@ -37,8 +37,8 @@ def test_the_shipped_td3_policy_is_covered_entirely_by_its_verification_vectors_
     measured: dict[str, Any],
 ) -> None:
     policy = _file(measured, "policy.c")
-    assert policy["lines"]["covered"] == policy["lines"]["count"] > 150
-    assert policy["branches"]["covered"] == policy["branches"]["count"] > 100
+    assert policy["lines"]["covered"] == policy["lines"]["count"] > 80  # the deployable step (no batch)
+    assert policy["branches"]["covered"] == policy["branches"]["count"] > 40
     assert policy["mcdc"]["count"] == 0  # every decision of the generated C has one condition
     assert policy["gaps"] == [] and policy["meets_goal"]
     probes = measured["probes"]
@@ -63,7 +63,7 @@ def test_the_node_and_its_can_glue_reach_the_goal_or_say_why_not(measured: dict[
     assert {kind for _, kind in node_gaps} == {"branch", "condition"}  # every line of node.c runs
     assert not _file(measured, "policy_dbc.c")["in_goal"]
     passed, detail = coverage.check(measured)
-    assert passed and "policy.c lines 196/196 (100%), branches 122/122 (100%), MC/DC none" in detail
+    assert passed and "policy.c lines 86/86 (100%), branches 44/44 (100%), MC/DC none" in detail
     assert detail.endswith(
         "; 5 gap(s), each with its reason; merged from the verification vectors, the C tests (no HIL run "
         "with coverage)"

@@ -55,42 +55,45 @@ policy_io_status policy_io_decode_observation(unsigned part, const uint8_t data[
 }
 
 /* v within [lo, hi]; anything else (NaN included) is moved to the nearest bound and counted. */
-static float saturate(float v, float lo, float hi, unsigned *count)
+static float clamp_to_range(float v, float lo, float hi, unsigned *count)
 {
-    if (v >= lo && v <= hi) {
+    if ((v >= lo) && (v <= hi)) {
         return v;
     }
     *count += 1u;
-    return v > hi ? hi : lo;
+    return (v > hi) ? hi : lo;
 }
 
 /* A bit test of the exponent: it holds under -ffast-math, where comparisons may assume no NaN. */
 static bool is_finite(float v)
 {
-    uint32_t bits;
-    memcpy(&bits, &v, sizeof bits);
-    return (bits & 0x7F800000u) != 0x7F800000u;
+    union {
+        float f;
+        uint32_t u;
+    } bits;
+    bits.f = v;
+    return (bits.u & 0x7F800000u) != 0x7F800000u;
 }
 
 bool policy_io_action_ok(const float act[POLICY_ACT_DIM])
 {
-    return is_finite(act[0]) && act[0] >= -1.00000191f && act[0] <= 1.00000191f &&
-           is_finite(act[1]) && act[1] >= -1.00000191f && act[1] <= 1.00000191f;
+    return is_finite(act[0]) && (act[0] >= -1.00000191f) && (act[0] <= 1.00000191f) &&
+           is_finite(act[1]) && (act[1] >= -1.00000191f) && (act[1] <= 1.00000191f);
 }
 
 unsigned policy_io_encode_action(unsigned part, const float act[POLICY_ACT_DIM], uint16_t step,
                                  uint8_t counter, uint8_t data[POLICY_IO_FRAME_BYTES])
 {
     unsigned saturated = 0u;
-    memset(data, 0, POLICY_IO_FRAME_BYTES);
+    (void)memset(data, 0, POLICY_IO_FRAME_BYTES);
     switch (part) {
     case 0u: { /* Action: force_left, force_right */
         struct policy_dbc_action_t msg;
-        memset(&msg, 0, sizeof msg);
+        (void)memset(&msg, 0, sizeof msg);
         msg.counter = counter;
         msg.step = step;
-        msg.force_left = policy_dbc_action_force_left_encode((double)saturate(act[0], -1.0f, 1.0f, &saturated));
-        msg.force_right = policy_dbc_action_force_right_encode((double)saturate(act[1], -1.0f, 1.0f, &saturated));
+        msg.force_left = policy_dbc_action_force_left_encode((double)clamp_to_range(act[0], -1.0f, 1.0f, &saturated));
+        msg.force_right = policy_dbc_action_force_right_encode((double)clamp_to_range(act[1], -1.0f, 1.0f, &saturated));
         (void)policy_dbc_action_pack(data, &msg, POLICY_IO_FRAME_BYTES);
         return saturated;
     }

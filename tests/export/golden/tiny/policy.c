@@ -75,14 +75,17 @@ static float policy_buf1[4];
  * compiler assume that no NaN or infinity exists and drop isfinite(). */
 static int policy_finite(float x)
 {
-    uint32_t bits;
-    (void)memcpy(&bits, &x, sizeof bits);
-    return (bits & 0x7f800000u) != 0x7f800000u;
+    union {
+        float f;
+        uint32_t u;
+    } bits;
+    bits.f = x;
+    return (bits.u & 0x7f800000u) != 0x7f800000u;
 }
 
 static int policy_safe(float act[POLICY_ACT_DIM], int code)
 {
-    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
         act[i] = policy_safe_action[i];
     }
     return code;
@@ -93,277 +96,141 @@ void policy_reset(void)
     /* no recurrent state */
 }
 
-/* x86-64 glibc, gcc: compiled for each of default, avx2, the CPU's picked at load
- * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
- * order and all give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */
-#if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \
-    !defined(POLICY_ONE_TARGET)
-#define POLICY_TARGETS __attribute__((target_clones("default", "avx2"), optimize("vect-cost-model=dynamic")))
-#else
-#define POLICY_TARGETS
-#endif
-POLICY_TARGETS
 int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
-    for (int i = 0; i < POLICY_OBS_DIM; ++i) {
+    for (uint32_t i = 0u; i < (uint32_t)POLICY_OBS_DIM; ++i) {
         if (!policy_finite(obs[i])) {
             return policy_safe(act, POLICY_ERR_OBS_NOT_FINITE);
         }
     }
     /* Sub 'normalize.sub' [1x3] -> [1x3] */
-    for (int i = 0; i < 3; ++i) {
+    for (uint32_t i = 0u; i < 3u; ++i) {
         policy_buf0[i] = obs[i] - policy_w0_mean[i];
     }
     /* Div 'normalize.div' [1x3] -> [1x3] */
-    for (int i = 0; i < 3; ++i) {
+    for (uint32_t i = 0u; i < 3u; ++i) {
         policy_buf0[i] = policy_buf0[i] / policy_w1_std[i];
     }
     /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
     #if POLICY_DOT_PRODUCTS
-    for (int n = 0; n < 4; n += 4) {
+    for (uint32_t n = 0u; n < 4u; n += 4u) {
         float a0 = policy_w3_b1[n];
-        float a1 = policy_w3_b1[n + 1];
-        float a2 = policy_w3_b1[n + 2];
-        float a3 = policy_w3_b1[n + 3];
+        float a1 = policy_w3_b1[n + 1u];
+        float a2 = policy_w3_b1[n + 2u];
+        float a3 = policy_w3_b1[n + 3u];
         {
             const float xk = policy_buf0[0];
             const float *row = &policy_w2_W1[0][n]; /* the pass's 4 weights of this input */
-            a0 = a0 + xk * row[0];
-            a1 = a1 + xk * row[1];
-            a2 = a2 + xk * row[2];
-            a3 = a3 + xk * row[3];
+            a0 = a0 + (xk * row[0]);
+            a1 = a1 + (xk * row[1]);
+            a2 = a2 + (xk * row[2]);
+            a3 = a3 + (xk * row[3]);
         }
         {
             const float xk = policy_buf0[1];
             const float *row = &policy_w2_W1[1][n]; /* the pass's 4 weights of this input */
-            a0 = a0 + xk * row[0];
-            a1 = a1 + xk * row[1];
-            a2 = a2 + xk * row[2];
-            a3 = a3 + xk * row[3];
+            a0 = a0 + (xk * row[0]);
+            a1 = a1 + (xk * row[1]);
+            a2 = a2 + (xk * row[2]);
+            a3 = a3 + (xk * row[3]);
         }
         {
             const float xk = policy_buf0[2];
             const float *row = &policy_w2_W1[2][n]; /* the pass's 4 weights of this input */
-            a0 = a0 + xk * row[0];
-            a1 = a1 + xk * row[1];
-            a2 = a2 + xk * row[2];
-            a3 = a3 + xk * row[3];
+            a0 = a0 + (xk * row[0]);
+            a1 = a1 + (xk * row[1]);
+            a2 = a2 + (xk * row[2]);
+            a3 = a3 + (xk * row[3]);
         }
         policy_buf1[n] = a0;
-        policy_buf1[n + 1] = a1;
-        policy_buf1[n + 2] = a2;
-        policy_buf1[n + 3] = a3;
+        policy_buf1[n + 1u] = a1;
+        policy_buf1[n + 2u] = a2;
+        policy_buf1[n + 3u] = a3;
     }
     #else
-    for (int n = 0; n < 4; ++n) {
+    for (uint32_t n = 0u; n < 4u; ++n) {
         policy_buf1[n] = policy_w3_b1[n];
     }
-    for (int n = 0; n < 4; ++n) {
-        policy_buf1[n] = policy_buf1[n] + policy_buf0[0] * policy_w2_W1[0][n];
+    for (uint32_t n = 0u; n < 4u; ++n) {
+        policy_buf1[n] = policy_buf1[n] + (policy_buf0[0] * policy_w2_W1[0][n]);
     }
-    for (int n = 0; n < 4; ++n) {
-        policy_buf1[n] = policy_buf1[n] + policy_buf0[1] * policy_w2_W1[1][n];
+    for (uint32_t n = 0u; n < 4u; ++n) {
+        policy_buf1[n] = policy_buf1[n] + (policy_buf0[1] * policy_w2_W1[1][n]);
     }
-    for (int n = 0; n < 4; ++n) {
-        policy_buf1[n] = policy_buf1[n] + policy_buf0[2] * policy_w2_W1[2][n];
+    for (uint32_t n = 0u; n < 4u; ++n) {
+        policy_buf1[n] = policy_buf1[n] + (policy_buf0[2] * policy_w2_W1[2][n]);
     }
     #endif
     /* Relu 'relu1' [1x4] -> [1x4] */
-    for (int i = 0; i < 4; ++i) {
-        policy_buf1[i] = policy_buf1[i] < 0.0f ? 0.0f : policy_buf1[i];
+    for (uint32_t i = 0u; i < 4u; ++i) {
+        policy_buf1[i] = (policy_buf1[i] < 0.0f) ? 0.0f : policy_buf1[i];
     }
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
     #if POLICY_DOT_PRODUCTS
-    for (int n = 0; n < 2; n += 2) {
+    for (uint32_t n = 0u; n < 2u; n += 2u) {
         float a0 = policy_w5_b2[n];
-        float a1 = policy_w5_b2[n + 1];
-        for (int k = 0; k < 4; k += 4) {
+        float a1 = policy_w5_b2[n + 1u];
+        for (uint32_t k = 0u; k < 4u; k += 4u) {
             {
                 const float xk = policy_buf1[k];
                 const float *row = &policy_w4_W2[k][n]; /* the pass's 2 weights of this input */
-                a0 = a0 + xk * row[0];
-                a1 = a1 + xk * row[1];
+                a0 = a0 + (xk * row[0]);
+                a1 = a1 + (xk * row[1]);
             }
             {
-                const float xk = policy_buf1[k + 1];
-                const float *row = &policy_w4_W2[k + 1][n]; /* the pass's 2 weights of this input */
-                a0 = a0 + xk * row[0];
-                a1 = a1 + xk * row[1];
+                const float xk = policy_buf1[k + 1u];
+                const float *row = &policy_w4_W2[k + 1u][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + (xk * row[0]);
+                a1 = a1 + (xk * row[1]);
             }
             {
-                const float xk = policy_buf1[k + 2];
-                const float *row = &policy_w4_W2[k + 2][n]; /* the pass's 2 weights of this input */
-                a0 = a0 + xk * row[0];
-                a1 = a1 + xk * row[1];
+                const float xk = policy_buf1[k + 2u];
+                const float *row = &policy_w4_W2[k + 2u][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + (xk * row[0]);
+                a1 = a1 + (xk * row[1]);
             }
             {
-                const float xk = policy_buf1[k + 3];
-                const float *row = &policy_w4_W2[k + 3][n]; /* the pass's 2 weights of this input */
-                a0 = a0 + xk * row[0];
-                a1 = a1 + xk * row[1];
+                const float xk = policy_buf1[k + 3u];
+                const float *row = &policy_w4_W2[k + 3u][n]; /* the pass's 2 weights of this input */
+                a0 = a0 + (xk * row[0]);
+                a1 = a1 + (xk * row[1]);
             }
         }
         policy_buf0[n] = a0;
-        policy_buf0[n + 1] = a1;
+        policy_buf0[n + 1u] = a1;
     }
     #else
-    for (int n = 0; n < 2; ++n) {
+    for (uint32_t n = 0u; n < 2u; ++n) {
         policy_buf0[n] = policy_w5_b2[n];
     }
-    for (int k = 0; k < 4; k += 4) {
+    for (uint32_t k = 0u; k < 4u; k += 4u) {
         const float x0 = policy_buf1[k];
-        const float x1 = policy_buf1[k + 1];
-        const float x2 = policy_buf1[k + 2];
-        const float x3 = policy_buf1[k + 3];
-        for (int n = 0; n < 2; ++n) {
-            policy_buf0[n] = policy_buf0[n] + x0 * policy_w4_W2[k][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
+        const float x1 = policy_buf1[k + 1u];
+        const float x2 = policy_buf1[k + 2u];
+        const float x3 = policy_buf1[k + 3u];
+        for (uint32_t n = 0u; n < 2u; ++n) {
+            policy_buf0[n] = policy_buf0[n] + (x0 * policy_w4_W2[k][n]) + (x1 * policy_w4_W2[k + 1u][n]) + (x2 * policy_w4_W2[k + 2u][n]) + (x3 * policy_w4_W2[k + 3u][n]);
         }
     }
     #endif
     /* Tanh 'squash' [1x2] -> [1x2] */
-    for (int i = 0; i < 2; ++i) {
+    for (uint32_t i = 0u; i < 2u; ++i) {
         policy_buf0[i] = tanhf(policy_buf0[i]);
     }
     /* Clip 'clip' [1x2] -> [1x2] */
-    for (int i = 0; i < 2; ++i) {
+    for (uint32_t i = 0u; i < 2u; ++i) {
         float v = policy_buf0[i];
-        v = v < -0.899999976f ? -0.899999976f : v;
-        v = v > 0.899999976f ? 0.899999976f : v;
+        v = (v < -0.899999976f) ? -0.899999976f : v;
+        v = (v > 0.899999976f) ? 0.899999976f : v;
         policy_buf0[i] = v;
     }
-    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
         if (!policy_finite(policy_buf0[i])) {
             return policy_safe(act, POLICY_ERR_ACT_NOT_FINITE);
         }
     }
-    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
         act[i] = policy_buf0[i];
     }
     return POLICY_OK;
-}
-
-/* A block of rows (320 bytes, policy_step_batch only): the observations, then the
- * step's buffers, one row each. */
-static float policy_bobs[8][3];
-static float policy_b0[8][3];
-static float policy_b1[8][4];
-
-POLICY_TARGETS
-static void policy_block(int rows)
-{
-    (void)rows; /* a graph of shape-only ops computes nothing */
-    /* Sub 'normalize.sub' [1x3] -> [1x3] */
-    for (int r = 0; r < rows; ++r) {
-        for (int i = 0; i < 3; ++i) {
-            policy_b0[r][i] = policy_bobs[r][i] - policy_w0_mean[i];
-        }
-    }
-    /* Div 'normalize.div' [1x3] -> [1x3] */
-    for (int r = 0; r < rows; ++r) {
-        for (int i = 0; i < 3; ++i) {
-            policy_b0[r][i] = policy_b0[r][i] / policy_w1_std[i];
-        }
-    }
-    /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
-    for (int r = 0; r < rows; ++r) {
-        for (int n = 0; n < 4; ++n) {
-            policy_b1[r][n] = policy_w3_b1[n];
-        }
-    }
-    for (int r = 0; r < rows; ++r) {
-        for (int n = 0; n < 4; ++n) {
-            policy_b1[r][n] = policy_b1[r][n] + policy_b0[r][0] * policy_w2_W1[0][n];
-        }
-    }
-    for (int r = 0; r < rows; ++r) {
-        for (int n = 0; n < 4; ++n) {
-            policy_b1[r][n] = policy_b1[r][n] + policy_b0[r][1] * policy_w2_W1[1][n];
-        }
-    }
-    for (int r = 0; r < rows; ++r) {
-        for (int n = 0; n < 4; ++n) {
-            policy_b1[r][n] = policy_b1[r][n] + policy_b0[r][2] * policy_w2_W1[2][n];
-        }
-    }
-    /* Relu 'relu1' [1x4] -> [1x4] */
-    for (int r = 0; r < rows; ++r) {
-        for (int i = 0; i < 4; ++i) {
-            policy_b1[r][i] = policy_b1[r][i] < 0.0f ? 0.0f : policy_b1[r][i];
-        }
-    }
-    /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
-    for (int r = 0; r < rows; ++r) {
-        for (int n = 0; n < 2; ++n) {
-            policy_b0[r][n] = policy_w5_b2[n];
-        }
-    }
-    for (int k = 0; k < 4; k += 4) {
-        for (int r = 0; r < rows; ++r) {
-            const float x0 = policy_b1[r][k];
-            const float x1 = policy_b1[r][k + 1];
-            const float x2 = policy_b1[r][k + 2];
-            const float x3 = policy_b1[r][k + 3];
-            for (int n = 0; n < 2; ++n) {
-                policy_b0[r][n] = policy_b0[r][n] + x0 * policy_w4_W2[k][n] + x1 * policy_w4_W2[k + 1][n] + x2 * policy_w4_W2[k + 2][n] + x3 * policy_w4_W2[k + 3][n];
-            }
-        }
-    }
-    /* Tanh 'squash' [1x2] -> [1x2] */
-    for (int r = 0; r < rows; ++r) {
-        for (int i = 0; i < 2; ++i) {
-            policy_b0[r][i] = tanhf(policy_b0[r][i]);
-        }
-    }
-    /* Clip 'clip' [1x2] -> [1x2] */
-    for (int r = 0; r < rows; ++r) {
-        for (int i = 0; i < 2; ++i) {
-            float v = policy_b0[r][i];
-            v = v < -0.899999976f ? -0.899999976f : v;
-            v = v > 0.899999976f ? 0.899999976f : v;
-            policy_b0[r][i] = v;
-        }
-    }
-}
-
-/* Each row's code as policy_step returns it, and its actions or the safe action. */
-static int policy_finish(const float obs[POLICY_OBS_DIM], const float out[POLICY_ACT_DIM],
-                         float act[POLICY_ACT_DIM])
-{
-    for (int i = 0; i < POLICY_OBS_DIM; ++i) {
-        if (!policy_finite(obs[i])) {
-            return policy_safe(act, POLICY_ERR_OBS_NOT_FINITE);
-        }
-    }
-    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
-        if (!policy_finite(out[i])) {
-            return policy_safe(act, POLICY_ERR_ACT_NOT_FINITE);
-        }
-    }
-    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
-        act[i] = out[i];
-    }
-    return POLICY_OK;
-}
-
-int policy_step_batch(int n, const float *obs, float *act, int *status)
-{
-    int refused = 0;
-    for (int start = 0; start < n; start += 8) {
-        const int rows = n - start < 8 ? n - start : 8;
-        for (int r = 0; r < rows; ++r) {
-            for (int i = 0; i < POLICY_OBS_DIM; ++i) {
-                policy_bobs[r][i] = obs[(start + r) * POLICY_OBS_DIM + i];
-            }
-        }
-        policy_block(rows);
-        for (int r = 0; r < rows; ++r) {
-            const int row = start + r;
-            const int code = policy_finish(&obs[row * POLICY_OBS_DIM], policy_b0[r], &act[row * POLICY_ACT_DIM]);
-            if (status != NULL) {
-                status[row] = code;
-            }
-            refused += code != POLICY_OK ? 1 : 0;
-        }
-    }
-    return refused;
 }

@@ -30,11 +30,4 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
  * Call it at start-up, at each episode start and whenever the safe state is entered. */
 void policy_reset(void);
 
-/* Run the policy on n observations (obs: n rows of POLICY_OBS_DIM, act: n rows of POLICY_ACT_DIM, row-major),
- * each row's actions bit for bit those of policy_step, which also gives each row's code in status[] (if
- * not NULL). Returns the number of rows answered with the safe action. For host-side evaluation: it
- * reads each weight once per block of 8 rows, from its own buffers (not reentrant either).
- * With memory, the rows are one sequence: consecutive steps, the state carried from each to the next. */
-int policy_step_batch(int n, const float *obs, float *act, int *status);
-
 #endif /* POLICY_H */
