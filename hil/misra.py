@@ -6,7 +6,7 @@ texts are not distributed), as one program so that a macro or function used in a
 Every finding must be explained by an entry of the deviation log (``runtime_c/misra_deviations.toml``):
 a rule (or a cppcheck check id), the files it covers, why, and the exact number of findings, so that a new
 violation, or a fixed one left in the log, fails the check. Hand-written files name one number. A required
-rule in generated files names one number per precision of the policy (``count = {int8 = 7}``, none
+rule in generated files names one number per precision of the policy (``count = {int8 = 3}``, none
 for a precision not named): such findings come from the fixed helpers a precision brings (the requantisation
 of int8), not from the network's size. Only an advisory rule's entry for generated files may go
 without a count, when its findings scale with the network or the interface (one per weight table, per

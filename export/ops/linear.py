@@ -523,8 +523,8 @@ def clamp_source(prefix: str) -> str:
 static inline int8_t {prefix}_clamp(int32_t r, int32_t zero, int32_t low)
 {{
     int32_t q = r + zero;
-    q = q > {INT8_MAX} ? {INT8_MAX} : q;
-    q = q < low ? low : q; /* two conditional moves, no branch */
+    q = (q > {INT8_MAX}) ? {INT8_MAX} : q;
+    q = (q < low) ? low : q; /* two conditional moves, no branch */
     return (int8_t)q;
 }}"""
 

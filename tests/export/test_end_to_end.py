@@ -223,6 +223,8 @@ def test_onnx_source_and_name_prefix(models: dict[str, Path], tmp_path: Path) ->
     assert sorted(report["files"]) == [
         "c/drive.c",
         "c/drive.h",
+        "c/drive_host.c",  # the batch entry point, for host programs only
+        "c/drive_host.h",
         "interface.json",
         "policy.onnx",  # the export carries its ONNX (an ONNX source's too): the folder stands alone
         "test/observations.npy",
