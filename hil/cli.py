@@ -28,7 +28,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         chain.check_appendable(args.export_dir)  # before the run: its report's link is written at the end
     data = run(RunOptions.of(vars(args)))
     print(table(summary_rows(data)))
-    pictures = sorted(args.plot.glob("hil_*.png")) if args.plot else []
+    pictures = sorted([*args.plot.glob("hil_*.png"), *args.plot.glob("hil_*.gif")]) if args.plot else []
     written = [str(p) for p in (args.json, args.log, *pictures) if p]
     chained = args.json and (args.export_dir / chain.MANIFEST).is_file()
     if chained and args.log and args.log.is_file():  # the bundle keeps the frames beside the report

@@ -66,6 +66,8 @@ class EpisodeResult:
     distance: float | None = None
     """How far forward the robot got since reset [m], for an env whose ``info`` says (the walker's
     ``distance``); None otherwise."""
+    joint_trajectory: list[tuple[float, ...]] = field(repr=False, default_factory=list)
+    """The walker: its MuJoCo positions after reset and after every step (what a replay draws)."""
 
     @property
     def speed(self) -> float | None:
@@ -135,7 +137,8 @@ class EvalReport:
             {
                 k: v
                 for k, v in asdict(r).items()
-                if k not in ("trajectory", "other_trajectories") and not (k == "distance" and v is None)
+                if k not in ("trajectory", "other_trajectories", "joint_trajectory")
+                and not (k == "distance" and v is None)
             }
             for r in self.results
         ]
@@ -234,6 +237,7 @@ def episode_result(
     return EpisodeResult(
         seed, outcome, steps, total, steps * sample_time, info.get("collided_with"), trajectory,
         distance=None if distance is None else float(distance),
+        joint_trajectory=list(getattr(env.unwrapped, "joint_trajectory", [])),
     )  # fmt: skip
 
 
