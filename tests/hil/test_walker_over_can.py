@@ -18,7 +18,12 @@ from embedrl.cli import main
 from embedrl.export.contract.layout import layout
 from embedrl.hil.sandbox import Guest
 from embedrl.train.scenarios import WALKER
-from embedrl.train.walker_env import WALK_FRAME_PX, render_joint_trajectory, walk_frame_steps
+from embedrl.train.walker_env import (
+    WALK_FRAME_PX,
+    WALK_FRAME_STRIDE,
+    render_joint_trajectory,
+    walk_frame_steps,
+)
 from tests.hil.helpers import hil
 
 OBSERVATION_FRAMES = 9
@@ -103,7 +108,7 @@ def test_the_hil_walk_is_an_animation_of_the_runs_episodes(walker_export: Path, 
         assert getattr(gif, "n_frames", 1) == sum(
             len(walk_frame_steps(n)) for n in steps
         )  # every episode, start to end
-        assert gif.info["duration"] == pytest.approx(4 * 1000 * WALKER.sample_time_s, abs=5)
+        assert gif.info["duration"] == pytest.approx(WALK_FRAME_STRIDE * 1000 * WALKER.sample_time_s, abs=5)
     with Image.open(plots / "hil_walk.png") as strip:  # the first episode
         assert strip.size[1] == WALK_FRAME_PX and strip.size[0] >= 2 * WALK_FRAME_PX
 
@@ -117,9 +122,9 @@ def test_a_walk_replays_the_recorded_positions() -> None:
         env.step(np.full(6, 0.5, dtype=np.float32))
     rows = env.unwrapped.joint_trajectory  # type: ignore[attr-defined]
     assert len(rows) == 10 and len(rows[0]) == 9  # after reset and after each of the 9 steps
-    assert walk_frame_steps(9) == [0, 4, 8, 9]
+    assert walk_frame_steps(9) == [0, 8, 9]
     frames = render_joint_trajectory(rows)
-    assert len(frames) == 4 and frames[0].shape == (WALK_FRAME_PX, WALK_FRAME_PX, 3)
+    assert len(frames) == 3 and frames[0].shape == (WALK_FRAME_PX, WALK_FRAME_PX, 3)
     assert not np.array_equal(frames[0], frames[-1])  # the body moved between the first and the last
     again = render_joint_trajectory([rows[0], rows[1]])
     assert np.array_equal(again[0], frames[0])  # the same positions, the same picture
