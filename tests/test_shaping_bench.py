@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from embedrl.cli import main
+from embedrl.train.errors import UsageError
 from embedrl.train.shaping_bench import run_shaping
 
 
@@ -87,6 +88,18 @@ def test_walker_shaping_compares_the_decks_four_stages_measured_alike(tmp_path: 
     assert len(early[0]) >= 3 and all(e == early[0] for e in early)
     returns = {r: _returns(Path(runs[r]["run"]))[: len(early[0])] for r in report["rewards"]}
     assert returns["velocity"] != returns["upright"] and returns["effort"] == returns["deck"]
+    # The table of the finished runs alone: nothing trained, the same cells; a run not trained yet is named.
+    stamp = (Path(runs["deck"]["run"]) / "summary.json").stat().st_mtime_ns
+    again = run_shaping(
+        ["td3"], 2, 5, "tuned", out, 600, 3, 1, 1.0, overrides, scenario="walker", finished_only=True
+    )
+    assert again.splitlines()[:12] == lines[:12]
+    assert "Not finished at this budget (4 of 8 runs): td3-velocity-seed6, td3-upright-seed6" in again
+    assert (Path(runs["deck"]["run"]) / "summary.json").stat().st_mtime_ns == stamp
+    with pytest.raises(UsageError, match="has finished 900 env steps"):
+        run_shaping(
+            ["td3"], 1, 5, "tuned", out, 900, 3, 1, 1.0, overrides, scenario="walker", finished_only=True
+        )
 
 
 def _early_distances(run: Path, steps: int) -> list[float]:

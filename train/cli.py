@@ -324,7 +324,7 @@ def cmd_shaping(args: argparse.Namespace) -> int:
         check_ray_address(args.ray)
     table = run_shaping(
         args.algos, args.seeds, args.seed_offset, args.preset, args.out, args.max_steps, args.eval_episodes,
-        args.workers, args.gain, tuple(args.set), args.ray, args.scenario,
+        args.workers, args.gain, tuple(args.set), args.ray, args.scenario, args.finished_only,
     )  # fmt: skip
     print(table)
     print(f"wrote {args.out}/shaping.md, shaping.json and shaping.png")
@@ -500,6 +500,11 @@ def _register_sweeps(sub: Any) -> None:
         "--preset", choices=PRESETS, default="tuned", help="every run's preset, without its demonstrations"
     )
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
+    p.add_argument(
+        "--finished-only", action="store_true",
+        help="train nothing: the table and curves of the runs that finished this budget, the others named "
+        "(the same command without it trains them, resuming interrupted ones)",
+    )  # fmt: skip
     _add_run_set_arguments(p, 1_000_000)
     p.set_defaults(func=cmd_shaping)
 

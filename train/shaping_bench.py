@@ -21,6 +21,7 @@ distance walked and of the time upright (from ``episode_sums.csv`` and ``curve.c
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +31,7 @@ from embedrl.common import BENCH_TEST_SEED, atomic_write, provenance, write_json
 from embedrl.train import curves as curves_
 from embedrl.train.bench import Job, one_run
 from embedrl.train.deck_reward import VARIANTS as WALKER_VARIANTS
+from embedrl.train.errors import UsageError
 from embedrl.train.scenarios import DEFAULT_SCENARIO, WALKER
 from embedrl.train.sweep import run_all
 from embedrl.train.trainer import STOP_THRESHOLD, STOP_WINDOW
@@ -120,12 +122,19 @@ def run_shaping(
     overrides: tuple[str, ...] = (),
     ray: str | None = None,
     scenario: str = DEFAULT_SCENARIO,
+    finished_only: bool = False,
 ) -> str:
     """Train every (algorithm, reward, seed) from scratch on ``scenario`` (on Ray with ``ray``); the table,
-    also written with the runs (JSON) and the curves (PNG)."""
+    also written with the runs (JSON) and the curves (PNG). ``finished_only``: train nothing, the table of
+    the runs that finished this budget (their ``result.json``), the others named as not finished."""
     seed_list = list(range(seed_offset, seed_offset + seeds))
     jobs = _jobs(algos, seed_list, preset, out, max_steps, eval_episodes, gain, overrides, scenario)
-    runs = _train_all(jobs, workers, ray)
+    runs = _finished(jobs) if finished_only else _train_all(jobs, workers, ray)
+    if finished_only and not runs:
+        raise UsageError(
+            f"no run under {out / 'runs'} has finished {max_steps} env steps: nothing to tabulate"
+        )
+    missing = [Path(job[3]).name for job in jobs if job[3] not in {r["run"] for r in runs}]
     walker = scenario == WALKER.name
     if walker:
         note = (
@@ -143,6 +152,8 @@ def run_shaping(
             "criterion)."
         )
         table = _markdown(runs, algos, eval_episodes)
+    if missing:
+        note += f" Not finished at this budget ({len(missing)} of {len(jobs)} runs): {', '.join(missing)}."
     table += "\n\n" + note + "\n"
     out.mkdir(parents=True, exist_ok=True)
     (out / "shaping.md").write_text(table)
@@ -199,6 +210,22 @@ def _jobs(
     return jobs
 
 
+def _finished(jobs: list[Job]) -> list[dict[str, Any]]:
+    """The runs of ``jobs`` that finished their budget, as their ``result.json`` holds them (nothing
+    trained or evaluated), with what :func:`_train_all` adds."""
+    from embedrl.train.bench import RESULT_FILE
+
+    runs = []
+    for job in jobs:
+        path = Path(job[3]) / RESULT_FILE
+        if not path.is_file():
+            continue
+        result = json.loads(path.read_text())
+        if result.get("max_steps") == job[4]:
+            runs.append(_with_training_tail(job, result))
+    return runs
+
+
 def _reward_of(changes: tuple[str, ...]) -> str:
     """The reward variant a job's overrides set."""
     return next(c.split("=", 1)[1] for c in changes if c.startswith("reward="))
@@ -208,22 +235,22 @@ def _train_all(jobs: list[Job], workers: int, ray: str | None = None) -> list[di
     """Every job trained (or resumed); each run's summary with its reward variant, the mean length of its
     last 50 episodes and, where it logged them, its last 50 episodes' mean distance."""
     results, _ = run_all(one_run, jobs, workers, ray, label=lambda job: f"{job[0]} {job[7]} seed {job[2]}")
-    runs = []
-    for job, result in zip(jobs, results, strict=True):
-        if result is None:
-            continue  # reported as it failed; the table holds the runs that finished
-        _, _, length = curves_.load(Path(job[3]))
-        distance = _distances(Path(job[3]))[1]
-        runs.append(
-            {
-                **result,
-                "run": job[3],
-                "reward_variant": _reward_of(job[7]),
-                "mean_length_last50": float(np.mean(length[-STOP_WINDOW:])) if len(length) else None,
-                "mean_distance_last50": float(np.mean(distance[-STOP_WINDOW:])) if len(distance) else None,
-            }
-        )
-    return runs
+    # a run that failed is reported as it failed; the table holds the runs that finished
+    return [_with_training_tail(j, r) for j, r in zip(jobs, results, strict=True) if r is not None]
+
+
+def _with_training_tail(job: Job, result: dict[str, Any]) -> dict[str, Any]:
+    """A run's result with its reward variant, the mean length of its last 50 training episodes and,
+    where it logged them, their mean distance."""
+    _, _, length = curves_.load(Path(job[3]))
+    distance = _distances(Path(job[3]))[1]
+    return {
+        **result,
+        "run": job[3],
+        "reward_variant": _reward_of(job[7]),
+        "mean_length_last50": float(np.mean(length[-STOP_WINDOW:])) if len(length) else None,
+        "mean_distance_last50": float(np.mean(distance[-STOP_WINDOW:])) if len(distance) else None,
+    }
 
 
 def _distances(run: Path) -> tuple[np.ndarray, np.ndarray]:
