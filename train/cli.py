@@ -502,8 +502,8 @@ def _register_sweeps(sub: Any) -> None:
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
     p.add_argument(
         "--finished-only", action="store_true",
-        help="train nothing: the table and curves of the runs that finished this budget, the others named "
-        "(the same command without it trains them, resuming interrupted ones)",
+        help="train nothing: the table and curves of the runs that finished this budget (their models tested "
+        "again), the others named (the same command without it trains them, resuming interrupted ones)",
     )  # fmt: skip
     _add_run_set_arguments(p, 1_000_000)
     p.set_defaults(func=cmd_shaping)

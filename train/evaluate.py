@@ -281,11 +281,15 @@ def evaluate(
     name: str,
     progress: bool = False,
     env_id: str = ENV_ID,
-    sample_time: float = SAMPLE_TIME,
+    sample_time: float | None = None,
     env_kwargs: dict[str, Any] | None = None,
 ) -> EvalReport:
     """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``
-    (``embedrl/WarehouseTwoRobots-v0``: the policy drives both robots)."""
+    (``embedrl/WarehouseTwoRobots-v0``: the policy drives both robots); an episode's time is its steps times
+    ``sample_time``, by default the sample time of ``env_id``'s scenario."""
+    if sample_time is None:
+        spec = BY_ENV_ID.get(env_id)
+        sample_time = SAMPLE_TIME if spec is None else spec.sample_time_s
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     bar = tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)

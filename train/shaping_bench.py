@@ -211,18 +211,15 @@ def _jobs(
 
 
 def _finished(jobs: list[Job]) -> list[dict[str, Any]]:
-    """The runs of ``jobs`` that finished their budget, as their ``result.json`` holds them (nothing
-    trained or evaluated), with what :func:`_train_all` adds."""
+    """The runs of ``jobs`` that finished their budget (their ``result.json`` says so), their models
+    evaluated again on the test seeds (nothing trained), with what :func:`_train_all` adds."""
     from embedrl.train.bench import RESULT_FILE
 
     runs = []
     for job in jobs:
         path = Path(job[3]) / RESULT_FILE
-        if not path.is_file():
-            continue
-        result = json.loads(path.read_text())
-        if result.get("max_steps") == job[4]:
-            runs.append(_with_training_tail(job, result))
+        if path.is_file() and json.loads(path.read_text()).get("max_steps") == job[4]:
+            runs.append(_with_training_tail(job, one_run(job)))  # a finished run: evaluated, not trained
     return runs
 
 
