@@ -386,13 +386,20 @@ def plot_walker(runs: list[dict[str, Any]], algos: list[str], max_steps: int, pa
                 curves = np.array([curves_.on_grid(s, _average(v), grid) for s, v in series])
                 median, lo, hi = curves_.median_band(curves)
                 ax.plot(
-                    grid, median, color=WALKER_COLOURS[reward], lw=1.6, label=f"{reward} ({len(mine)} seeds)"
+                    grid,
+                    median,
+                    color=WALKER_COLOURS[reward],
+                    lw=1.6,
+                    label=f"{reward} ({len(mine)} seed{'s' if len(mine) > 1 else ''})",
                 )
                 ax.fill_between(grid, lo, hi, color=WALKER_COLOURS[reward], alpha=0.15, lw=0)
         distance_ax.set(title=f"{algo.upper()}: distance walked", ylabel=f"m, {STOP_WINDOW}-episode average")
         time_ax.set(title=f"{algo.upper()}: time up before the fall (8 s: no fall)",
                     ylabel=f"s, {STOP_WINDOW}-episode average")  # fmt: skip
+        starts = sorted({_learning_starts(Path(r["run"])) for r in runs if r["algo"] == algo})
         for ax in (distance_ax, time_ax):
+            if len(starts) == 1 and starts[0] > 0:  # the runs' random actions end here
+                ax.axvline(starts[0], color="grey", ls=":", lw=1, label="learning starts")
             ax.set(xlabel="env steps", xlim=(0, max_steps))
             ax.xaxis.set_major_formatter(thousands)
             ax.legend(loc="upper left", fontsize="small")
@@ -402,6 +409,11 @@ def plot_walker(runs: list[dict[str, Any]], algos: list[str], max_steps: int, pa
         atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=100, format="png"))
     finally:
         plt.close(fig)
+
+
+def _learning_starts(run: Path) -> int:
+    """The random-action steps a run took before learning (its ``learning_starts``; 0 without)."""
+    return int(json.loads((run / "config.json").read_text())["hyperparameters"].get("learning_starts", 0))
 
 
 def _lengths(run: Path) -> tuple[np.ndarray, np.ndarray]:
