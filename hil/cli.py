@@ -33,7 +33,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     folder = coverage.folder_of(args.json) if args.coverage else None
     data = run(RunOptions.of({**vars(args), "coverage": folder}))
     print(table(summary_rows(data)))
-    pictures = sorted(args.plot.glob("hil_*.png")) if args.plot else []
+    pictures = sorted([*args.plot.glob("hil_*.png"), *args.plot.glob("hil_*.gif")]) if args.plot else []
     written = [str(p) for p in (args.json, args.log, *pictures) if p]
     if folder is not None:
         record = data["coverage"]

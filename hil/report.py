@@ -44,7 +44,8 @@ def hil_report(options: RunOptions, interface: Interface, results: dict[str, Any
     episodes = [
         EpisodeResult(
             e["seed"], robot_outcome(e["outcome"]), e["steps"], e["episode_return"], e["time_s"],
-            e.get("collided_with"), [tuple(p) for p in e["trajectory"]],
+            e.get("collided_with"), [tuple(p) for p in e["trajectory"]], distance=e.get("distance"),
+            joint_trajectory=[tuple(q) for q in e.get("joint_trajectory", [])],
         )
         for e in results["episodes"]
     ]  # fmt: skip
@@ -222,3 +223,32 @@ def _plot(
         options.plot / "hil_action_diff.png",
         rounding_errors(interface)["action"],
     )
+    if any(e.joint_trajectory for e in episodes):  # the walker: its walk drawn again from the run's positions
+        save_walk(episodes, options.plot, interface.sample_time_s)
+
+
+WALK_FILES = ("hil_walk.gif", "hil_walk.png")
+"""A walker run's walk: every episode one after the other as an animation, and a strip of the first."""
+
+
+def save_walk(episodes: list[EpisodeResult], folder: Path, sample_time_s: float) -> None:
+    """Every episode's recorded positions drawn again by MuJoCo's renderer into :data:`WALK_FILES`, each
+    frame captioned with its episode, seed and time (faulted episodes, without positions, are left out)."""
+    from embedrl.train.rendering import save_episode
+    from embedrl.train.walker_env import WALK_FRAME_STRIDE, render_joint_trajectory, walk_frame_steps
+
+    frames: list[np.ndarray] = []
+    captions: list[str] = []
+    first = 0
+    for number, e in enumerate(episodes, start=1):
+        if not e.joint_trajectory:
+            continue
+        shown = render_joint_trajectory(e.joint_trajectory)
+        if not frames:
+            first = len(shown)
+        frames += shown
+        steps = walk_frame_steps(len(e.joint_trajectory) - 1)
+        captions += [f"HIL episode {number}, seed {e.seed}: t = {k * sample_time_s:.2f} s" for k in steps]
+    gif, strip = (folder / name for name in WALK_FILES)
+    save_episode(frames, gif, WALK_FRAME_STRIDE * sample_time_s, captions)
+    save_episode(frames[:first], strip, sample_time_s, captions[:first])

@@ -280,3 +280,13 @@ def test_agents_are_saved_after_episodes_at_or_above_the_threshold_and_sums_logg
     rows = (tmp_path / "sums.csv").read_text().splitlines()
     assert rows[0] == "steps,episode_forward,distance" and rows[2] == "200,500.000000,0.100000"
     assert monitor.MAX_SAVED_AGENTS == 50
+
+
+def test_an_evaluation_times_walker_episodes_with_the_walkers_sample_time() -> None:
+    from embedrl.train.evaluate import evaluate
+
+    report = evaluate(lambda obs: np.zeros(6, dtype=np.float32), 2, 0, "no torque", env_id=WALKER.env_id)
+    for r in report.results:  # without torque it falls: a short episode, timed at 8 ms a step
+        assert r.outcome == "collision" and r.time_s == pytest.approx(r.steps * WALKER.sample_time_s)
+        assert r.distance is not None
+        assert r.speed == pytest.approx(r.distance / (r.steps * WALKER.sample_time_s))

@@ -314,7 +314,9 @@ def cmd_shaping(args: argparse.Namespace) -> int:
         raise UsageError(f"--gain must be a finite number >= 0, got {args.gain}")
     for algo in args.algos:  # a bad --set fails here, in one line, before any run starts
         try:
-            config = with_overrides(preset(algo, args.preset), [*FROM_SCRATCH[algo], *args.set])
+            config = with_overrides(
+                preset(algo, args.preset, args.scenario), [*FROM_SCRATCH[algo], *args.set]
+            )
         except ValueError as exc:
             raise UsageError(str(exc)) from None
         _warn_untrained(algo, config, args.max_steps)
@@ -324,7 +326,7 @@ def cmd_shaping(args: argparse.Namespace) -> int:
         check_ray_address(args.ray)
     table = run_shaping(
         args.algos, args.seeds, args.seed_offset, args.preset, args.out, args.max_steps, args.eval_episodes,
-        args.workers, args.gain, tuple(args.set), args.ray,
+        args.workers, args.gain, tuple(args.set), args.ray, args.scenario, args.finished_only,
     )  # fmt: skip
     print(table)
     print(f"wrote {args.out}/shaping.md, shaping.json and shaping.png")
@@ -487,8 +489,10 @@ def _register_sweeps(sub: Any) -> None:
 
     p = sub.add_parser(
         "shaping",
-        help="train from scratch with the study's reward and with potential-based shaping; table and curves",
+        help="train from scratch with the study's reward and with potential-based shaping (the walker: the "
+        "deck's four reward stages); table and curves",
     )
+    add_scenario_argument(p)
     p.add_argument(
         "--algos", nargs="+", choices=ALGOS, default=list(STUDY_ALGOS), help="the algorithms to train"
     )
@@ -498,6 +502,11 @@ def _register_sweeps(sub: Any) -> None:
         "--preset", choices=PRESETS, default="tuned", help="every run's preset, without its demonstrations"
     )
     p.add_argument("--gain", type=float, default=1.0, help="shaping potential per metre of way to the goal")
+    p.add_argument(
+        "--finished-only", action="store_true",
+        help="train nothing: the table and curves of the runs that finished this budget (their models tested "
+        "again), the others named (the same command without it trains them, resuming interrupted ones)",
+    )  # fmt: skip
     _add_run_set_arguments(p, 1_000_000)
     p.set_defaults(func=cmd_shaping)
 

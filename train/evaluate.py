@@ -66,6 +66,8 @@ class EpisodeResult:
     distance: float | None = None
     """How far forward the robot got since reset [m], for an env whose ``info`` says (the walker's
     ``distance``); None otherwise."""
+    joint_trajectory: list[tuple[float, ...]] = field(repr=False, default_factory=list)
+    """The walker: its MuJoCo positions after reset and after every step (what a replay draws)."""
 
     @property
     def speed(self) -> float | None:
@@ -135,7 +137,8 @@ class EvalReport:
             {
                 k: v
                 for k, v in asdict(r).items()
-                if k not in ("trajectory", "other_trajectories") and not (k == "distance" and v is None)
+                if k not in ("trajectory", "other_trajectories", "joint_trajectory")
+                and not (k == "distance" and v is None)
             }
             for r in self.results
         ]
@@ -234,6 +237,7 @@ def episode_result(
     return EpisodeResult(
         seed, outcome, steps, total, steps * sample_time, info.get("collided_with"), trajectory,
         distance=None if distance is None else float(distance),
+        joint_trajectory=list(getattr(env.unwrapped, "joint_trajectory", [])),
     )  # fmt: skip
 
 
@@ -277,12 +281,16 @@ def evaluate(
     name: str,
     progress: bool = False,
     env_id: str = ENV_ID,
-    sample_time: float = SAMPLE_TIME,
+    sample_time: float | None = None,
     env_kwargs: dict[str, Any] | None = None,
 ) -> EvalReport:
     """Evaluate ``policy`` on ``episodes`` episodes of ``env_id`` seeded ``seed, seed + 1, ...``
     (a scenario with several robots, e.g. ``embedrl/WarehouseTwoRobots-v0``: the policy drives every
-    robot)."""
+    robot); an episode's time is its steps times
+    ``sample_time``, by default the sample time of ``env_id``'s scenario."""
+    if sample_time is None:
+        spec = BY_ENV_ID.get(env_id)
+        sample_time = SAMPLE_TIME if spec is None else spec.sample_time_s
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     bar = tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)

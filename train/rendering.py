@@ -83,6 +83,8 @@ def draw_frame(
 
 CAPTION_PX = 16
 """Height of a frame's caption (time and wheel forces) in pixels."""
+CAPTION_OUTLINE_PX = 2
+"""The white outline of a caption's letters: readable on a light margin and on the walker's floor alike."""
 
 
 def save_episode(
@@ -101,7 +103,10 @@ def save_episode(
     images = [Image.fromarray(f) for f in frames]
     font = ImageFont.load_default(size=CAPTION_PX)
     for image, caption in zip(images, captions or [], strict=False):  # in the light margin under the map
-        ImageDraw.Draw(image).text((8, image.height - CAPTION_PX - 12), caption, fill=(0, 0, 0), font=font)
+        ImageDraw.Draw(image).text(
+            (8, image.height - CAPTION_PX - 12), caption, fill=(0, 0, 0), font=font,
+            stroke_width=CAPTION_OUTLINE_PX, stroke_fill=(255, 255, 255),
+        )  # fmt: skip
     if suffix == ".gif":
         first, rest = images[0], images[1:]
         atomic_write(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import textwrap
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -82,14 +83,15 @@ STUDY_BY_SCENARIO: dict[str, dict[str, dict[str, Any]]] = {
 study reports the two-robot runs as curves, not as a 200-run evaluation."""
 
 
-Job = tuple[str, str, int, str, int, int, str, tuple[str, ...], str | None]
+Job = tuple[str, str, int, str, int, int, str, tuple[str, ...], str | None, tuple[int, int] | None]
 """algo, preset, seed, run directory, max steps, test episodes, scenario, overrides, stop rule (None: the
-study's criterion for ``thesis``, the deployable one for ``tuned``)."""
+study's criterion for ``thesis``, the deployable one for ``tuned``), validation (env steps between
+validation evaluations and episodes in each; None: :class:`Budget`'s)."""
 
 
 def one_run(job: Job) -> dict[str, Any]:
     """Train one run (or take it as it finished, or resume it) and evaluate its selected model."""
-    algo, preset, seed, out, max_steps, eval_episodes, scenario, overrides, stop = job
+    algo, preset, seed, out, max_steps, eval_episodes, scenario, overrides, stop, validation = job
     from embedrl.train.models import load_model_policy
     from embedrl.train.scenarios import SCENARIOS
     from embedrl.train.trainer import train
@@ -97,6 +99,8 @@ def one_run(job: Job) -> dict[str, Any]:
     run = Path(out)
     # The study's protocol stops at its criterion; tuned runs stop at the deployable one (validation).
     budget = Budget(max_steps=max_steps, stop=stop or ("study" if preset == "thesis" else "validation"))
+    if validation is not None:
+        budget = replace(budget, eval_every=validation[0], eval_episodes=validation[1])
     if _finished(run, budget):  # an interrupted bench goes on, a table is rebuilt
         summary = {**_derived(run), **json.loads((run / "summary.json").read_text())}
     else:  # new, interrupted, or stopped at a smaller budget without meeting its stop rule: trained on
@@ -125,7 +129,11 @@ def one_run(job: Job) -> dict[str, Any]:
         **summary,
         "run": str(run),
         "max_steps": max_steps,
-        "evaluation": {k: getattr(report, k) for k in REPORT_KEYS},
+        "evaluation": {
+            **{k: getattr(report, k) for k in REPORT_KEYS},
+            "mean_steps": report.mean_steps,
+            **report.walking(),
+        },
         "warm_start_evaluation": cloned,
     }
     write_json(result, run / RESULT_FILE)  # as each run ends: the table can be rebuilt from the folders
@@ -231,6 +239,7 @@ def run_bench(
             eval_episodes,
             scenario,
             overrides,
+            None,
             None,
         )
         for a in algos

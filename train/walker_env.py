@@ -129,6 +129,9 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
         self._start_x = self._start_z = 0.0
         self._previous_action = np.zeros(len(self.SPEC.action), dtype=np.float32)
         self._sums = dict.fromkeys(TERMS, 0.0)
+        self.joint_trajectory: list[tuple[float, ...]] = []
+        """MuJoCo's positions (``qpos``: x, height, pitch, the six joint angles) after reset and after every
+        step of the episode: what :func:`render_joint_trajectory` draws again (a HIL run's walk)."""
 
     def _observe(self, raw: np.ndarray) -> np.ndarray:
         obs = np.clip(np.asarray(raw, dtype=np.float32), self._obs_low, self._obs_high)
@@ -146,6 +149,7 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
         self._started, self._steps = True, 0
         self._previous_action = np.zeros(len(self.SPEC.action), dtype=np.float32)
         self._sums = dict.fromkeys(TERMS, 0.0)
+        self.joint_trajectory = [_positions(qpos)]
         return self._observe(raw), self._info(dict.fromkeys(TERMS, 0.0), 0.0, False, False)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
@@ -157,6 +161,7 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
         a = np.clip(a, self._act_low, self._act_high)
         raw, _, fell, _, sim_info = self._sim.step(a)
         self._steps += 1
+        self.joint_trajectory.append(_positions(self._sim.unwrapped.data.qpos))  # type: ignore[attr-defined]
         z_hat = float(self._sim.unwrapped.data.qpos[1]) - self._start_z  # type: ignore[attr-defined]
         terms = self.reward_config.terms(
             sim_info["x_velocity"], LATERAL_DEVIATION, z_hat, self._previous_action, self.SPEC.sample_time_s,
@@ -192,6 +197,7 @@ class DeckWalkerEnv(gym.Env[np.ndarray, np.ndarray]):
             return None
         if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
             os.environ["MUJOCO_GL"] = HEADLESS_GL  # without a display MuJoCo's default (GLFW) cannot render
+        follow_trunk(self._sim)
         frame = self._sim.render()
         return None if frame is None else np.asarray(frame)
 
@@ -225,3 +231,65 @@ def _simulation(render_mode: str | None) -> gym.Env[np.ndarray, np.ndarray]:
     from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
 
     return Walker2dEnv(render_mode=render_mode, frame_skip=WALKER_FRAME_SKIP)
+
+
+def _positions(qpos: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(q) for q in qpos)
+
+
+CAMERA_DISTANCE = 3.0
+"""The camera's distance from the point it looks at [m] (Walker2d-v5's is 4)."""
+
+
+def follow_trunk(sim: gym.Env[np.ndarray, np.ndarray]) -> None:
+    """Point Walker2d-v5's camera at the trunk's forward position: gymnasium's renderer leaves its camera
+    free (its ``trackbodyid`` does not track), so a walker would leave the picture."""
+    renderer = sim.unwrapped.mujoco_renderer  # type: ignore[attr-defined]
+    camera = renderer._get_viewer(render_mode="rgb_array").cam
+    camera.distance = CAMERA_DISTANCE
+    camera.lookat[0] = float(sim.unwrapped.data.qpos[0])  # type: ignore[attr-defined]
+
+
+WALK_FRAME_STRIDE = 8
+"""Steps per frame of a replayed walk: 8 x 8 ms, 64 ms a frame (about 16 frames per second: a small file)."""
+WALK_FRAME_PX = 320
+"""Width and height of a replayed walk's frames in pixels."""
+
+
+def walk_frame_steps(steps: int) -> list[int]:
+    """The steps of an episode of ``steps`` steps a replay draws: every :data:`WALK_FRAME_STRIDE`-th from the
+    reset (step 0) and the last one (where the episode ended)."""
+    picks = list(range(0, steps + 1, WALK_FRAME_STRIDE))
+    return picks if picks[-1] == steps else [*picks, steps]
+
+
+def render_joint_trajectory(joint_trajectory: list[tuple[float, ...]]) -> list[np.ndarray]:
+    """The frames of an episode drawn again from its recorded positions
+    (:attr:`DeckWalkerEnv.joint_trajectory`) by MuJoCo's renderer, at the steps :func:`walk_frame_steps`
+    picks, the camera following the trunk.
+    ValueError if a row is not one of the model's position vectors."""
+    from gymnasium.envs.mujoco.walker2d_v5 import Walker2dEnv
+
+    if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
+        os.environ["MUJOCO_GL"] = HEADLESS_GL
+    import mujoco  # type: ignore[import-untyped]
+
+    sim: gym.Env[np.ndarray, np.ndarray] = Walker2dEnv(
+        render_mode="rgb_array", width=WALK_FRAME_PX, height=WALK_FRAME_PX
+    )
+    try:
+        sim.reset(seed=0)
+        model, data = sim.unwrapped.model, sim.unwrapped.data  # type: ignore[attr-defined]
+        frames = []
+        for step in walk_frame_steps(len(joint_trajectory) - 1):
+            qpos = np.asarray(joint_trajectory[step], dtype=np.float64)
+            if qpos.shape != data.qpos.shape or not np.all(np.isfinite(qpos)):
+                raise ValueError(f"step {step} of the walk is not {data.qpos.size} finite positions")
+            data.qpos[:] = qpos
+            data.qvel[:] = 0.0
+            mujoco.mj_forward(model, data)
+            follow_trunk(sim)
+            frames.append(np.asarray(sim.render()))
+        return frames
+    finally:
+        sim.close()
