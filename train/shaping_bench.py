@@ -255,7 +255,7 @@ def _distances(run: Path) -> tuple[np.ndarray, np.ndarray]:
     for a run without one)."""
     import csv
 
-    from embedrl.train.trainer import EPISODE_SUMS_FILE
+    from embedrl.train.monitor import EPISODE_SUMS_FILE
 
     path = run / EPISODE_SUMS_FILE
     if not path.is_file():
