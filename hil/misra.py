@@ -209,22 +209,29 @@ def run_cppcheck(export_dir: Path) -> list[Finding]:
     if shutil.which("cppcheck") is None:
         raise HilError("cppcheck is not installed: run `make deps` (Debian's cppcheck)")
     with owned_temporary_folder("embedrl-misra-") as tmp:
-        can = export_dir / folder(fd=False)  # the classic CAN code the firmware node is built from
-        if not can.is_dir():  # exported before exports carried it: the same generator's
-            can = Path(tmp) / "can"
+        # cppcheck writes a .dump beside each file it analyses: it analyses copies, so that runs side by
+        # side (and the export folder, which it must not change) never share one
+        runtime, c_dir, can = Path(tmp) / "runtime_c", Path(tmp) / "c", Path(tmp) / "can"
+        for part in ("node", "cortex_m"):
+            shutil.copytree(RUNTIME_C / part, runtime / part)
+        shutil.copytree(export_dir / "c", c_dir)
+        exported_can = export_dir / folder(fd=False)  # the classic CAN code the firmware node is built from
+        if exported_can.is_dir():
+            shutil.copytree(exported_can, can)
+        else:  # exported before exports carried it: the same generator's
             write(load_interface(export_dir / INTERFACE_FILE), can)
         sources = [
-            *(RUNTIME_C / s for s in FIRMWARE_SOURCES),
+            *(runtime / s for s in FIRMWARE_SOURCES),
             *sorted(can.glob("*.c")),
-            *sorted(p for p in (export_dir / "c").glob("*.c") if not p.name.endswith(HOST_SUFFIX)),
+            *sorted(p for p in c_dir.glob("*.c") if not p.name.endswith(HOST_SUFFIX)),
         ]
-        board = RUNTIME_C / "cortex_m" / "boards" / MISRA_BOARD
-        includes = [RUNTIME_C / "node", RUNTIME_C / "cortex_m", board, can, export_dir / "c"]
+        board = runtime / "cortex_m" / "boards" / MISRA_BOARD
+        includes = [runtime / "node", runtime / "cortex_m", board, can, c_dir]
         result = subprocess.run(
             [*CPPCHECK, "--template={file}|{line}|{id}", *(f"-I{i}" for i in includes), *map(str, sources)],
             capture_output=True, text=True,
         )  # fmt: skip
-        roots = {"runtime_c/": RUNTIME_C.resolve(), "can/": can.resolve(), "c/": (export_dir / "c").resolve()}
+        roots = {"runtime_c/": runtime.resolve(), "can/": can.resolve(), "c/": c_dir.resolve()}
         findings = []
         for line in result.stderr.splitlines():
             parts = line.rsplit("|", 2)

@@ -4,6 +4,7 @@
  * configuration is fixed at build time (NODE_TIMEOUT_MS, NODE_RECOVER, NODE_ID; make variables).
  *
  * Diagnostics line (UART1), one line each:
+ *   LINK                        the link's UART is enabled: the far end may open the channel
  *   READY                       the node runs (after the far end opened the channel)
  *   S <step> <cycle>            a step answered: timer ticks from its observation's last frame in to the
  *                               end of the last frame it sent (its action; under QEMU -icount: instructions,
@@ -88,6 +89,7 @@ int main(void)
         diag_write("\n");
         return 1;
     }
+    diag_write("LINK\n");
     transport_await_open(); /* the node's first status goes out once it can reach the bus */
     static node_t node;
     node_init(&node, &config, clock_ms());

@@ -116,7 +116,7 @@ def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
         assert qemu.stdout is not None
         pty = re.search(r"/dev/pts/\d+", qemu.stdout.readline())
         assert pty is not None
-        _await_ready(tmp_path / "uart1.txt")  # its USART drops what comes before it is enabled
+        _await_line(tmp_path / "uart1.txt", "LINK")  # its USART drops what comes before it is enabled
         bus = can.Bus(interface="slcan", channel=pty.group(0), sleep_after_open=0)
         interface = load_interface(export_dir / "interface.json")
         codec, reference = Codec(interface), reference_policy(export_dir)
@@ -145,7 +145,7 @@ def test_the_firmware_answers_over_slcan_alone_as_the_reference_does(
         qemu.kill()
         qemu.wait()
     lines = (tmp_path / "uart1.txt").read_text().splitlines()
-    assert lines[0] == "READY" and _step_lines(tmp_path / "uart1.txt") == 20
+    assert lines[:2] == ["LINK", "READY"] and _step_lines(tmp_path / "uart1.txt") == 20
 
 
 @pytest.mark.slow
@@ -164,7 +164,7 @@ def test_the_host_runs_the_firmware_at_the_guests_request(export_dir: Path, tmp_
         for start, in_order in enumerate((False, True)):
             guest_end.sendall(b"C\r" * 3)  # a closing bridge's lines, dropped before the next start
             assert emulator.start(tmp_path / f"uart1-{start}.txt") == "/dev/ttyS1" and emulator.alive()
-            _await_ready(tmp_path / f"uart1-{start}.txt")
+            _await_line(tmp_path / f"uart1-{start}.txt", "LINK")
             codec.receivers.clear()  # a fresh image: its E2E counters start again
             frames, _ = codec.encode_observation(obs, 1)
             guest_end.sendall(b"O\r" + b"".join(_slcan(frame) for frame in frames))
@@ -225,11 +225,11 @@ def test_the_firmwares_watchdog_counts_the_simulations_time_not_the_hosts(
     assert status is not None and status.timeouts == 1 and status.state == "SAFE"
 
 
-def _await_ready(diag: Path, timeout_s: float = 10.0) -> None:
-    """Wait for the firmware's READY line: its link UART is enabled from then on."""
+def _await_line(diag: Path, word: str, timeout_s: float = 10.0) -> None:
+    """Wait for the firmware's diagnostics line ``word`` (LINK: its link UART is enabled from then on)."""
     deadline = time.monotonic() + timeout_s
-    while not (diag.is_file() and diag.read_text().startswith("READY")):
-        assert time.monotonic() < deadline, "the firmware never said READY"
+    while not (diag.is_file() and word in diag.read_text().split()):
+        assert time.monotonic() < deadline, f"the firmware never said {word}"
         time.sleep(0.02)
 
 
