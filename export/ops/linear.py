@@ -4,6 +4,8 @@ The weights are stored input-major (``W[k][n]``) so the inner loop runs over out
 without reassociating any sum: each output is summed in a fixed order, the same at every optimisation
 level. On Cortex-M (scalar FPU or none) the same weights are read as dot products, several sums in
 registers per pass (:func:`dot_order_source`), adding each output's terms in the same order: the same bits.
+On a Cortex-M core with a single-precision FPU (GNU C) the dot products take their VLDM form
+(:func:`vldm_source`): the weights stored in the order the passes read them, loaded by VLDM.
 ``--quantize int8``: each weight column (one output) is scaled symmetrically to int8,
 ``q = round(w / s)`` with ``s = max|w| / 127``; ``acc = sum_k x[k] * q[k][n]`` in float32 and
 ``y[n] = b[n] + s[n] * acc[n]``.
@@ -12,7 +14,7 @@ registers per pass (:func:`dot_order_source`), adding each output's terms in the
 from __future__ import annotations
 
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -62,7 +64,9 @@ def per_row(lines: list[str], rows: str | None) -> list[str]:
 
 DOT_ROWS = (8, 4, 2, 1)
 """Outputs per pass of the dot-product order (:func:`dot_order_source`), largest first: 8 sums and the 8
-weights of one input fit the Cortex-M4F's 32 single-precision registers."""
+weights of one input fit the Cortex-M4F's 32 single-precision registers. Measured in the VLDM form
+(:func:`vldm_source`) on the study actor (Cortex-M4F cycle model): 8 per pass 41.1k cycles; 16 per pass (two
+VLDM of 8 per input) 49.8k, its sums spilled to the stack."""
 
 
 def dot_order_source(prefix: str) -> str:
@@ -80,45 +84,184 @@ def dot_order_source(prefix: str) -> str:
 
 DOT_INPUTS_PER_ITERATION = 4
 """Inputs per iteration of a dot-product pass (unrolled; the rest after the loop): one loop test and branch
-per four inputs. Measured on the study actor (Cortex-M4F cycle model): 1 per iteration 57.4k cycles, 2: 54.5k,
-4: 52.4k."""
+per four inputs. Measured on the study actor (Cortex-M4F cycle model, C loads): 1 per iteration 57.4k
+cycles, 2: 54.5k, 4: 52.4k."""
+
+VLDM_WEIGHT_REGISTER = 16
+"""The first single-precision register of a pass's weights of one input in the VLDM form (s16-s23); an
+iteration's inputs go from :data:`VLDM_INPUT_REGISTER` (s24-s27); the sums and products get the rest."""
+VLDM_INPUT_REGISTER = 24
 
 
-def _dot_input(r: int, xk: str, row: str, cast: str, ctype: str) -> list[str]:
-    """One input's terms for the pass's ``r`` sums (``xk``: the input, ``row``: its weights' C address)."""
-    return [
-        "{",
-        f"    const float xk = {xk};",
-        f"    const {ctype} *row = {row}; /* the pass's {r} weights of this input */",
-        *(f"    a{i} = a{i} + (xk * {cast}row[{i}]);" for i in range(r)),
-        "}",
-    ]
+def vldm_condition(prefix: str) -> str:
+    """When the float dot products take their VLDM form: a Cortex-M core (the dot-product order) with a
+    single-precision FPU, GNU C (the inline assembly), and no -D<PREFIX>_PORTABLE. Compiler macros only: it
+    also chooses the layout of the weights, which are declared before any macro of ours."""
+    return (
+        "defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) "
+        f"&& defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined({prefix.upper()}_PORTABLE)"
+    )
 
 
-def _dot_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str) -> list[str]:
-    """Dot products over the input-major weights ``w[k][n]``: :data:`DOT_ROWS` outputs per pass, each summed
-    in a register from ``init`` (C of output ``n``), then ``k = 0, 1, ...``: the input-major order's sums."""
-    lines, first, ctype = [], 0, "int8_t" if cast else "float"
-    step = (
-        1 if cast else DOT_INPUTS_PER_ITERATION
-    )  # int8 weights: the scheme is for small flash, no unrolling
+def input_major_condition(prefix: str) -> str:
+    """Where the float weights are compiled input-major: wherever the VLDM form is not."""
+    return f"!({vldm_condition(prefix)})"
+
+
+def vldm_source(prefix: str) -> str:
+    """The switch of the VLDM form of the float dot products."""
+    up = prefix.upper()
+    return f"""/* The dot products' VLDM form, on a Cortex-M core with a single-precision FPU (GNU C): the
+ * weights stored in the order the passes read them; each input's weights of a pass, and each iteration's
+ * {DOT_INPUTS_PER_ITERATION} inputs, loaded by one VLDM: 1 + N cycles on the Cortex-M4 against 2 per VLDR
+ * (ARM DDI 0439B, table 7-1), which is what gcc 12 emits for the C loads. The assembly sits in the
+ * {prefix}_row<N> and {prefix}_inputs<N> functions only (MISRA C:2012 Dir 4.3); its GNU extensions (rule
+ * 1.2) are compiled for GNU C only. Each output's terms are added in the C loops' order: the same bits.
+ * -D{up}_PORTABLE: the C dot products on every core. */
+#if {vldm_condition(prefix)}
+#define {up}_VLDM 1
+#else
+#define {up}_VLDM 0
+#endif"""
+
+
+def floats_source(count: int) -> Callable[[str], str]:
+    """``{prefix}_floats<count>``: the struct of ``count`` floats a VLDM function returns."""
+
+    def source(prefix: str) -> str:
+        return f"""#if {prefix.upper()}_VLDM
+typedef struct {{
+    float v[{count}];
+}} {prefix}_floats{count};
+#endif"""
+
+    return source
+
+
+def vldm_load_source(function: str, count: int, first: int) -> Callable[[str], str]:
+    """``{prefix}_<function>``: the ``count`` floats at ``*p`` (a struct of :func:`floats_source`), by one
+    VLDM into the registers from ``s<first>`` that advances ``*p`` past them (compiled where
+    ``<PREFIX>_VLDM``)."""
+
+    def source(prefix: str) -> str:
+        regs = [f"s{first + i}" for i in range(count)]
+        outputs = ", ".join(f'"=t"(v{i})' for i in range(count))
+        values = ", ".join(f"v{i}" for i in range(count))
+        return "\n".join(
+            [
+                f"#if {prefix.upper()}_VLDM",
+                f"/* (*p)[0..{count - 1}] by one VLDM into {regs[0]}-{regs[-1]}, *p advanced past them.",
+                " * volatile: the compiler keeps the loads in program order, so the next one waits for the",
+                " * products of this one (no copies); memory: it reads memory. */",
+                f"static inline {prefix}_floats{count} {prefix}_{function}(const float **p)",
+                "{",
+                "    const float *at = *p;",
+                *(f'    register float v{i} __asm__("{reg}");' for i, reg in enumerate(regs)),
+                f'    __asm__ volatile("vldmia %0!, {{{regs[0]}-{regs[-1]}}}"',
+                f'                     : "+r"(at), {outputs}',
+                "                     :",
+                '                     : "memory");',
+                "    *p = at;",
+                f"    const {prefix}_floats{count} r = {{{{{values}}}}};",
+                "    return r;",
+                "}",
+                "#endif",
+            ]
+        )
+
+    return source
+
+
+def pack_passes(w: np.ndarray) -> np.ndarray:
+    """Input-major float weights [K][N] in the order the VLDM form's passes read them (:data:`DOT_ROWS`):
+    pass by pass, input by input, the pass's weights of that input; the pass from output ``n`` starts at
+    ``n * K``."""
+    blocks, first = [], 0
+    for r in DOT_ROWS:
+        for _ in range((w.shape[1] - first) // r):
+            blocks.append(w[:, first : first + r].reshape(-1))
+            first += r
+    return np.concatenate(blocks).astype(F)
+
+
+@dataclass(frozen=True)
+class VldmForm:
+    """The VLDM form of a layer's dot products (:func:`vldm_source`)."""
+
+    switch: str
+    prefix: str
+    inputs: bool
+    """Whether the iterations load their inputs by VLDM (``{prefix}_inputs<N>``; a layer with at least
+    :data:`DOT_INPUTS_PER_ITERATION` inputs)."""
+    weights: str
+    """The weights in the passes' order (:func:`pack_passes`)."""
+
+
+@dataclass(frozen=True)
+class DotOrder:
+    """The loop orders of one observation's float matrix product besides input-major."""
+
+    switch: str
+    """The C switch of the dot-product order (:func:`dot_order_source`)."""
+    vldm: VldmForm | None
+    """Its VLDM form, for float weights."""
+
+
+def _dot_input(r: int, xk: str, w_k: str, cast: str, vldm: VldmForm | None) -> list[str]:
+    """One input's terms for the pass's ``r`` sums (``xk``: the input; ``w_k``: its row of input-major
+    weights, C, read in C; in the ``vldm`` form, the pass's next ``r`` weights from its pointer ``wp``)."""
+    lines = ["{", f"    const float xk = {xk};"]
+    if vldm is None:
+        ctype = "int8_t" if cast else "float"
+        lines += [
+            f"    const {ctype} *row = &{w_k}[n]; /* the pass's {r} weight(s) of this input */",
+            *(f"    a{i} = a{i} + (xk * {cast}row[{i}]);" for i in range(r)),
+        ]
+    elif r == 1:
+        lines += ["    const float w = *wp;", "    wp = &wp[1];", "    a0 = a0 + (xk * w);"]
+    else:
+        lines += [
+            f"    const {vldm.prefix}_floats{r} w = {vldm.prefix}_row{r}(&wp);",
+            *(f"    a{i} = a{i} + (xk * w.v[{i}]);" for i in range(r)),
+        ]
+    return [*lines, "}"]
+
+
+def _dot_lines(
+    x: str, y: str, w: str, shape: tuple[int, int], init: str, cast: str, vldm: VldmForm | None
+) -> list[str]:
+    """Dot products over the input-major weights ``w[k][n]``, or in the ``vldm`` form over its weights
+    (:func:`pack_passes`), in passes of :data:`DOT_ROWS` outputs; each sum in a register from ``init`` (C of
+    output ``n``), then ``k = 0, 1, ...``: the input-major order's sums."""
+    (k, n), lines, first = shape, [], 0
+    step = 1 if cast else DOT_INPUTS_PER_ITERATION  # int8 weights: the scheme is for small flash, no unroll
     whole = k - k % step
+    xs = [f"{x}[{_index('k', str(j))}]" for j in range(step)]
+    head = []
+    if vldm and vldm.inputs:
+        xs = [f"xs.v[{j}]" for j in range(step)]
+        head = [f"const {vldm.prefix}_floats{step} xs = {vldm.prefix}_inputs{step}(&xp);"]
     for r in DOT_ROWS:
         count = (n - first) // r
         if not count:
             continue
         at = [_index("n", str(i)) for i in range(r)]
         body = [
-            line
-            for j in range(step)
-            for line in _dot_input(
-                r, f"{x}[{_index('k', str(j))}]", f"&{w}[{_index('k', str(j))}][n]", cast, ctype
-            )
+            *head,
+            *(
+                line
+                for j in range(step)
+                for line in _dot_input(r, xs[j], f"{w}[{_index('k', str(j))}]", cast, vldm)
+            ),
         ]
         lines += [
             f"for (uint32_t n = {first}u; n < {first + r * count}u; n += {r}u) {{",
             *(f"    float a{i} = {init.replace('[n]', f'[{at[i]}]')};" for i in range(r)),
         ]
+        if vldm:
+            lines.append(f"    const float *wp = &{vldm.weights}[{_index(f'{k} * n')}]; /* input by input */")
+        if head:
+            lines.append(f"    const float *xp = {x};")
         if whole:
             lines += [
                 f"    for (uint32_t k = 0u; k < {whole}u; k += {step}u) {{",
@@ -126,7 +269,7 @@ def _dot_lines(x: str, y: str, w: str, k: int, n: int, init: str, cast: str) -> 
                 "    }",
             ]
         for k0 in range(whole, k):
-            lines += [f"    {b}" for b in _dot_input(r, f"{x}[{k0}]", f"&{w}[{k0}][n]", cast, ctype)]
+            lines += [f"    {b}" for b in _dot_input(r, f"{x}[{k0}]", f"{w}[{k0}]", cast, vldm)]
         lines += [*(f"    {y}[{at[i]}] = a{i};" for i in range(r)), "}"]
         first += r * count
     return lines
@@ -141,14 +284,18 @@ def _matmul_lines(
     init: str,
     cast: str = "",
     rows: str | None = None,
-    order: str = "",
+    order: DotOrder | None = None,
 ) -> list[str]:
-    """``y = init + x @ w`` over input-major weights; for one observation with ``order`` (the C switch of
-    :func:`dot_order_source`) also the dot-product order, chosen by the preprocessor."""
+    """``y = init + x @ w`` over input-major weights; for one observation with ``order`` (:func:`_order`) also
+    the dot-product order (and its VLDM form, for float weights), chosen by the preprocessor."""
     lines = _input_major_lines(x, y, w, k, n, init, cast, rows)
-    if rows is not None or not order:
+    if rows is not None or order is None:
         return lines
-    return [f"#if {order}", *_dot_lines(x, y, w, k, n, init, cast), "#else", *lines, "#endif"]
+    dots = [f"#if {order.switch}", *_dot_lines(x, y, w, (k, n), init, cast, None), "#else", *lines, "#endif"]
+    if order.vldm is None:
+        return dots
+    vldm = _dot_lines(x, y, w, (k, n), init, cast, order.vldm)
+    return [f"#if {order.vldm.switch}", *vldm, "#el" + dots[0][1:], *dots[1:]]
 
 
 def _input_major_lines(
@@ -185,12 +332,33 @@ def _input_major_lines(
     return lines
 
 
-def _order(ctx: EmitContext) -> str:
-    """The C switch choosing the float loop order (emitted once), for one observation's code."""
+def _order(ctx: EmitContext, n: int, weights: tuple[str, np.ndarray, str] | None = None) -> DotOrder | None:
+    """For one observation's code: the C switch choosing the float loop order (emitted once) and, for float
+    ``weights`` (their key, input-major array and layer name), the VLDM form: its switch and load
+    functions, and the weights in its passes' order, compiled where it is."""
     if ctx.rows is not None:
-        return ""
-    ctx.function("dot_products", dot_order_source)
-    return f"{ctx.prefix.upper()}_DOT_PRODUCTS"
+        return None
+    switch = ctx.function("dot_products", dot_order_source).upper()
+    if weights is None:
+        return DotOrder(switch, None)
+    vldm, (key, w, name), step = ctx.function("vldm", vldm_source).upper(), weights, DOT_INPUTS_PER_ITERATION
+    left = n
+    for r in DOT_ROWS:
+        if r > 1 and left >= r:
+            ctx.function(f"floats{r}", floats_source(r))
+            ctx.function(f"row{r}", vldm_load_source(f"row{r}", r, VLDM_WEIGHT_REGISTER))
+        left %= r
+    inputs = w.shape[0] >= step
+    if inputs:
+        ctx.function(f"floats{step}", floats_source(step))
+        ctx.function(f"inputs{step}", vldm_load_source(f"inputs{step}", step, VLDM_INPUT_REGISTER))
+    packed = ctx.const(
+        key + "#vldm",
+        pack_passes(w),
+        f"{name} weights [{w.shape[0]}][{n}] in the order the VLDM passes read them",
+        vldm_condition(ctx.prefix),
+    )
+    return DotOrder(switch, VldmForm(vldm, ctx.prefix, inputs, packed))
 
 
 def _quantized_lines(
@@ -201,7 +369,7 @@ def _quantized_lines(
     k = w.shape[0]
     qsym = ctx.const(node.inputs[1] + "#int8", q, f"{node.name} weights, int8, input-major [{k}][{n}]")
     ssym = ctx.const(node.inputs[1] + "#scale", scale, f"{node.name} per-output scales [{n}]")
-    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)", rows=ctx.rows, order=_order(ctx))
+    lines = _matmul_lines(x, y, qsym, k, n, "0.0f", cast="(float)", rows=ctx.rows, order=_order(ctx, n))
     scaled = f"({ssym}[n] * {y}[n])"
     return [
         *lines,
@@ -380,7 +548,12 @@ class Gemm(Linear):
         wsym = (
             ""
             if ctx.quantize
-            else ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights, input-major [{k}][{n}]")
+            else ctx.const(
+                node.inputs[1] + "#input-major",
+                w,
+                f"{node.name} weights, input-major [{k}][{n}]",
+                input_major_condition(ctx.prefix),
+            )
         )
         alpha, beta = float(node.attr("alpha", 1.0)), float(node.attr("beta", 1.0))
         c = ctx.constant(node.inputs[2]) if len(node.inputs) > 2 and node.inputs[2] else None
@@ -393,9 +566,10 @@ class Gemm(Linear):
             bias = f"{ctx.const(node.inputs[2], c.reshape(-1), f'{node.name} bias [{n}]')}[n]"
         if ctx.quantize:
             return _quantized_lines(node, ctx, w, bias, x, y, n)
+        order = _order(ctx, n, (node.inputs[1], w, node.name))
         if alpha == 1.0 and beta == 1.0:
-            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f", rows=ctx.rows, order=_order(ctx))
-        lines = _matmul_lines(x, y, wsym, k, n, "0.0f", rows=ctx.rows, order=_order(ctx))
+            return _matmul_lines(x, y, wsym, k, n, bias or "0.0f", rows=ctx.rows, order=order)
+        lines = _matmul_lines(x, y, wsym, k, n, "0.0f", rows=ctx.rows, order=order)
         scaled = f"{ctx.literal(alpha)} * {y}[n]"
         if bias is not None:
             scaled += f" + {ctx.literal(beta)} * {bias}"
@@ -454,8 +628,14 @@ class MatMul(Linear):
         x, y = ctx.ref(node.inputs[0]), ctx.ref(node.outputs[0])
         if ctx.quantize:
             return _quantized_lines(node, ctx, w, None, x, y, n)
-        wsym = ctx.const(node.inputs[1] + "#input-major", w, f"{node.name} weights [{w.shape[0]}][{n}]")
-        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f", rows=ctx.rows, order=_order(ctx))
+        wsym = ctx.const(
+            node.inputs[1] + "#input-major",
+            w,
+            f"{node.name} weights [{w.shape[0]}][{n}]",
+            input_major_condition(ctx.prefix),
+        )
+        order = _order(ctx, n, (node.inputs[1], w, node.name))
+        return _matmul_lines(x, y, wsym, w.shape[0], n, "0.0f", rows=ctx.rows, order=order)
 
     def reference(
         self, node: Node, inputs: Sequence[np.ndarray], constants: Mapping[str, np.ndarray], precision: str

@@ -331,21 +331,58 @@ def _test_vectors(export: Path) -> np.ndarray:
     return np.array([[float(v.strip().rstrip("f")) for v in row.split(",")] for row in rows], np.float32)
 
 
-def test_float_dot_products_on_cortex_m_give_the_host_input_major_bits(tmp_path: Path) -> None:
-    """float32: the Cortex-M images (dot products, 8/4/2/1 outputs per pass: 23 = 2 x 8 + 4 + 2 + 1 and
-    41 = 5 x 8 + 1) print the bits of the host's build of the same policy.c (input-major loops). The output
-    layer has no tanh: the C libraries' tanhf (glibc, newlib) may differ in the last bit."""
+def _policy_step_disassembly(elf: Path) -> str:
+    """``policy_step`` of an image, disassembled (arm-none-eabi-objdump)."""
+    text = subprocess.run(
+        ["arm-none-eabi-objdump", "-d", "--no-show-raw-insn", str(elf)],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return text.split("<policy_step>:", 1)[1].split("\n\n", 1)[0]
+
+
+@pytest.mark.parametrize("widths", [[6, 23, 41, 2], [6, 1, 5, 2]])
+def test_float_dot_products_on_cortex_m_give_the_host_input_major_bits(
+    tmp_path: Path, widths: list[int]
+) -> None:
+    """float32: the Cortex-M images (dot products, 8/4/2/1 outputs per pass: 23 = 2 x 8 + 4 + 2 + 1,
+    41 = 5 x 8 + 1, 5 = 4 + 1; a layer of one output) print the bits of the host's build of the same policy.c
+    (input-major loops): the M4F and M7 in the VLDM form (weights in the passes' order, each input's weights
+    of a pass and each iteration's four inputs in one VLDM; inputs left over after the iterations of four:
+    41 = 10 x 4 + 1, 23 = 5 x 4 + 3, 6 = 4 + 2, 5 = 4 + 1, and a layer of one input), at -O2, -O0 and -O3,
+    and in C (-DPOLICY_PORTABLE); the M3 (no FPU) in C. The output layer has no tanh: the C libraries'
+    tanhf (glibc, newlib) may differ in the last bit."""
     src, out = tmp_path / "mlp.onnx", tmp_path / "export"
-    onnx.save(mlp_model([6, 23, 41, 2], ["Relu", "Relu", "Identity"]), str(src))
-    args = ["export", str(src), "--out", str(out), "--episodes", "0", "--target", "cortex-m4"]
-    assert main([*args, "--target", "cortex-m3"]) == 0
+    onnx.save(mlp_model(widths, ["Relu"] * (len(widths) - 2) + ["Identity"]), str(src))
+    targets = ["--target", "cortex-m4", "--target", "cortex-m3", "--target", "cortex-m7"]
+    assert main(["export", str(src), "--out", str(out), "--episodes", "0", *targets]) == 0
+    layers = len(widths) - 1
     source = (out / "c" / "policy.c").read_text()
-    assert source.count("#if POLICY_DOT_PRODUCTS") == 3
+    assert source.count("#if POLICY_VLDM\n") > layers and source.count("#elif POLICY_DOT_PRODUCTS") == layers
     obs = _test_vectors(out)
-    host = build.CPolicy(out / "bin" / "host" / "libpolicy.so", "policy", 6, 2).rows(obs)[0]
-    for name in ("cortex-m4", "cortex-m3"):
-        run = target.run_qemu(target.TARGETS[name], out / "bin" / name / "firmware.elf", len(obs), 2)
-        assert run.actions.tobytes() == np.asarray(host, np.float32).tobytes(), name
+    act = widths[-1]
+    host = np.asarray(
+        build.CPolicy(out / "bin" / "host" / "libpolicy.so", "policy", widths[0], act).rows(obs)[0]
+    )
+    for name in ("cortex-m4", "cortex-m3", "cortex-m7"):
+        run = target.run_qemu(target.TARGETS[name], out / "bin" / name / "firmware.elf", len(obs), act)
+        assert run.actions.tobytes() == host.astype(np.float32).tobytes(), name
+    m4 = target.TARGETS["cortex-m4"]
+    runs = {}
+    for opt in ("-O0", "-O3", "-O2 -DPOLICY_PORTABLE"):
+        build_dir = tmp_path / opt.replace(" ", "_")
+        vectors = {"TARGET": m4.name, "TEST_VECTORS": str(out / "test" / "test_vectors.c")}
+        build.make("firmware", out / "c", build_dir, opt=opt, extra=vectors)
+        runs[opt] = target.run_qemu(m4, build_dir / m4.name / "firmware.elf", len(obs), act)
+        assert runs[opt].actions.tobytes() == host.astype(np.float32).tobytes(), opt
+    # the VLDM form loads a pass's weights of one input in one instruction; C and the M3 never do
+    vldm = re.compile(r"vldmia\s+r\d+!, \{s16-s(23|19|17)\}")
+    for name in ("cortex-m4", "cortex-m7"):
+        assert vldm.search(_policy_step_disassembly(out / "bin" / name / "firmware.elf")), name
+    assert not vldm.search(_policy_step_disassembly(out / "bin" / "cortex-m3" / "firmware.elf"))
+    portable = tmp_path / "-O2_-DPOLICY_PORTABLE" / m4.name / "firmware.elf"
+    assert not vldm.search(_policy_step_disassembly(portable))
 
 
 def test_the_stm32f100_counts_an_inference_as_the_mps2_board_does(tmp_path: Path) -> None:

@@ -73,6 +73,7 @@ def test_instruction_figures_come_from_the_timer_lines(tmp_path: Path) -> None:
         ("vfma.f32", "s15, s14, s13", "fp_multiply_accumulate", 0),
         ("vmul.f32", "s15, s14, s13", "fp_alu", 0),
         ("vldmia", "r3!, {s15}", "load_multiple", 1),
+        ("vldmia", "r3!, {s16-s23}", "load_multiple", 8),  # the dot products' VLDM: 1 + 8 cycles
         ("vpush", "{d8-d9}", "store_multiple", 4),
         ("ldr.w", "r3, [r2, #4]", "load", 0),
         ("push", "{r4, r5, r6, lr}", "store_multiple", 4),

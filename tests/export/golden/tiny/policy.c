@@ -19,6 +19,7 @@ static const float policy_w0_mean[3] = {
 static const float policy_w1_std[3] = {
     0.761692405f, 0.819097042f, 0.618091226f
 };
+#if !(defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE))
 /* fc1 weights, input-major [3][4] */
 static const float policy_w2_W1[3][4] = {
     {
@@ -31,12 +32,21 @@ static const float policy_w2_W1[3][4] = {
         -1.66613543f, 1.32375896f, -1.26514375f, 1.73328936f
     }
 };
+#endif
 /* fc1 bias [4] */
 static const float policy_w3_b1[4] = {
     0.520134151f, -1.00216579f, 0.268345535f, 0.767174721f
 };
+#if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE)
+/* fc1 weights [3][4] in the order the VLDM passes read them */
+static const float policy_w4_W1[12] = {
+    -1.4788233f, 0.343744576f, -0.860280216f, -2.15913892f, 0.945472956f, -0.512443721f,
+    0.519493222f, 0.434733957f, -1.66613543f, 1.32375896f, -1.26514375f, 1.73328936f
+};
+#endif
+#if !(defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE))
 /* fc2 weights, input-major [4][2] */
-static const float policy_w4_W2[4][2] = {
+static const float policy_w5_W2[4][2] = {
     {
         1.19127202f, -0.0324150845f
     },
@@ -50,10 +60,18 @@ static const float policy_w4_W2[4][2] = {
         0.351383686f, -0.620532036f
     }
 };
+#endif
 /* fc2 bias [2] */
-static const float policy_w5_b2[2] = {
+static const float policy_w6_b2[2] = {
     0.100000001f, -0.200000003f
 };
+#if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE)
+/* fc2 weights [4][2] in the order the VLDM passes read them */
+static const float policy_w7_W2[8] = {
+    1.19127202f, -0.0324150845f, -1.15741086f, 0.0131815793f, 0.696279407f, -0.679249942f,
+    0.351383686f, -0.620532036f
+};
+#endif
 
 static const float policy_safe_action[POLICY_ACT_DIM] = POLICY_SAFE_ACTION;
 
@@ -69,6 +87,92 @@ static float policy_buf1[4];
 #define POLICY_DOT_PRODUCTS 1
 #else
 #define POLICY_DOT_PRODUCTS 0
+#endif
+
+/* The dot products' VLDM form, on a Cortex-M core with a single-precision FPU (GNU C): the
+ * weights stored in the order the passes read them; each input's weights of a pass, and each iteration's
+ * 4 inputs, loaded by one VLDM: 1 + N cycles on the Cortex-M4 against 2 per VLDR
+ * (ARM DDI 0439B, table 7-1), which is what gcc 12 emits for the C loads. The assembly sits in the
+ * policy_row<N> and policy_inputs<N> functions only (MISRA C:2012 Dir 4.3); its GNU extensions (rule
+ * 1.2) are compiled for GNU C only. Each output's terms are added in the C loops' order: the same bits.
+ * -DPOLICY_PORTABLE: the C dot products on every core. */
+#if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE)
+#define POLICY_VLDM 1
+#else
+#define POLICY_VLDM 0
+#endif
+
+#if POLICY_VLDM
+typedef struct {
+    float v[4];
+} policy_floats4;
+#endif
+
+#if POLICY_VLDM
+/* (*p)[0..3] by one VLDM into s16-s19, *p advanced past them.
+ * volatile: the compiler keeps the loads in program order, so the next one waits for the
+ * products of this one (no copies); memory: it reads memory. */
+static inline policy_floats4 policy_row4(const float **p)
+{
+    const float *at = *p;
+    register float v0 __asm__("s16");
+    register float v1 __asm__("s17");
+    register float v2 __asm__("s18");
+    register float v3 __asm__("s19");
+    __asm__ volatile("vldmia %0!, {s16-s19}"
+                     : "+r"(at), "=t"(v0), "=t"(v1), "=t"(v2), "=t"(v3)
+                     :
+                     : "memory");
+    *p = at;
+    const policy_floats4 r = {{v0, v1, v2, v3}};
+    return r;
+}
+#endif
+
+#if POLICY_VLDM
+typedef struct {
+    float v[2];
+} policy_floats2;
+#endif
+
+#if POLICY_VLDM
+/* (*p)[0..1] by one VLDM into s16-s17, *p advanced past them.
+ * volatile: the compiler keeps the loads in program order, so the next one waits for the
+ * products of this one (no copies); memory: it reads memory. */
+static inline policy_floats2 policy_row2(const float **p)
+{
+    const float *at = *p;
+    register float v0 __asm__("s16");
+    register float v1 __asm__("s17");
+    __asm__ volatile("vldmia %0!, {s16-s17}"
+                     : "+r"(at), "=t"(v0), "=t"(v1)
+                     :
+                     : "memory");
+    *p = at;
+    const policy_floats2 r = {{v0, v1}};
+    return r;
+}
+#endif
+
+#if POLICY_VLDM
+/* (*p)[0..3] by one VLDM into s24-s27, *p advanced past them.
+ * volatile: the compiler keeps the loads in program order, so the next one waits for the
+ * products of this one (no copies); memory: it reads memory. */
+static inline policy_floats4 policy_inputs4(const float **p)
+{
+    const float *at = *p;
+    register float v0 __asm__("s24");
+    register float v1 __asm__("s25");
+    register float v2 __asm__("s26");
+    register float v3 __asm__("s27");
+    __asm__ volatile("vldmia %0!, {s24-s27}"
+                     : "+r"(at), "=t"(v0), "=t"(v1), "=t"(v2), "=t"(v3)
+                     :
+                     : "memory");
+    *p = at;
+    const policy_floats4 r = {{v0, v1, v2, v3}};
+    return r;
+}
 #endif
 
 /* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
@@ -112,7 +216,43 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         policy_buf0[i] = policy_buf0[i] / policy_w1_std[i];
     }
     /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
-    #if POLICY_DOT_PRODUCTS
+    #if POLICY_VLDM
+    for (uint32_t n = 0u; n < 4u; n += 4u) {
+        float a0 = policy_w3_b1[n];
+        float a1 = policy_w3_b1[n + 1u];
+        float a2 = policy_w3_b1[n + 2u];
+        float a3 = policy_w3_b1[n + 3u];
+        const float *wp = &policy_w4_W1[3u * n]; /* input by input */
+        {
+            const float xk = policy_buf0[0];
+            const policy_floats4 w = policy_row4(&wp);
+            a0 = a0 + (xk * w.v[0]);
+            a1 = a1 + (xk * w.v[1]);
+            a2 = a2 + (xk * w.v[2]);
+            a3 = a3 + (xk * w.v[3]);
+        }
+        {
+            const float xk = policy_buf0[1];
+            const policy_floats4 w = policy_row4(&wp);
+            a0 = a0 + (xk * w.v[0]);
+            a1 = a1 + (xk * w.v[1]);
+            a2 = a2 + (xk * w.v[2]);
+            a3 = a3 + (xk * w.v[3]);
+        }
+        {
+            const float xk = policy_buf0[2];
+            const policy_floats4 w = policy_row4(&wp);
+            a0 = a0 + (xk * w.v[0]);
+            a1 = a1 + (xk * w.v[1]);
+            a2 = a2 + (xk * w.v[2]);
+            a3 = a3 + (xk * w.v[3]);
+        }
+        policy_buf1[n] = a0;
+        policy_buf1[n + 1u] = a1;
+        policy_buf1[n + 2u] = a2;
+        policy_buf1[n + 3u] = a3;
+    }
+    #elif POLICY_DOT_PRODUCTS
     for (uint32_t n = 0u; n < 4u; n += 4u) {
         float a0 = policy_w3_b1[n];
         float a1 = policy_w3_b1[n + 1u];
@@ -120,7 +260,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         float a3 = policy_w3_b1[n + 3u];
         {
             const float xk = policy_buf0[0];
-            const float *row = &policy_w2_W1[0][n]; /* the pass's 4 weights of this input */
+            const float *row = &policy_w2_W1[0][n]; /* the pass's 4 weight(s) of this input */
             a0 = a0 + (xk * row[0]);
             a1 = a1 + (xk * row[1]);
             a2 = a2 + (xk * row[2]);
@@ -128,7 +268,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         }
         {
             const float xk = policy_buf0[1];
-            const float *row = &policy_w2_W1[1][n]; /* the pass's 4 weights of this input */
+            const float *row = &policy_w2_W1[1][n]; /* the pass's 4 weight(s) of this input */
             a0 = a0 + (xk * row[0]);
             a1 = a1 + (xk * row[1]);
             a2 = a2 + (xk * row[2]);
@@ -136,7 +276,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         }
         {
             const float xk = policy_buf0[2];
-            const float *row = &policy_w2_W1[2][n]; /* the pass's 4 weights of this input */
+            const float *row = &policy_w2_W1[2][n]; /* the pass's 4 weight(s) of this input */
             a0 = a0 + (xk * row[0]);
             a1 = a1 + (xk * row[1]);
             a2 = a2 + (xk * row[2]);
@@ -166,32 +306,68 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         policy_buf1[i] = (policy_buf1[i] < 0.0f) ? 0.0f : policy_buf1[i];
     }
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
-    #if POLICY_DOT_PRODUCTS
+    #if POLICY_VLDM
     for (uint32_t n = 0u; n < 2u; n += 2u) {
-        float a0 = policy_w5_b2[n];
-        float a1 = policy_w5_b2[n + 1u];
+        float a0 = policy_w6_b2[n];
+        float a1 = policy_w6_b2[n + 1u];
+        const float *wp = &policy_w7_W2[4u * n]; /* input by input */
+        const float *xp = policy_buf1;
+        for (uint32_t k = 0u; k < 4u; k += 4u) {
+            const policy_floats4 xs = policy_inputs4(&xp);
+            {
+                const float xk = xs.v[0];
+                const policy_floats2 w = policy_row2(&wp);
+                a0 = a0 + (xk * w.v[0]);
+                a1 = a1 + (xk * w.v[1]);
+            }
+            {
+                const float xk = xs.v[1];
+                const policy_floats2 w = policy_row2(&wp);
+                a0 = a0 + (xk * w.v[0]);
+                a1 = a1 + (xk * w.v[1]);
+            }
+            {
+                const float xk = xs.v[2];
+                const policy_floats2 w = policy_row2(&wp);
+                a0 = a0 + (xk * w.v[0]);
+                a1 = a1 + (xk * w.v[1]);
+            }
+            {
+                const float xk = xs.v[3];
+                const policy_floats2 w = policy_row2(&wp);
+                a0 = a0 + (xk * w.v[0]);
+                a1 = a1 + (xk * w.v[1]);
+            }
+        }
+        policy_buf0[n] = a0;
+        policy_buf0[n + 1u] = a1;
+    }
+    #elif POLICY_DOT_PRODUCTS
+    for (uint32_t n = 0u; n < 2u; n += 2u) {
+        float a0 = policy_w6_b2[n];
+        float a1 = policy_w6_b2[n + 1u];
         for (uint32_t k = 0u; k < 4u; k += 4u) {
             {
                 const float xk = policy_buf1[k];
-                const float *row = &policy_w4_W2[k][n]; /* the pass's 2 weights of this input */
+                const float *row = &policy_w5_W2[k][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
             {
                 const float xk = policy_buf1[k + 1u];
-                const float *row = &policy_w4_W2[k + 1u][n]; /* the pass's 2 weights of this input */
+                const float *row = &policy_w5_W2[k + 1u][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
             {
                 const float xk = policy_buf1[k + 2u];
-                const float *row = &policy_w4_W2[k + 2u][n]; /* the pass's 2 weights of this input */
+                const float *row = &policy_w5_W2[k + 2u][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
             {
                 const float xk = policy_buf1[k + 3u];
-                const float *row = &policy_w4_W2[k + 3u][n]; /* the pass's 2 weights of this input */
+                const float *row = &policy_w5_W2[k + 3u][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
@@ -201,7 +377,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     #else
     for (uint32_t n = 0u; n < 2u; ++n) {
-        policy_buf0[n] = policy_w5_b2[n];
+        policy_buf0[n] = policy_w6_b2[n];
     }
     for (uint32_t k = 0u; k < 4u; k += 4u) {
         const float x0 = policy_buf1[k];
@@ -209,7 +385,7 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         const float x2 = policy_buf1[k + 2u];
         const float x3 = policy_buf1[k + 3u];
         for (uint32_t n = 0u; n < 2u; ++n) {
-            policy_buf0[n] = policy_buf0[n] + (x0 * policy_w4_W2[k][n]) + (x1 * policy_w4_W2[k + 1u][n]) + (x2 * policy_w4_W2[k + 2u][n]) + (x3 * policy_w4_W2[k + 3u][n]);
+            policy_buf0[n] = policy_buf0[n] + (x0 * policy_w5_W2[k][n]) + (x1 * policy_w5_W2[k + 1u][n]) + (x2 * policy_w5_W2[k + 2u][n]) + (x3 * policy_w5_W2[k + 3u][n]);
         }
     }
     #endif

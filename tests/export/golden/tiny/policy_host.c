@@ -73,7 +73,7 @@ static void policy_block(uint32_t rows)
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t n = 0u; n < 2u; ++n) {
-            policy_b0[r][n] = policy_w5_b2[n];
+            policy_b0[r][n] = policy_w6_b2[n];
         }
     }
     for (uint32_t k = 0u; k < 4u; k += 4u) {
@@ -83,7 +83,7 @@ static void policy_block(uint32_t rows)
             const float x2 = policy_b1[r][k + 2u];
             const float x3 = policy_b1[r][k + 3u];
             for (uint32_t n = 0u; n < 2u; ++n) {
-                policy_b0[r][n] = policy_b0[r][n] + (x0 * policy_w4_W2[k][n]) + (x1 * policy_w4_W2[k + 1u][n]) + (x2 * policy_w4_W2[k + 2u][n]) + (x3 * policy_w4_W2[k + 3u][n]);
+                policy_b0[r][n] = policy_b0[r][n] + (x0 * policy_w5_W2[k][n]) + (x1 * policy_w5_W2[k + 1u][n]) + (x2 * policy_w5_W2[k + 2u][n]) + (x3 * policy_w5_W2[k + 3u][n]);
             }
         }
     }
