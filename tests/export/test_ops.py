@@ -19,6 +19,7 @@ from embedrl.export.bounds import action_bounds
 from embedrl.export.onnx_import import to_ir
 from embedrl.export.ops import EMITTERS
 from embedrl.export.ops.elementwise import Relu
+from embedrl.export.ops.linear import pack_passes
 from tests.export.helpers import compile_model, make_model
 from tests.export.test_recurrent import RECURRENT_OPS
 
@@ -211,3 +212,20 @@ def test_an_op_that_is_not_monotone_is_not_bounded_by_its_ends() -> None:
     node = to_ir(make_model([mk("Relu", ["x"], ["y"])], {}, N, N)).nodes[0]
     lo, hi = Square().bounds(node, (np.full(N, -1.0), np.full(N, 1.0)), {}, N)
     assert np.all(lo == -np.inf) and np.all(hi == np.inf)
+
+
+def test_the_vldm_form_stores_each_pass_of_weights_where_its_loop_reads_it() -> None:
+    """The C of the VLDM form reads the pass from output ``n`` (8, 4, 2, then 1 outputs: 23 = 2 x 8 + 4 + 2 +
+    1) from ``n * K`` on, input by input, that input's weights of the pass in output order."""
+    k, n = 5, 23
+    w = np.arange(k * n, dtype=np.float32).reshape(k, n)
+    packed = pack_passes(w)
+    assert packed.dtype == np.float32 and packed.shape == (k * n,)
+    first = 0
+    for rows, count in ((8, 2), (4, 1), (2, 1), (1, 1)):
+        for _ in range(count):
+            np.testing.assert_array_equal(
+                packed[first * k : (first + rows) * k].reshape(k, rows), w[:, first : first + rows]
+            )
+            first += rows
+    assert first == n
