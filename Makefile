@@ -116,6 +116,8 @@ $(EMX):
 BENCH_ENV_STEPS ?= 50000
 BENCH_HIL_EPISODES ?= 60
 BENCH_HIL_EXCHANGES ?= 6000
+# Closed-loop episodes each export of the example verifies (make export-example, make targets-example).
+EXAMPLE_EPISODES ?= 200
 bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/bench
 	$(VENV)/bin/embedrl bench-env --steps $(BENCH_ENV_STEPS) --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
@@ -138,17 +140,18 @@ bench-target: $(STAMP) $(EMX) ## instructions and cycles per inference on Cortex
 # (independent of the shipped policies), exported with the full verification (10,000 samples, 200 episodes).
 export-example: $(STAMP) ## an example TD3 trained by imitation in a minute, exported and verified
 	$(PY) -m embedrl.export.example $(OUT)/example/td3.zip
-	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force
+	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/export --force \
+	    --episodes $(EXAMPLE_EPISODES)
 
 # The same policy on bare-metal Cortex-M4F and Cortex-M3 under QEMU: float32, int8 and q15.
 targets-example: deps $(STAMP) ## the example on Cortex-M4F and Cortex-M3 under QEMU: float32, int8, q15
 	test -f $(OUT)/example/td3.zip || $(PY) -m embedrl.export.example $(OUT)/example/td3.zip
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/float32 --force \
-	    --target cortex-m4 --target cortex-m3
+	    --target cortex-m4 --target cortex-m3 --episodes $(EXAMPLE_EPISODES)
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/int8 --force --quantize int8 \
-	    --target cortex-m4 --target cortex-m3
+	    --target cortex-m4 --target cortex-m3 --episodes $(EXAMPLE_EPISODES)
 	$(VENV)/bin/embedrl export $(OUT)/example/td3.zip --out $(OUT)/example/q15 --force --quantize q15 \
-	    --target cortex-m4 --target cortex-m3
+	    --target cortex-m4 --target cortex-m3 --episodes $(EXAMPLE_EPISODES)
 
 clean: ## remove $(OUT), build folders and caches
 	rm -rf $(OUT) build *.egg-info .pytest_cache .mypy_cache .ruff_cache

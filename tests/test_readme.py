@@ -49,8 +49,9 @@ SHORTER: list[tuple[re.Pattern[str], str | Callable[[re.Match[str]], str]]] = [
     (re.compile(r"--trials \d+"), "--trials 2"),
 ]
 """How a README command is shortened: documented options only."""
-MAKE_SHORTER = "BENCH_ENV_STEPS=500 BENCH_HIL_EPISODES=2 BENCH_HIL_EXCHANGES=200"
-"""How a top-level ``make`` target is shortened: the Makefile's variables for ``make bench``'s lengths."""
+MAKE_SHORTER = "BENCH_ENV_STEPS=500 BENCH_HIL_EPISODES=2 BENCH_HIL_EXCHANGES=200 EXAMPLE_EPISODES=2"
+"""How a top-level ``make`` target is shortened: the Makefile's variables for ``make bench``'s lengths and the
+example's closed-loop episodes."""
 
 
 def readme_commands() -> list[str]:

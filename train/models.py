@@ -22,6 +22,7 @@ from tokenize import TokenError
 from typing import Any
 
 import numpy as np
+import torch
 from gymnasium import spaces
 from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
 from stable_baselines3.common.save_util import load_from_zip_file
@@ -187,7 +188,8 @@ def load_sb3(
     Normalisation statistics: ``vecnormalize`` if given, else the first of
     :func:`normalization_candidates`. A model embedrl trained says whether it needs statistics and which
     (:data:`METADATA_ENTRY`): missing or different ones are refused. Nothing from the files is unpickled
-    (:mod:`embedrl.train.sb3_archive`) unless ``trust_pickle``.
+    (:mod:`embedrl.train.sb3_archive`) unless ``trust_pickle``. Sets torch to one thread: the policy runs
+    one observation at a time.
     """
     if not path.is_file():
         raise InvalidModelFileError(f"{path}: no such file")
@@ -240,6 +242,9 @@ def load_sb3(
     except RuntimeError as exc:
         raise InvalidModelFileError(f"{path}: policy parameters do not match the policy ({exc})") from None
     policy.set_training_mode(False)
+    # One observation at a time through a network this small: one thread is fastest, and extra threads
+    # contend on a busy machine (the recurrent export's verification: ~3x longer with torch's default).
+    torch.set_num_threads(1)
     stats_file, normalization = _matching_normalization(path, vecnormalize, obs_space, trust_pickle)
     return LoadedPolicy(policy, obs_space, act_space, normalization, stats_file)
 
