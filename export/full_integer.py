@@ -11,8 +11,10 @@ in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
 - a hidden layer requantises by the fixed-point multiplier and shift of ``s_x s_w[n] / s_out``
   (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT), adds the output zero point and
   clamps to int8: the clamp's lower end is the ReLU;
-- the last layer's int32 sums become float (``(float)acc * s_x s_w[n]``) for the output non-linearity
-  (deterministic tanh, see :mod:`embedrl.export.quantize`) and the action post-processing, in float.
+- where the last layer feeds a Tanh or Sigmoid alone, its int32 sums are requantised (gemmlowp, any shift)
+  to int16 in Q3.12 and the non-linearity runs in int16 (:mod:`embedrl.export.ops.squash`: a 33-entry
+  table with linear interpolation, worst error 1.5e-3), dequantised to float exactly; otherwise the sums
+  become float (``(float)acc * s_x s_w[n]``). The action post-processing after it stays float.
 
 Only the edges are float: the section's input is checked finite (else the safe action), scaled, offset by the
 zero point, clamped and rounded into int8 once. Where the graph normalises the observation before the chain
@@ -53,6 +55,7 @@ from embedrl.export.ops.linear import (
     padded,
     quantize_multiplier,
 )
+from embedrl.export.ops.squash import SQUASHES, input_step
 
 F = np.float32
 SCHEME = "int8"
@@ -209,12 +212,17 @@ def _fold_node(graph: Graph, node: Node, current: str, prefix: _Prefix, width: i
         return None
     k = np.broadcast_to(k, (width,))
     data_first = node.inputs[0] == current
-    p, q = {
-        "Add": (np.ones(width), k),
-        "Sub": (np.ones(width), -k) if data_first else (-np.ones(width), k),
-        "Mul": (k, np.zeros(width)),
-        "Div": (1.0 / k, np.zeros(width)),
-    }[node.op]
+    ones, zeros = np.ones(width), np.zeros(width)
+    if node.op == "Add":
+        p, q = ones, k
+    elif node.op == "Sub":
+        p, q = (ones, -k) if data_first else (-ones, k)
+    elif node.op == "Mul":
+        p, q = k, zeros
+    elif np.any(k == 0):  # Div by 0: not a scale
+        return None
+    else:
+        p, q = 1.0 / k, zeros
     if not np.all(np.isfinite(p)) or np.any(p == 0):
         return None
     return prefix.then_affine(p, q)
@@ -367,6 +375,7 @@ def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> I
         )
     else:
         section_input, first, input_map = graph.input, prefix.nodes[0], prefix.input_map(quant)
+    squash = _squash(graph, inner[-1]) if given is None else None
     in_quant = quant
     nodes = [n for n in inner if n.op != "Relu"]
     layers = []
@@ -388,7 +397,12 @@ def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> I
         consumers = [n for n in graph.nodes if node.outputs[0] in n.inputs]
         last = j == len(nodes) - 1
         relu = not last and consumers[0].op == "Relu"
-        if last:
+        if last and squash is not None:
+            multiplier, shift = _multipliers(node.name, acc_scale / input_step(squash.op))
+            layer = Int8Layer(
+                node.name, w_q.astype(np.int8), bias_q, multiplier, shift, 0, False, None, squash.op
+            )
+        elif last:
             none = np.zeros(0, np.int64)
             layer = Int8Layer(
                 node.name, w_q.astype(np.int8), bias_q, none, none, 0, False, acc_scale.astype(F)
@@ -401,14 +415,23 @@ def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> I
         layers.append(layer)
     return IntegerSection(
         section_input,
-        inner[-1].outputs[0],
+        (squash or inner[-1]).outputs[0],
         quant,
         input_map,
         tuple(layers),
-        frozenset(n.name for n in inner) | frozenset(prefix.nodes if prefix else ()),
+        frozenset(n.name for n in [*inner, *([squash] if squash else [])])
+        | frozenset(prefix.nodes if prefix else ()),
         first,
         prefix.nodes if prefix else (),
     )
+
+
+def _squash(graph: Graph, last: Node) -> Node | None:
+    """The Tanh or Sigmoid the chain's last layer feeds alone, which then runs in int16 (:mod:`.squash`)."""
+    users = [n for n in graph.nodes if last.outputs[0] in n.inputs]
+    if len(users) == 1 and users[0].op in SQUASHES and last.outputs[0] != graph.output:
+        return users[0]
+    return None
 
 
 def _activation(tensor: str, layer: str, values: dict[str, np.ndarray], given: Given | None) -> Activation:

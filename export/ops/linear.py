@@ -21,6 +21,7 @@ import numpy as np
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import AttrValue, Node
 from embedrl.export.ops.base import Affine, EmitContext, Emitter, F, Interval, Shape, _fail
+from embedrl.export.ops.squash import INT16_MAX, INT16_MIN, squash_c, squash_model, tanh_source
 
 INT8_MAX = 127
 
@@ -561,7 +562,21 @@ __attribute__((cold, noinline))
 #endif
 static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift)
 {{
-    int64_t x = acc;
+{_gemmlowp_steps(-REQUANT_CLAMP, REQUANT_CLAMP - 1)}
+}}
+
+/* Any shift: the branch-free form for shift < 0, the general one otherwise. */
+static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
+{{
+    return (shift < 0) ? {prefix}_requantize_right(acc, m, shift, zero, low)
+                     : {prefix}_clamp({prefix}_requantize_general(acc, m, shift), zero, low);
+}}"""
+
+
+def _gemmlowp_steps(low: int, high: int) -> str:
+    """The body of a C function of ``acc``, ``m`` and ``shift``: gemmlowp's steps (see
+    :func:`general_source`), the result clamped to [low, high]."""
+    return f"""    int64_t x = acc;
     if (shift > 0) {{
         x = x * ((int64_t)1 << shift);
         x = (x > INT32_MAX) ? INT32_MAX : ((x < INT32_MIN) ? INT32_MIN : x);
@@ -571,14 +586,17 @@ static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift
     const int32_t mask = (int32_t)((1u << (uint32_t)right) - 1u);
     const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
     const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
-    return (r > {REQUANT_CLAMP - 1}) ? {REQUANT_CLAMP - 1} : ((r < -{REQUANT_CLAMP}) ? -{REQUANT_CLAMP} : r);
-}}
+    return (r > {high}) ? {high} : ((r < {low}) ? {low} : r);"""
 
-/* Any shift: the branch-free form for shift < 0, the general one otherwise. */
-static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, int32_t zero, int32_t low)
+
+def requantize16_source(prefix: str) -> str:
+    """The last layer's sums requantised as gemmlowp (any shift) and clamped to int16: the input of the int16
+    tanh or sigmoid (:mod:`embedrl.export.ops.squash`)."""
+    return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
+ * [-31, 30]), clamped to int16: the int16 input of tanh or sigmoid. */
+static int32_t {prefix}_requantize16(int32_t acc, int32_t m, int32_t shift)
 {{
-    return (shift < 0) ? {prefix}_requantize_right(acc, m, shift, zero, low)
-                     : {prefix}_clamp({prefix}_requantize_general(acc, m, shift), zero, low);
+{_gemmlowp_steps(INT16_MIN, INT16_MAX)}
 }}"""
 
 
@@ -675,7 +693,8 @@ def pack_weights(weights: np.ndarray) -> np.ndarray:
 class Int8Layer:
     """One Gemm or MatMul in full-integer int8 (planned by :func:`embedrl.export.full_integer.plan`): int8
     inputs with a zero point, per-channel symmetric int8 weights, int32 sums from the bias, then a gemmlowp
-    requantisation and a clamp that holds the ReLU; the last layer turns its sums into float instead. Its
+    requantisation and a clamp that holds the ReLU; the last layer turns its sums into float instead, or,
+    with a ``squash``, requantises them to int16 for the int16 tanh or sigmoid (:mod:`.squash`). Its
     integer model (:meth:`reference`) and its C (:meth:`c_lines`) are the same arithmetic bit for bit."""
 
     name: str
@@ -685,18 +704,24 @@ class Int8Layer:
     """int64 [N] holding int32, in accumulator units (input scale x channel weight scale), with the input's
     zero point folded in: ``round(b / (s_in s_w)) - zp_in * sum_k w[n][k]``."""
     multiplier: np.ndarray
-    """int64 [N], Q31 multipliers in [2^30, 2^31) of ``s_in s_w[n] / s_out`` (hidden layers)."""
+    """int64 [N], Q31 multipliers in [2^30, 2^31) of ``s_in s_w[n] / s_out`` (hidden layers; with a squash,
+    ``s_out`` the int16 input's step)."""
     shift: np.ndarray
     """int64 [N], their exponents (see :func:`requantize`)."""
     out_zero: int
     """Zero point of the int8 output (hidden layers)."""
     relu: bool
     out_scale: np.ndarray | None
-    """float32 [N] ``s_in s_w[n]`` for the last layer, whose output is float; None for hidden layers."""
+    """float32 [N] ``s_in s_w[n]`` for a last layer whose float output is its sums; None otherwise."""
+    squash: str | None = None
+    """A last layer's output non-linearity in int16 ("Tanh" or "Sigmoid"), or None."""
 
     def reference(self, q: np.ndarray) -> np.ndarray:
         """The layer on a batch of int8 inputs (as int64): int8 outputs (as int64), or float32 if last."""
         acc = q @ self.weights.astype(np.int64).T + self.bias
+        if self.squash is not None:
+            t = np.clip(requantize(acc, self.multiplier, self.shift), INT16_MIN, INT16_MAX)
+            return squash_model(t, self.squash)
         if self.out_scale is not None:
             return np.asarray(acc.astype(F) * self.out_scale, dtype=F)
         r = requantize(acc, self.multiplier, self.shift) + self.out_zero
@@ -764,6 +789,15 @@ class Int8Layer:
         layer whose shifts are all negative (the usual case) calls the branch-free requantisation, which
         the portable loop's pass over the sums lets a compiler vectorise."""
         n_out = self.weights.shape[0]
+        if self.squash is not None:
+            ctx.function("tanh_q15", tanh_source)
+            requant16 = ctx.function("requantize16", requantize16_source)
+            m = ctx.const(
+                f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers"
+            )
+            sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+            t = f"{requant16}({{acc}}, {m}[{{n}}], {sh}[{{n}}])"
+            return f"{dst}[{{n}}] = {squash_c(ctx.prefix, self.squash, t)};"
         if self.out_scale is not None:
             s = ctx.const(f"{self.name}#int8scale", self.out_scale, f"{self.name} output scales [{n_out}]")
             return f"{dst}[{{n}}] = (float){{acc}} * {s}[{{n}}];"

@@ -21,6 +21,7 @@ from embedrl.export import build, fixed_point, full_integer, interpret, quantize
 from embedrl.export.codegen import generate
 from embedrl.export.errors import UnrepresentableRangeError, UnsupportedOpError
 from embedrl.export.onnx_import import to_ir
+from embedrl.export.ops import squash
 from embedrl.export.ops.deterministic import exp_det, tanh_det
 from embedrl.export.ops.linear import (
     INT8_MAX,
@@ -29,6 +30,7 @@ from embedrl.export.ops.linear import (
     quantize_columns,
     quantize_multiplier,
     requantize,
+    requantize16_source,
     requantize_source,
 )
 from tests.export.helpers import make_model, mlp_model
@@ -255,6 +257,77 @@ def test_generated_requantisation_equals_the_model_at_the_extremes(level: str, t
     rows = "\n".join(" ".join(map(str, row)) for row in zip(acc, m, shift, zero, low, strict=True))
     got = subprocess.run([str(exe)], input=rows, capture_output=True, text=True, check=True).stdout.split()
     assert [int(v) for v in got] == want.tolist()
+
+
+SQUASH_HARNESS = """#include <stdint.h>
+#include <stdio.h>
+%s
+
+%s
+int main(void)
+{
+    long acc, m, shift;
+    while (scanf("%%ld %%ld %%ld", &acc, &m, &shift) == 3) {
+        const int32_t t = t_requantize16((int32_t)acc, (int32_t)m, (int32_t)shift);
+        printf("%%ld %%a %%a\\n", (long)t, (double)(%s), (double)(%s));
+    }
+    return 0;
+}
+"""
+
+
+def test_int16_tanh_and_sigmoid_state_their_worst_error() -> None:
+    """Over every int16 input the table's tanh is within :data:`TANH_WORST_ERROR` of tanh (and that is its
+    worst, to 1e-5), sigmoid within half of it; both odd/symmetric and monotone."""
+    t = np.arange(squash.INT16_MIN, squash.INT16_MAX + 1, dtype=np.int64)
+    x = t / 2.0**squash.FRAC
+    tanh_error = np.abs(squash.squash_model(t, "Tanh") - np.tanh(x))
+    assert squash.TANH_WORST_ERROR - 1e-5 < tanh_error.max() <= squash.TANH_WORST_ERROR
+    sigmoid = squash.squash_model(t, "Sigmoid").astype(np.float64)
+    assert np.abs(sigmoid - 1 / (1 + np.exp(-2 * x))).max() <= squash.TANH_WORST_ERROR / 2
+    r = squash.tanh_q15(t)
+    assert np.all(np.diff(r) >= 0) and np.array_equal(r[1:], -r[1:][::-1])
+    assert squash.TABLE.size * 2 == 66  # the flash it costs: 33 int16 entries
+
+
+@pytest.mark.parametrize("level", ["-O0", "-O2"])
+def test_generated_int16_tanh_and_sigmoid_equal_the_model_on_every_int16_input(
+    level: str, tmp_path: Path
+) -> None:
+    """The C requantisation to int16 and tanh and sigmoid against the model: sums that land on every int16
+    value (m = 2^30, shift 0: t = acc / 2 rounded), and random sums, multipliers and shifts (saturating)."""
+    rng = np.random.default_rng(2)
+    acc = np.concatenate(
+        [np.arange(2 * squash.INT16_MIN - 3, 2 * squash.INT16_MAX + 4), rng.integers(-(2**31), 2**31, 3000)]
+    )
+    m = np.concatenate([np.full(acc.size - 3000, 2**30), rng.integers(2**30, 2**31, 3000)])
+    shift = np.concatenate(
+        [np.zeros(acc.size - 3000, np.int64), rng.integers(SHIFT_RANGE[0], SHIFT_RANGE[1] + 1, 3000)]
+    )
+    t = np.clip(requantize(acc, m, shift), squash.INT16_MIN, squash.INT16_MAX)
+    (tmp_path / "s.c").write_text(
+        SQUASH_HARNESS
+        % (
+            squash.tanh_source("t"),
+            requantize16_source("t"),
+            squash.squash_c("t", "Tanh", "t"),
+            squash.squash_c("t", "Sigmoid", "t"),
+        )
+    )
+    exe = tmp_path / "s"
+    flags = ["-std=c99", "-Wall", "-Wextra", "-Werror", level]
+    subprocess.run(["cc", *flags, "-o", str(exe), str(tmp_path / "s.c")], check=True)
+    rows = "\n".join(f"{a} {b} {s}" for a, b, s in zip(acc, m, shift, strict=True))
+    out = subprocess.run([str(exe)], input=rows, capture_output=True, text=True, check=True).stdout.split(
+        "\n"
+    )
+    got = np.array([line.split() for line in out if line])
+    assert got[:, 0].astype(np.int64).tolist() == t.tolist()
+    tanh = np.array([float.fromhex(v) for v in got[:, 1]], np.float32)
+    sigmoid = np.array([float.fromhex(v) for v in got[:, 2]], np.float32)
+    assert tanh.tobytes() == squash.squash_model(t, "Tanh").tobytes()
+    assert sigmoid.tobytes() == squash.squash_model(t, "Sigmoid").tobytes()
+    assert len(set(t[: acc.size - 3000].tolist())) == 2**16  # every int16 input
 
 
 @settings(max_examples=15, deadline=None)
