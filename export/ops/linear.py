@@ -562,7 +562,17 @@ __attribute__((cold, noinline))
 #endif
 static int32_t {prefix}_requantize_general(int32_t acc, int32_t m, int32_t shift)
 {{
-{_gemmlowp_steps(-REQUANT_CLAMP, REQUANT_CLAMP - 1)}
+    int64_t x = acc;
+    if (shift > 0) {{
+        x = x * ((int64_t)1 << shift);
+        x = (x > INT32_MAX) ? INT32_MAX : ((x < INT32_MIN) ? INT32_MIN : x);
+    }}
+    const int32_t high = (int32_t)((x * (int64_t)m + ((int64_t)1 << 30)) >> 31);
+    const int32_t right = (shift > 0) ? 0 : -shift;
+    const int32_t mask = (int32_t)((1u << (uint32_t)right) - 1u);
+    const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
+    const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
+    return (r > {REQUANT_CLAMP - 1}) ? {REQUANT_CLAMP - 1} : ((r < -{REQUANT_CLAMP}) ? -{REQUANT_CLAMP} : r);
 }}
 
 /* Any shift: the branch-free form for shift < 0, the general one otherwise. */
@@ -573,30 +583,36 @@ static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, 
 }}"""
 
 
-def _gemmlowp_steps(low: int, high: int) -> str:
-    """The body of a C function of ``acc``, ``m`` and ``shift``: gemmlowp's steps (see
-    :func:`general_source`), the result clamped to [low, high]."""
-    return f"""    int64_t x = acc;
-    if (shift > 0) {{
-        x = x * ((int64_t)1 << shift);
-        x = (x > INT32_MAX) ? INT32_MAX : ((x < INT32_MIN) ? INT32_MIN : x);
-    }}
-    const int32_t high = (int32_t)((x * (int64_t)m + ((int64_t)1 << 30)) >> 31);
-    const int32_t right = (shift > 0) ? 0 : -shift;
-    const int32_t mask = (int32_t)((1u << (uint32_t)right) - 1u);
-    const int32_t threshold = (mask >> 1) + (high < 0 ? 1 : 0);
-    const int32_t r = (high >> right) + ((high & mask) > threshold ? 1 : 0);
-    return (r > {high}) ? {high} : ((r < {low}) ? {low} : r);"""
-
-
 def requantize16_source(prefix: str) -> str:
-    """The last layer's sums requantised as gemmlowp (any shift) and clamped to int16: the input of the int16
-    tanh or sigmoid (:mod:`embedrl.export.ops.squash`)."""
+    """The last layer's sums requantised as gemmlowp (any shift; :func:`requantize`) and clamped to int16:
+    the input of the int16 tanh or sigmoid (:mod:`embedrl.export.ops.squash`). Every shift is of an
+    unsigned value (MISRA C:2012 rule 10.1): the floor of the doubling high multiply on the product plus
+    2^62, gemmlowp's rounding (half away from zero) on the magnitude."""
     return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
- * [-31, 30]), clamped to int16: the int16 input of tanh or sigmoid. */
+ * [-31, 30]), clamped to int16: the int16 input of tanh or sigmoid. high = floor((x m + 2^30) / 2^31) is
+ * taken on x m + 2^30 + 2^62 (never negative), then |high| / 2^-shift rounded half up, the sign put back. */
 static int32_t {prefix}_requantize16(int32_t acc, int32_t m, int32_t shift)
 {{
-{_gemmlowp_steps(INT16_MIN, INT16_MAX)}
+    int64_t x = acc;
+    uint32_t right = 0u;
+    if (shift > 0) {{
+        const uint64_t factor = (uint64_t)1u << (uint32_t)shift;
+        x = x * (int64_t)factor;
+        x = (x > INT32_MAX) ? INT32_MAX : ((x < INT32_MIN) ? INT32_MIN : x);
+    }} else {{
+        right = (uint32_t)(-shift);
+    }}
+    const int64_t product = x * (int64_t)m;
+    const uint64_t biased = (uint64_t)product + {(1 << 62) + (1 << 30):#x}u;
+    const uint64_t floored = biased >> 31u;
+    const int64_t high = (int64_t)floored - {1 << 31}; /* 2^62 / 2^31 */
+    const int64_t negated = -high;
+    const uint64_t magnitude = (high < 0) ? (uint64_t)negated : (uint64_t)high;
+    const uint64_t half = ((uint64_t)1u << right) >> 1u;
+    const uint64_t rounded = (magnitude + half) >> right;
+    const int64_t r = (rounded > {-INT16_MIN}u) ? {-INT16_MIN} : (int64_t)rounded;
+    const int64_t signed_r = (high < 0) ? -r : r;
+    return (int32_t)((signed_r > {INT16_MAX}) ? {INT16_MAX} : signed_r);
 }}"""
 
 
