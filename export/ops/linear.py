@@ -656,6 +656,12 @@ static inline int32_t {prefix}_odd(int32_t w)
 #endif"""
 
 
+def bias_type(bias: np.ndarray) -> type[np.signedinteger]:
+    """int16 for a layer whose every bias fits (half the flash, the same one load per output), else int32."""
+    fits = bool(np.all((bias >= INT16_MIN) & (bias <= INT16_MAX)))
+    return np.int16 if fits else np.int32
+
+
 def padded(k: int) -> int:
     """``k`` rounded up to whole :data:`WORD` s."""
     return -(-k // WORD) * WORD
@@ -773,7 +779,9 @@ class Int8Layer:
             host,
         )
         b = ctx.const(
-            f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
+            f"{self.name}#int8bias",
+            self.bias.astype(bias_type(self.bias)),
+            f"{self.name} bias in accumulator units",
         )
         finish = self._finish(ctx, dst)
         up = ctx.prefix.upper()

@@ -518,3 +518,23 @@ def test_a_report_naming_int8_with_the_weight_only_schemes_description_is_refuse
         ExportError, match=r"its 'int8' is 'int8 weights per output channel.*export the policy again$"
     ):
         precision_of(report("int8-weights"))
+
+
+def test_int8_full_stores_a_layers_biases_as_int16_where_every_one_fits(tmp_path: Path) -> None:
+    """Biases in accumulator units (with the input's zero point folded in): int16 for a layer whose every
+    bias fits, int32 for one with a bias beyond; the C still gives the model's bits."""
+    model = mlp_model([6, 40, 40, 2], ["Relu", "Relu", "Tanh"], 3)
+    big = next(i for i in model.graph.initializer if i.name == "b1")
+    big.CopyFrom(onnx.numpy_helper.from_array(np.full(40, 3.0, np.float32), "b1"))
+    rng = np.random.default_rng(3)
+    calibration = rng.normal(size=(300, 6)).astype(np.float32)
+    policy, section = _compile_int8_full(model, calibration, tmp_path)
+    fits = [bool(np.all(np.abs(layer.bias) <= 2**15 - 1)) for layer in section.layers]
+    assert fits == [True, False, False]
+    text = (tmp_path / "c" / "policy.c").read_text()
+    for layer, ctype in zip(section.layers, ("int16_t", "int32_t", "int32_t"), strict=True):
+        assert re.search(
+            rf"/\* {re.escape(layer.name)} bias in accumulator units \*/\nstatic const {ctype} ", text
+        )
+    x = rng.normal(scale=3.0, size=(2000, 6)).astype(np.float32)
+    assert verify.bitwise_mismatches(policy.rows(x)[0], quantize.evaluate(to_ir(model), x, section)) == 0
