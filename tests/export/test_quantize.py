@@ -420,13 +420,17 @@ HOST_BUILDS = ("-O0", "-O2", "-O3", "-O2 -DPOLICY_ONE_TARGET", "-O2 -DPOLICY_POR
 """The host loop at every level, in its baseline (SSE2) build alone, and the portable loop on the host."""
 
 
-def test_int8_full_host_and_portable_loops_give_the_models_bits_at_every_level(tmp_path: Path) -> None:
+@pytest.mark.parametrize("widths", [[7, 37, 19, 3], [6, 37, 18, 3]])
+def test_int8_full_host_and_portable_loops_give_the_models_bits_at_every_level(
+    tmp_path: Path, widths: list[int]
+) -> None:
     """Outputs not a multiple of the host loop's rows, inputs not a multiple of its vectors, saturated
-    inputs: every build gives the integer model's bits."""
-    model = mlp_model([7, 37, 19, 3], ["Relu", "Relu", "Tanh"], 5)
+    inputs: every build gives the integer model's bits. Inputs beyond whole words: three (padded), one and
+    two (tail words, with a block of one row)."""
+    model = mlp_model(widths, ["Relu", "Relu", "Tanh"], 5)
     rng = np.random.default_rng(5)
-    calibration = rng.normal(scale=2.0, size=(300, 7)).astype(np.float32)
-    x = rng.normal(scale=3.0, size=(3000, 7)).astype(np.float32)
+    calibration = rng.normal(scale=2.0, size=(300, widths[0])).astype(np.float32)
+    x = rng.normal(scale=3.0, size=(3000, widths[0])).astype(np.float32)
     graph = to_ir(model)
     section = full_integer.plan(graph, calibration)
     want = quantize.evaluate(graph, x, section)
@@ -435,7 +439,7 @@ def test_int8_full_host_and_portable_loops_give_the_models_bits_at_every_level(t
         (tmp_path / "c" / filename).write_text(text)
     for k, opt in enumerate(HOST_BUILDS):
         build.make("lib", tmp_path / "c", tmp_path / f"b{k}", opt=opt)
-        policy = build.CPolicy(tmp_path / f"b{k}" / "libpolicy.so", "policy", 7, 3)
+        policy = build.CPolicy(tmp_path / f"b{k}" / "libpolicy.so", "policy", widths[0], widths[-1])
         assert verify.bitwise_mismatches(policy.rows(x)[0], want) == 0, opt
 
 
