@@ -11,10 +11,10 @@ in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
 - a hidden layer requantises by the fixed-point multiplier and shift of ``s_x s_w[n] / s_out``
   (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT), adds the output zero point and
   clamps to int8: the clamp's lower end is the ReLU;
-- where the last layer feeds a Tanh or Sigmoid alone, its int32 sums are requantised (gemmlowp, any shift)
-  to int16 in Q3.12 and the non-linearity runs in int16 (:mod:`embedrl.export.ops.squash`: a 33-entry
-  table with linear interpolation, worst error 1.5e-3), dequantised to float exactly; otherwise the sums
-  become float (``(float)acc * s_x s_w[n]``). The action post-processing after it stays float.
+- where the last layer feeds a Tanh or Sigmoid alone, its int32 sums are requantised (one rounding of the
+  64-bit product) to int16 in Q3.12 and the non-linearity runs in int16 (:mod:`embedrl.export.ops.squash`:
+  a 33-entry table with linear interpolation, worst error 1.5e-3), dequantised to float exactly; otherwise
+  the sums become float (``(float)acc * s_x s_w[n]``). The action post-processing after it stays float.
 
 Only the edges are float: the section's input is checked finite (else the safe action), scaled, offset by the
 zero point, clamped and rounded into int8 once. Where the graph normalises the observation before the chain

@@ -583,36 +583,33 @@ static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, 
 }}"""
 
 
+def requantize16(acc: np.ndarray, m: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The last layer's sums as the int16 input of tanh or sigmoid (:mod:`embedrl.export.ops.squash`):
+    ``acc * m * 2^(shift - 31)`` rounded once, half up, from the exact 64-bit product (one rounding where
+    gemmlowp's :func:`requantize` has two), clamped to int16 (int64 arrays)."""
+    s = 31 - shift
+    r = (acc * m + (np.int64(1) << (s - 1))) >> s
+    return np.asarray(np.clip(r, INT16_MIN, INT16_MAX), np.int64)
+
+
 def requantize16_source(prefix: str) -> str:
-    """The last layer's sums requantised as gemmlowp (any shift; :func:`requantize`) and clamped to int16:
-    the input of the int16 tanh or sigmoid (:mod:`embedrl.export.ops.squash`). Every shift is of an
-    unsigned value (MISRA C:2012 rule 10.1): the floor of the doubling high multiply on the product plus
-    2^62, gemmlowp's rounding (half away from zero) on the magnitude."""
-    return f"""/* acc * m * 2^(shift - 31) rounded as gemmlowp (m within [2^30, 2^31), shift within
- * [-31, 30]), clamped to int16: the int16 input of tanh or sigmoid. high = floor((x m + 2^30) / 2^31) is
- * taken on x m + 2^30 + 2^62 (never negative), then |high| / 2^-shift rounded half up, the sign put back. */
+    """The C of :func:`requantize16`: the floor taken on the product plus 2^62 (never negative), so that
+    every shift is of an unsigned value (MISRA C:2012 rule 10.1)."""
+    offset = 1 << 62
+    return f"""/* acc * m * 2^(shift - 31) (m within [2^30, 2^31), shift within [-31, 30]) rounded half up
+ * from the 64-bit product, clamped to int16: the int16 input of tanh or sigmoid. The floor by
+ * 2^(31 - shift) is taken on the product plus 2^62 + half (never negative, below 2^63), less 2^62's share. */
 static int32_t {prefix}_requantize16(int32_t acc, int32_t m, int32_t shift)
 {{
-    int64_t x = acc;
-    uint32_t right = 0u;
-    if (shift > 0) {{
-        const uint64_t factor = (uint64_t)1u << (uint32_t)shift;
-        x = x * (int64_t)factor;
-        x = (x > INT32_MAX) ? INT32_MAX : ((x < INT32_MIN) ? INT32_MIN : x);
-    }} else {{
-        right = (uint32_t)(-shift);
-    }}
-    const int64_t product = x * (int64_t)m;
-    const uint64_t biased = (uint64_t)product + {(1 << 62) + (1 << 30):#x}u;
-    const uint64_t floored = biased >> 31u;
-    const int64_t high = (int64_t)floored - {1 << 31}; /* 2^62 / 2^31 */
-    const int64_t negated = -high;
-    const uint64_t magnitude = (high < 0) ? (uint64_t)negated : (uint64_t)high;
-    const uint64_t half = ((uint64_t)1u << right) >> 1u;
-    const uint64_t rounded = (magnitude + half) >> right;
-    const int64_t r = (rounded > {-INT16_MIN}u) ? {-INT16_MIN} : (int64_t)rounded;
-    const int64_t signed_r = (high < 0) ? -r : r;
-    return (int32_t)((signed_r > {INT16_MAX}) ? {INT16_MAX} : signed_r);
+    const int32_t total = 31 - shift;
+    const uint32_t s = (uint32_t)total;
+    const int64_t product = (int64_t)acc * (int64_t)m;
+    const uint64_t half = ((uint64_t)1u << s) >> 1u;
+    const uint64_t biased = ((uint64_t)product + {offset:#x}u) + half;
+    const uint64_t shifted = biased >> s;
+    const uint64_t base = (uint64_t){offset:#x}u >> s;
+    const int64_t r = (int64_t)shifted - (int64_t)base;
+    return (int32_t)((r > {INT16_MAX}) ? {INT16_MAX} : ((r < {INT16_MIN}) ? {INT16_MIN} : r));
 }}"""
 
 
@@ -771,7 +768,7 @@ class Int8Layer:
         """The layer on a batch of int8 inputs (as int64): int8 outputs (as int64), or float32 if last."""
         acc = q @ self.weights.astype(np.int64).T + self.bias
         if self.squash is not None:
-            t = np.clip(requantize(acc, self.multiplier, self.shift), INT16_MIN, INT16_MAX)
+            t = requantize16(acc, self.multiplier, self.shift)
             return squash_model(t, self.squash)
         if self.out_scale is not None:
             return np.asarray(acc.astype(F) * self.out_scale, dtype=F)
