@@ -409,7 +409,9 @@ def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> I
             )
         else:
             out = _activation(consumers[0].outputs[0] if relu else node.outputs[0], node.name, values, given)
-            multiplier, shift = _multipliers(node.name, acc_scale / out.scale)
+            multiplier, shift = common_shift(
+                acc_scale / out.scale, *_multipliers(node.name, acc_scale / out.scale)
+            )
             layer = Int8Layer(node.name, w_q.astype(np.int8), bias_q, multiplier, shift, out.zero, relu, None)
             in_quant = out
         layers.append(layer)
@@ -474,6 +476,22 @@ def _check_accumulator(layer: str, bias_acc: np.ndarray, w_q: np.ndarray) -> Non
             f"{SCHEME}: layer '{layer}' output {n}: its bias ({bias_acc[n]:.3g} in accumulator units) "
             "and sums do not fit an int32 accumulator at the calibrated input scale"
         )
+
+
+COMMON_SHIFT_BITS = 24
+"""Significant bits each multiplier keeps at least when a layer's channels share one shift (a float32
+scale's): the shift then is a constant of the code, not a table."""
+
+
+def common_shift(real: np.ndarray, m: np.ndarray, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A hidden layer's requantisation with one shift for every channel, the largest, each multiplier
+    ``round(real * 2^(31 - shift))`` below 2^31 keeping at least :data:`COMMON_SHIFT_BITS` significant bits;
+    the per-channel pairs ``(m, shift)`` as they are where a channel would keep fewer."""
+    top = int(np.max(shift))
+    common = np.rint(np.asarray(real, np.float64) * 2.0 ** (31 - top)).astype(np.int64)
+    if np.any(common >= 2**31) or np.any(common < 2 ** (COMMON_SHIFT_BITS - 1)):
+        return m, shift
+    return common, np.full_like(shift, top)
 
 
 def _multipliers(layer: str, real: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

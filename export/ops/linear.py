@@ -752,8 +752,9 @@ class Int8Layer:
     """int64 [N] holding int32, in accumulator units (input scale x channel weight scale), with the input's
     zero point folded in: ``round(b / (s_in s_w)) - zp_in * sum_k w[n][k]``."""
     multiplier: np.ndarray
-    """int64 [N], Q31 multipliers in [2^30, 2^31) of ``s_in s_w[n] / s_out`` (hidden layers; with a squash,
-    ``s_out`` the int16 input's step)."""
+    """int64 [N], Q31 multipliers of ``s_in s_w[n] / s_out`` (hidden layers; with a squash, ``s_out`` the
+    int16 input's step): in [2^30, 2^31) each with its own shift, or, where the layer's channels share one
+    shift, in [2^23, 2^31) (:func:`embedrl.export.full_integer.common_shift`)."""
     shift: np.ndarray
     """int64 [N], their exponents (see :func:`requantize`)."""
     out_zero: int
@@ -867,9 +868,13 @@ class Int8Layer:
         if not bool(np.all(self.shift < 0)):
             requant = ctx.function("requantize", general_source)
         m = ctx.const(f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers")
-        sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+        if bool(np.all(self.shift == self.shift[0])):  # one shift for the layer: a constant, no table
+            shift = str(int(self.shift[0]))
+        else:
+            sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+            shift = f"{sh}[{{n}}]"
         low = self.out_zero if self.relu else INT8_MIN
-        return f"{dst}[{{n}}] = {requant}({{acc}}, {m}[{{n}}], {sh}[{{n}}], {self.out_zero}, {low});"
+        return f"{dst}[{{n}}] = {requant}({{acc}}, {m}[{{n}}], {shift}, {self.out_zero}, {low});"
 
 
 def _index(*terms: str) -> str:

@@ -545,3 +545,26 @@ def test_int8_full_stores_a_layers_biases_as_int16_where_every_one_fits(tmp_path
         )
     x = rng.normal(scale=3.0, size=(2000, 6)).astype(np.float32)
     assert verify.bitwise_mismatches(policy.rows(x)[0], quantize.evaluate(to_ir(model), x, section)) == 0
+
+
+def test_int8_full_layers_share_one_shift_where_every_multiplier_keeps_24_bits(tmp_path: Path) -> None:
+    """A hidden layer's channels share the largest shift, each multiplier rescaled to it keeping at least 24
+    significant bits (within 2^-24 of its scale): the shift is a constant of the C, no table. A spread of
+    scales wider than 2^7 keeps a shift per channel."""
+    real = np.array([0.003, 0.0011, 0.0052, 0.0007])
+    pairs = [quantize_multiplier(float(r)) for r in real]
+    m, shift = (np.array(v, np.int64) for v in zip(*pairs, strict=True))
+    common_m, common = full_integer.common_shift(real, m, shift)
+    assert len(set(shift.tolist())) > 1 and set(common.tolist()) == {int(shift.max())}
+    assert np.all(common_m >= 2**23) and np.all(common_m < 2**31)
+    assert np.max(np.abs(common_m * 2.0 ** (common - 31) - real) / real) <= 2.0**-24
+    wide = np.array([0.003, 0.003 / 2**8])
+    pairs = [quantize_multiplier(float(r)) for r in wide]
+    m, shift = (np.array(v, np.int64) for v in zip(*pairs, strict=True))
+    assert full_integer.common_shift(wide, m, shift)[1].tolist() == shift.tolist()
+    model = mlp_model([6, 40, 40, 2], ["Relu", "Relu", "Tanh"], 3)
+    calibration = np.random.default_rng(3).normal(size=(300, 6)).astype(np.float32)
+    _, section = _compile_int8_full(model, calibration, tmp_path)
+    text = (tmp_path / "c" / "policy.c").read_text()
+    for layer in section.layers[:-1]:
+        assert len(set(layer.shift.tolist())) == 1 and f"/* {layer.name} shifts */" not in text
