@@ -252,6 +252,24 @@ def test_int8_study_actor_meets_the_flash_and_cycle_targets_on_the_m4f(tmp_path:
     assert "actor.mu.0 shifts */" not in text and "actor.mu.2 shifts */" not in text
 
 
+def test_int8_folded_normalisation_is_bit_exact_on_the_m4f(tmp_path: Path) -> None:
+    """The shipped PPO with its VecNormalize statistics in int8: the Sub, Div and Clip before the layers fold
+    into the input quantisation (no float loop of theirs), and the M4F image prints the model's bits."""
+    static = SHIPPED_TD3.parent
+    out = tmp_path / "export"
+    args = ["export", str(static / "ppo.zip"), "--vecnormalize", str(static / "ppo_vecnormalize.npz")]
+    args += ["--out", str(out), "--episodes", "0", "--quantize", "int8", "--target", "cortex-m4"]
+    assert main(args) == 0
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["verification"]["quantization"]["model_mismatches"] == 0
+    assert report["targets"]["cortex-m4"]["bit_exact_with_model"] is True
+    text = (out / "c" / "policy.c").read_text()
+    assert (
+        "folded in: normalize.sub, normalize.div, normalize.clip" in text
+        and "Sub 'normalize.sub'" not in text
+    )
+
+
 def test_q15_firmware_on_the_fpu_less_m3_is_bit_exact(tmp_path: Path) -> None:
     code, out = _export(tmp_path, [6, 100, 100, 2], "--quantize", "q15", "--target", "cortex-m3")
     assert code == 0
