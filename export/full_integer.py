@@ -9,7 +9,8 @@ in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
 - each output sums ``q_x[k] * q_w[n][k]`` into an int32 that starts at the bias in accumulator units
   (``s_x s_w[n]``) with the input's zero point folded in (``- zp_x * sum_k q_w[n][k]``, done at generation);
 - a hidden layer requantises by the fixed-point multiplier and shift of ``s_x s_w[n] / s_out``
-  (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT), adds the output zero point and
+  (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT; one shift for the whole layer where
+  every multiplier then keeps 24 significant bits, :func:`common_shift`), adds the output zero point and
   clamps to int8: the clamp's lower end is the ReLU;
 - where the last layer feeds a Tanh or Sigmoid alone, its int32 sums are requantised (one rounding of the
   64-bit product) to int16 in Q3.12 and the non-linearity runs in int16 (:mod:`embedrl.export.ops.squash`:
