@@ -9,17 +9,24 @@ in integers, as TFLite Micro and CMSIS-NN run a quantised fully-connected layer:
 - each output sums ``q_x[k] * q_w[n][k]`` into an int32 that starts at the bias in accumulator units
   (``s_x s_w[n]``) with the input's zero point folded in (``- zp_x * sum_k q_w[n][k]``, done at generation);
 - a hidden layer requantises by the fixed-point multiplier and shift of ``s_x s_w[n] / s_out``
-  (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT), adds the output zero point and
+  (gemmlowp's SaturatingRoundingDoublingHighMul and RoundingDivideByPOT; one shift for the whole layer where
+  every multiplier then keeps 24 significant bits, :func:`common_shift`), adds the output zero point and
   clamps to int8: the clamp's lower end is the ReLU;
-- the last layer's int32 sums become float (``(float)acc * s_x s_w[n]``) for the output non-linearity
-  (deterministic tanh, see :mod:`embedrl.export.quantize`) and the action post-processing, in float.
+- where the last layer feeds a Tanh or Sigmoid alone, its int32 sums are requantised (one rounding of the
+  64-bit product) to int16 in Q3.12 and the non-linearity runs in int16 (:mod:`embedrl.export.ops.squash`:
+  a 33-entry table with linear interpolation, worst error 1.5e-3), dequantised to float exactly; otherwise
+  the sums become float (``(float)acc * s_x s_w[n]``). The action post-processing after it stays float.
 
 Only the edges are float: the section's input is checked finite (else the safe action), scaled, offset by the
-zero point, clamped and rounded into int8 once. Integer sums are exact in any order, so the portable C (a dot
-product per output over an int16 copy of the input, which gcc vectorises on the host) and the Cortex-M4/M7
-DSP loop (``__sxtb16`` + ``__smlad``, two multiply-adds per
-instruction) give the bits of the int64 NumPy model here. A layer whose scales the encoding cannot hold (a
-multiplier exponent outside [-31, 30], a bias or a sum beyond int32) is refused, naming the layer.
+zero point, clamped and rounded into int8 once. Where the graph normalises the observation before the chain
+(Sub, Div, Mul, Add by constants and Clip, as a VecNormalize export does), those float ops fold into that
+one step (:class:`InputMap`): per feature one multiply, one add, a clamp and a round.
+
+Integer sums are exact in any order, so the portable C (a dot product per output over an int16 copy of the
+input, which gcc vectorises on the host) and the Cortex-M4/M7 DSP loop (``__sxtb16`` + ``__smlad``, two
+multiply-adds per instruction) give the bits of the int64 NumPy model here. A layer whose scales the
+encoding cannot hold (a multiplier exponent outside [-31, 30], a bias or a sum beyond int32) is refused,
+naming the layer.
 """
 
 from __future__ import annotations
@@ -33,7 +40,7 @@ from embedrl.export import interpret
 from embedrl.export.contract.literals import c_float
 from embedrl.export.errors import UnrepresentableRangeError, UnsupportedOpError
 from embedrl.export.fixed_point import chain
-from embedrl.export.ir import Graph
+from embedrl.export.ir import Graph, Node
 from embedrl.export.ops import EMITTERS
 from embedrl.export.ops.base import EmitContext
 from embedrl.export.ops.linear import (
@@ -49,6 +56,7 @@ from embedrl.export.ops.linear import (
     padded,
     quantize_multiplier,
 )
+from embedrl.export.ops.squash import SQUASHES, input_step
 
 F = np.float32
 SCHEME = "int8"
@@ -90,6 +98,137 @@ class Given:
         return self.activations[tensor]
 
 
+FOLDABLE = frozenset({"Sub", "Div", "Mul", "Add", "Clip"})
+"""Float ops before the chain that fold into the input quantisation (each an increasing or decreasing map of
+every feature: an affine map by constants, or a clamp)."""
+
+
+@dataclass(frozen=True)
+class InputMap:
+    """The section's float input -> int8, per feature: ``v = x * scale + offset`` (float32, in that order),
+    ``v`` clamped to ``[low, high]``, rounded half up. ``scale`` and ``offset`` hold the folded normalisation
+    and the quantisation's ``1 / s`` and zero point; ``[low, high]`` is within [-128, 127] and holds the
+    folded clips (a clamp before an increasing map is a clamp after it, of the mapped bounds)."""
+
+    scale: np.ndarray
+    offset: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    """float32 [K] each."""
+
+    def uniform(self) -> bool:
+        """True when every feature has the same map (written as literals, not arrays, in the C)."""
+        return all(bool(np.all(a == a[0])) for a in (self.scale, self.offset, self.low, self.high))
+
+
+def plain_input(quant: Activation, width: int) -> InputMap:
+    """The input map of the quantisation alone: ``x / s + zero`` within [-128, 127]."""
+    return InputMap(
+        np.full(width, F(1.0) / F(quant.scale), F),
+        np.full(width, quant.zero, F),
+        np.full(width, INT8_MIN, F),
+        np.full(width, INT8_MAX, F),
+    )
+
+
+@dataclass(frozen=True)
+class _Prefix:
+    """The float ops before the chain as one map per feature: ``clamp(a * x + c, low, high)`` (float64)."""
+
+    nodes: tuple[str, ...]
+    a: np.ndarray
+    c: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+
+    def then_affine(self, p: np.ndarray, q: np.ndarray) -> _Prefix:
+        """This map followed by ``p * y + q`` (``p`` never 0)."""
+        lo, hi = p * self.low + q, p * self.high + q
+        return _Prefix(
+            self.nodes, self.a * p, self.c * p + q, np.where(p > 0, lo, hi), np.where(p > 0, hi, lo)
+        )
+
+    def then_clip(self, lo: float, hi: float) -> _Prefix:
+        """This map followed by ``min(max(y, lo), hi)`` (the C's order): the bounds clamped the same way."""
+        return _Prefix(
+            self.nodes,
+            self.a,
+            self.c,
+            np.minimum(np.maximum(self.low, lo), hi),
+            np.minimum(np.maximum(self.high, lo), hi),
+        )
+
+    def input_map(self, quant: Activation) -> InputMap:
+        """The map then the quantisation ``y / s + zero`` and the int8 range, in float32."""
+        inv = 1.0 / quant.scale
+
+        def bound(v: np.ndarray) -> np.ndarray:
+            return np.clip(v * inv + quant.zero, INT8_MIN, INT8_MAX).astype(F)
+
+        return InputMap(
+            (self.a * inv).astype(F), (self.c * inv + quant.zero).astype(F), bound(self.low), bound(self.high)
+        )
+
+
+def _fold_prefix(graph: Graph, first: str) -> _Prefix | None:
+    """The float ops from the graph's input to the chain's first node ``first`` as one :class:`_Prefix`, or
+    None when there are none or one of them does not fold (another op, a branch, a non-constant or
+    non-finite operand, a factor of 0, a divisor as the data operand)."""
+    index = next(i for i, n in enumerate(graph.nodes) if n.name == first)
+    nodes = graph.nodes[:index]
+    width = int(graph.shapes[graph.input][-1])
+    if not nodes:
+        return None
+    ones = np.ones(width)
+    prefix, current = _Prefix((), ones, 0.0 * ones, -np.inf * ones, np.inf * ones), graph.input
+    for node in nodes:
+        users = [n for n in graph.nodes if node.outputs[0] in n.inputs]
+        if node.op not in FOLDABLE or (node.op in ("Div", "Clip") and node.inputs[0] != current):
+            return None
+        if len(users) != 1 or current not in node.inputs:
+            return None
+        step = _fold_node(graph, node, current, prefix, width)
+        if step is None:
+            return None
+        prefix, current = step, node.outputs[0]
+    return _Prefix(tuple(n.name for n in nodes), prefix.a, prefix.c, prefix.low, prefix.high)
+
+
+def _fold_node(graph: Graph, node: Node, current: str, prefix: _Prefix, width: int) -> _Prefix | None:
+    """``prefix`` followed by ``node`` (one of :data:`FOLDABLE`, reading ``current``), or None."""
+    if node.op == "Clip":
+        names = [*node.inputs[1:3], "", ""][:2]
+        if any(name and name not in graph.constants for name in names):
+            return None
+        lo, hi = (
+            float(graph.constants[name].reshape(-1)[0]) if name else default
+            for name, default in zip(names, (-math.inf, math.inf), strict=True)
+        )
+        return prefix.then_clip(lo, hi)
+    other = node.inputs[1] if node.inputs[0] == current else node.inputs[0]
+    if other not in graph.constants or other == current:
+        return None
+    k = np.asarray(graph.constants[other], np.float64).reshape(-1)
+    if k.size not in (1, width) or not np.all(np.isfinite(k)):
+        return None
+    k = np.broadcast_to(k, (width,))
+    data_first = node.inputs[0] == current
+    ones, zeros = np.ones(width), np.zeros(width)
+    if node.op == "Add":
+        p, q = ones, k
+    elif node.op == "Sub":
+        p, q = (ones, -k) if data_first else (-ones, k)
+    elif node.op == "Mul":
+        p, q = k, zeros
+    elif np.any(k == 0):  # Div by 0: not a scale
+        return None
+    else:
+        p, q = 1.0 / k, zeros
+    if not np.all(np.isfinite(p)) or np.any(p == 0):
+        return None
+    return prefix.then_affine(p, q)
+
+
 @dataclass(frozen=True)
 class IntegerSection:
     """The integer part of the graph: from ``input`` (float, quantised on entry) to ``output`` (float)."""
@@ -97,15 +236,19 @@ class IntegerSection:
     input: str
     output: str
     quant: Activation
-    """The input's quantisation."""
+    """The chain's input quantisation (of the normalised observation, where normalisation folds in)."""
+    input_map: InputMap
+    """How the section's input becomes int8 (the folded float ops and ``quant``)."""
     layers: tuple[Int8Layer, ...]
     nodes: frozenset[str]
     """Names of the IR nodes the section replaces."""
     first_node: str
+    folded: tuple[str, ...] = ()
+    """The float ops before the chain folded into :attr:`input_map`, in order."""
 
     def run(self, x: np.ndarray) -> np.ndarray:
         """The section on a batch of float32 inputs: int64 model, float32 output."""
-        q = quantize_input(x, self.quant)
+        q = map_input(x, self.input_map)
         for layer in self.layers[:-1]:
             q = layer.reference(q)
         return np.asarray(self.layers[-1].reference(q), dtype=F)
@@ -156,24 +299,10 @@ class IntegerSection:
             *(f"static int8_t {buf}[{size}];" for buf, size in zip(qbufs, self.buffer_sizes(), strict=False)),
         ]
         src_ref, out_ref = ctx.ref(self.input), ctx.ref(self.output)
-        inverse, zero = c_float(float(F(1.0) / F(self.quant.scale))), c_float(float(self.quant.zero))
         lines = [
             f"/* full-integer int8: {len(self.layers)} layer(s); input scale {self.quant.scale:.9g}, "
             f"zero point {self.quant.zero} */",
-            f"for (uint32_t i = 0u; i < {self.widths()[0]}u; ++i) {{",
-            f"    if (!{p}_finite({src_ref}[i])) {{",
-            f"        return {p}_safe(act, {up}_ERR_ACT_NOT_FINITE); /* never converted to an integer */",
-            "    }",
-            f"    float v = {src_ref}[i] * {inverse};",
-            f"    v = v + {zero};",
-            "    v = (v > 127.0f) ? 127.0f : ((v < -128.0f) ? -128.0f : v);",
-            "    v = v + 0.5f;",
-            "    int32_t q = (int32_t)v;",
-            "    if ((float)q > v) {",
-            "        q -= 1; /* floor: round half up */",
-            "    }",
-            f"    {qbufs[0]}[i] = (int8_t)q;",
-            "}",
+            *self._input_lines(ctx, src_ref, qbufs[0]),
         ]
         for j, layer in enumerate(self.layers):
             last = j == len(self.layers) - 1
@@ -181,15 +310,52 @@ class IntegerSection:
             lines += layer.c_lines(ctx, qbufs[j % 2], dst, (f"{p}_pairs", f"{p}_wide", f"{p}_sums"))
         return lines, decls
 
+    def _input_lines(self, ctx: EmitContext, src: str, dst: str) -> list[str]:
+        """The section's input checked finite and mapped to int8 (:class:`InputMap`): literals when every
+        feature has the same map, else arrays of the folded normalisation."""
+        p, m = ctx.prefix, self.input_map
+        if m.uniform():
+            scale, offset, low, high = (c_float(float(a[0])) for a in (m.scale, m.offset, m.low, m.high))
+            note = ""
+        else:
+            arrays = zip(("scale", "offset", "low", "high"), (m.scale, m.offset, m.low, m.high), strict=True)
+            scale, offset, low, high = (
+                f"{ctx.const(f'input_{what}#int8', a, f'int8 input map: {what} per feature [{a.size}]')}[i]"
+                for what, a in arrays
+            )
+            note = f"    /* the float ops before the chain folded in: {', '.join(self.folded)} */"
+        return [
+            f"for (uint32_t i = 0u; i < {self.widths()[0]}u; ++i) {{",
+            *([note] if note else []),
+            f"    if (!{p}_finite({src}[i])) {{",
+            f"        return {p}_safe(act, {p.upper()}_ERR_ACT_NOT_FINITE); "
+            "/* never converted to an integer */",
+            "    }",
+            f"    float v = {src}[i] * {scale};",
+            f"    v = v + {offset};",
+            f"    v = (v > {high}) ? {high} : ((v < {low}) ? {low} : v);",
+            "    v = v + 0.5f;",
+            "    int32_t q = (int32_t)v;",
+            "    if ((float)q > v) {",
+            "        q -= 1; /* floor: round half up */",
+            "    }",
+            f"    {dst}[i] = (int8_t)q;",
+            "}",
+        ]
+
+
+def map_input(x: np.ndarray, m: InputMap) -> np.ndarray:
+    """float32 -> int8 as the C does it (:class:`InputMap`): times the scale, plus the offset, clamp, round
+    half up."""
+    v = (np.asarray(x, F) * m.scale).astype(F)
+    v = (v + m.offset).astype(F)
+    v = np.where(v > m.high, m.high, np.where(v < m.low, m.low, v)).astype(F)
+    return np.floor((v + F(0.5)).astype(F)).astype(np.int64)
+
 
 def quantize_input(x: np.ndarray, quant: Activation) -> np.ndarray:
-    """float32 -> int8 as the C does it: times the inverse scale, plus the zero point, clamp, round half
-    up."""
-    inverse, zero = F(1.0) / F(quant.scale), F(quant.zero)
-    v = (np.asarray(x, F) * inverse).astype(F)
-    v = (v + zero).astype(F)
-    v = np.where(v > F(INT8_MAX), F(INT8_MAX), np.where(v < F(INT8_MIN), F(INT8_MIN), v)).astype(F)
-    return np.floor((v + F(0.5)).astype(F)).astype(np.int64)
+    """float32 -> int8 by the quantisation alone (the chain's input, no folded ops), as the C does it."""
+    return map_input(x, plain_input(quant, np.asarray(x).shape[-1]))
 
 
 def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> IntegerSection:
@@ -198,8 +364,19 @@ def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> I
     (:class:`UnrepresentableRangeError`, naming it)."""
     inner = chain(graph, SCHEME)
     values = interpret.run(graph, calibration, "float64") if given is None else {}
-    section_input = inner[0].inputs[0]
-    quant = _activation(section_input, inner[0].name, values, given)
+    chain_input = inner[0].inputs[0]
+    quant = _activation(chain_input, inner[0].name, values, given)
+    # a QDQ model's quantised tensors are compared with onnxruntime's one by one: its float ops stay
+    prefix = _fold_prefix(graph, inner[0].name) if given is None else None
+    if prefix is None:
+        section_input, first, input_map = (
+            chain_input,
+            inner[0].name,
+            plain_input(quant, graph.size(chain_input)),
+        )
+    else:
+        section_input, first, input_map = graph.input, prefix.nodes[0], prefix.input_map(quant)
+    squash = _squash(graph, inner[-1]) if given is None else None
     in_quant = quant
     nodes = [n for n in inner if n.op != "Relu"]
     layers = []
@@ -221,25 +398,43 @@ def plan(graph: Graph, calibration: np.ndarray, given: Given | None = None) -> I
         consumers = [n for n in graph.nodes if node.outputs[0] in n.inputs]
         last = j == len(nodes) - 1
         relu = not last and consumers[0].op == "Relu"
-        if last:
+        if last and squash is not None:
+            multiplier, shift = _multipliers(node.name, acc_scale / input_step(squash.op))
+            layer = Int8Layer(
+                node.name, w_q.astype(np.int8), bias_q, multiplier, shift, 0, False, None, squash.op
+            )
+        elif last:
             none = np.zeros(0, np.int64)
             layer = Int8Layer(
                 node.name, w_q.astype(np.int8), bias_q, none, none, 0, False, acc_scale.astype(F)
             )
         else:
             out = _activation(consumers[0].outputs[0] if relu else node.outputs[0], node.name, values, given)
-            multiplier, shift = _multipliers(node.name, acc_scale / out.scale)
+            multiplier, shift = common_shift(
+                acc_scale / out.scale, *_multipliers(node.name, acc_scale / out.scale)
+            )
             layer = Int8Layer(node.name, w_q.astype(np.int8), bias_q, multiplier, shift, out.zero, relu, None)
             in_quant = out
         layers.append(layer)
     return IntegerSection(
         section_input,
-        inner[-1].outputs[0],
+        (squash or inner[-1]).outputs[0],
         quant,
+        input_map,
         tuple(layers),
-        frozenset(n.name for n in inner),
-        inner[0].name,
+        frozenset(n.name for n in [*inner, *([squash] if squash else [])])
+        | frozenset(prefix.nodes if prefix else ()),
+        first,
+        prefix.nodes if prefix else (),
     )
+
+
+def _squash(graph: Graph, last: Node) -> Node | None:
+    """The Tanh or Sigmoid the chain's last layer feeds alone, which then runs in int16 (:mod:`.squash`)."""
+    users = [n for n in graph.nodes if last.outputs[0] in n.inputs]
+    if len(users) == 1 and users[0].op in SQUASHES and last.outputs[0] != graph.output:
+        return users[0]
+    return None
 
 
 def _activation(tensor: str, layer: str, values: dict[str, np.ndarray], given: Given | None) -> Activation:
@@ -282,6 +477,22 @@ def _check_accumulator(layer: str, bias_acc: np.ndarray, w_q: np.ndarray) -> Non
             f"{SCHEME}: layer '{layer}' output {n}: its bias ({bias_acc[n]:.3g} in accumulator units) "
             "and sums do not fit an int32 accumulator at the calibrated input scale"
         )
+
+
+COMMON_SHIFT_BITS = 24
+"""Significant bits each multiplier keeps at least when a layer's channels share one shift (a float32
+scale's): the shift then is a constant of the code, not a table."""
+
+
+def common_shift(real: np.ndarray, m: np.ndarray, shift: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A hidden layer's requantisation with one shift for every channel, the largest, each multiplier
+    ``round(real * 2^(31 - shift))`` below 2^31 keeping at least :data:`COMMON_SHIFT_BITS` significant bits;
+    the per-channel pairs ``(m, shift)`` as they are where a channel would keep fewer."""
+    top = int(np.max(shift))
+    common = np.rint(np.asarray(real, np.float64) * 2.0 ** (31 - top)).astype(np.int64)
+    if np.any(common >= 2**31) or np.any(common < 2 ** (COMMON_SHIFT_BITS - 1)):
+        return m, shift
+    return common, np.full_like(shift, top)
 
 
 def _multipliers(layer: str, real: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -23,6 +23,7 @@ import numpy as np
 from embedrl.export.errors import UnsupportedOpError
 from embedrl.export.ir import AttrValue, Node
 from embedrl.export.ops.base import Affine, EmitContext, Emitter, F, Interval, Shape, _fail
+from embedrl.export.ops.squash import INT16_MAX, INT16_MIN, squash_c, squash_model, tanh_source
 
 INT8_MAX = 127
 
@@ -762,6 +763,36 @@ static inline int8_t {prefix}_requantize(int32_t acc, int32_t m, int32_t shift, 
 }}"""
 
 
+def requantize16(acc: np.ndarray, m: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """The last layer's sums as the int16 input of tanh or sigmoid (:mod:`embedrl.export.ops.squash`):
+    ``acc * m * 2^(shift - 31)`` rounded once, half up, from the exact 64-bit product (one rounding where
+    gemmlowp's :func:`requantize` has two), clamped to int16 (int64 arrays)."""
+    s = 31 - shift
+    r = (acc * m + (np.int64(1) << (s - 1))) >> s
+    return np.asarray(np.clip(r, INT16_MIN, INT16_MAX), np.int64)
+
+
+def requantize16_source(prefix: str) -> str:
+    """The C of :func:`requantize16`: the floor taken on the product plus 2^62 (never negative), so that
+    every shift is of an unsigned value (MISRA C:2012 rule 10.1)."""
+    offset = 1 << 62
+    return f"""/* acc * m * 2^(shift - 31) (m within [2^30, 2^31), shift within [-31, 30]) rounded half up
+ * from the 64-bit product, clamped to int16: the int16 input of tanh or sigmoid. The floor by
+ * 2^(31 - shift) is taken on the product plus 2^62 + half (never negative, below 2^63), less 2^62's share. */
+static int32_t {prefix}_requantize16(int32_t acc, int32_t m, int32_t shift)
+{{
+    const int32_t total = 31 - shift;
+    const uint32_t s = (uint32_t)total;
+    const int64_t product = (int64_t)acc * (int64_t)m;
+    const uint64_t half = ((uint64_t)1u << s) >> 1u;
+    const uint64_t biased = ((uint64_t)product + {offset:#x}u) + half;
+    const uint64_t shifted = biased >> s;
+    const uint64_t base = (uint64_t){offset:#x}u >> s;
+    const int64_t r = (int64_t)shifted - (int64_t)base;
+    return (int32_t)((r > {INT16_MAX}) ? {INT16_MAX} : ((r < {INT16_MIN}) ? {INT16_MIN} : r));
+}}"""
+
+
 def host_condition(prefix: str) -> str:
     """When the host loop is compiled: x86-64, and no -D<PREFIX>_PORTABLE."""
     return f"defined(__x86_64__) && !defined({prefix.upper()}_PORTABLE)"
@@ -802,6 +833,12 @@ static inline int32_t {prefix}_odd(int32_t w)
 #endif"""
 
 
+def bias_type(bias: np.ndarray) -> type[np.signedinteger]:
+    """int16 for a layer whose every bias fits (half the flash, the same one load per output), else int32."""
+    fits = bool(np.all((bias >= INT16_MIN) & (bias <= INT16_MAX)))
+    return np.int16 if fits else np.int32
+
+
 def padded(k: int) -> int:
     """``k`` rounded up to whole :data:`WORD` s."""
     return -(-k // WORD) * WORD
@@ -815,47 +852,77 @@ once for four rows of weights. Outputs left over go in a pass of two, then of on
 @dataclass(frozen=True)
 class RowBlocks:
     """A run of blocks of ``rows`` outputs each, from output ``first``; their weights start at word
-    ``offset`` of the layer's packed array."""
+    ``offset`` of the layer's packed array, ``words`` words a block."""
 
     first: int
     rows: int
     count: int
     offset: int
+    words: int
 
 
-def row_blocks(n_out: int, groups: int) -> list[RowBlocks]:
-    """The layer's outputs in passes of :data:`ROWS_PER_PASS`, then 2, then 1 (as many as needed)."""
-    runs, first = [], 0
+def tail_inputs(k: int) -> int:
+    """A row's last inputs kept in tail words (:func:`pack_weights`) instead of a word half or more padding:
+    ``k % 4`` when that is 1 or 2, else 0 (a tail of three takes a padded word)."""
+    return k % WORD if k % WORD in (1, 2) else 0
+
+
+def word_groups(k: int) -> int:
+    """Groups of four inputs a row keeps in whole words: all but its tail."""
+    return padded(k - tail_inputs(k)) // WORD
+
+
+def tail_words(rows: int, k: int) -> int:
+    """Tail words of a block of ``rows`` outputs: one per two rows (none without a tail)."""
+    return -(-rows // 2) if tail_inputs(k) else 0
+
+
+def row_blocks(n_out: int, k: int) -> list[RowBlocks]:
+    """The layer's outputs in passes of :data:`ROWS_PER_PASS`, then 2, then 1 (as many as needed), with
+    where each run's weights start in the packed array of a layer of ``k`` inputs."""
+    runs, first, offset = [], 0, 0
     for rows in (ROWS_PER_PASS, 2, 1):
         count = (n_out - first) // rows
         if count:
-            runs.append(RowBlocks(first, rows, count, first * groups))
-            first += rows * count
+            words = rows * word_groups(k) + tail_words(rows, k)
+            runs.append(RowBlocks(first, rows, count, offset, words))
+            first, offset = first + rows * count, offset + words * count
     return runs
 
 
 def pack_weights(weights: np.ndarray) -> np.ndarray:
     """int8 [N][K] -> int32 words in the order the kernels read them: per block of rows (:func:`row_blocks`),
     per group of four inputs, the block's rows one word each; a word holds inputs ``4g .. 4g + 3`` of one row,
-    the first in its least significant byte. The padding to whole words is zero."""
+    the first in its least significant byte; the padding to whole words is zero. A tail of one or two inputs
+    (:func:`tail_inputs`, from input ``4G``) follows a block's groups, two rows to a word: bytes
+    ``w0[4G], w1[4G], w0[4G + 1], w1[4G + 1]`` (0 where there is no row or input), which ``__sxtb16`` splits
+    into each row's pair for the input pair ``(x[4G], x[4G + 1])``."""
     n_out, k_in = weights.shape
-    rows = np.zeros((n_out, padded(k_in)), np.int8)
-    rows[:, :k_in] = weights
+    groups, tail = word_groups(k_in), tail_inputs(k_in)
+    rows = np.zeros((n_out, WORD * groups), np.int8)
+    rows[:, : min(k_in, WORD * groups)] = weights[:, : WORD * groups]
     words = rows.view("<i4")  # [N][groups], little-endian: byte j of the word is input 4g + j
-    return np.concatenate(
-        [
-            words[run.first + b * run.rows : run.first + (b + 1) * run.rows].T.reshape(-1)
-            for run in row_blocks(n_out, words.shape[1])
-            for b in range(run.count)
-        ]
-    ).astype(np.int32)
+    lanes = np.zeros((n_out + 1, 2), np.int8)  # one row more: an odd block's missing row is 0
+    lanes[:n_out, :tail] = weights[:, WORD * groups :]
+    blocks = []
+    for run in row_blocks(n_out, k_in):
+        for b in range(run.count):
+            first = run.first + b * run.rows
+            blocks.append(words[first : first + run.rows].T.reshape(-1))
+            for pair in range(tail_words(run.rows, k_in)):
+                r0 = first + 2 * pair
+                r1 = r0 + 1 if 2 * pair + 1 < run.rows else n_out
+                tail_bytes = np.array([lanes[r0, 0], lanes[r1, 0], lanes[r0, 1], lanes[r1, 1]], np.int8)
+                blocks.append(tail_bytes.view("<i4"))
+    return np.concatenate([*blocks, np.zeros(0, np.int32)]).astype(np.int32)
 
 
 @dataclass(frozen=True)
 class Int8Layer:
     """One Gemm or MatMul in full-integer int8 (planned by :func:`embedrl.export.full_integer.plan`): int8
     inputs with a zero point, per-channel symmetric int8 weights, int32 sums from the bias, then a gemmlowp
-    requantisation and a clamp that holds the ReLU; the last layer turns its sums into float instead. Its
+    requantisation and a clamp that holds the ReLU; the last layer turns its sums into float instead, or,
+    with a ``squash``, requantises them to int16 for the int16 tanh or sigmoid (:mod:`.squash`). Its
     integer model (:meth:`reference`) and its C (:meth:`c_lines`) are the same arithmetic bit for bit."""
 
     name: str
@@ -865,18 +932,25 @@ class Int8Layer:
     """int64 [N] holding int32, in accumulator units (input scale x channel weight scale), with the input's
     zero point folded in: ``round(b / (s_in s_w)) - zp_in * sum_k w[n][k]``."""
     multiplier: np.ndarray
-    """int64 [N], Q31 multipliers in [2^30, 2^31) of ``s_in s_w[n] / s_out`` (hidden layers)."""
+    """int64 [N], Q31 multipliers of ``s_in s_w[n] / s_out`` (hidden layers; with a squash, ``s_out`` the
+    int16 input's step): in [2^30, 2^31) each with its own shift, or, where the layer's channels share one
+    shift, in [2^23, 2^31) (:func:`embedrl.export.full_integer.common_shift`)."""
     shift: np.ndarray
     """int64 [N], their exponents (see :func:`requantize`)."""
     out_zero: int
     """Zero point of the int8 output (hidden layers)."""
     relu: bool
     out_scale: np.ndarray | None
-    """float32 [N] ``s_in s_w[n]`` for the last layer, whose output is float; None for hidden layers."""
+    """float32 [N] ``s_in s_w[n]`` for a last layer whose float output is its sums; None otherwise."""
+    squash: str | None = None
+    """A last layer's output non-linearity in int16 ("Tanh" or "Sigmoid"), or None."""
 
     def reference(self, q: np.ndarray) -> np.ndarray:
         """The layer on a batch of int8 inputs (as int64): int8 outputs (as int64), or float32 if last."""
         acc = q @ self.weights.astype(np.int64).T + self.bias
+        if self.squash is not None:
+            t = requantize16(acc, self.multiplier, self.shift)
+            return squash_model(t, self.squash)
         if self.out_scale is not None:
             return np.asarray(acc.astype(F) * self.out_scale, dtype=F)
         r = requantize(acc, self.multiplier, self.shift) + self.out_zero
@@ -893,15 +967,17 @@ class Int8Layer:
         packed words. Each build compiles only its own weight array."""
         pairs, wide, sums = scratch
         n_out, k_in = self.weights.shape
-        groups = padded(k_in) // WORD
+        groups = word_groups(k_in)
         host = host_condition(ctx.prefix)
         w = ctx.const(
             f"{self.name}#int8full",
             pack_weights(self.weights),
             f"{self.name} weights, int8 [{n_out}][{k_in}] packed four to a word, {ROWS_PER_PASS} rows "
-            f"interleaved per group of four inputs",
+            f"interleaved per group of four inputs"
+            + (f", then inputs {WORD * groups}.. of two rows a word" if tail_inputs(k_in) else ""),
             f"!({host})",
         )
+        tail = Tail(WORD * groups, tail_inputs(k_in)) if tail_inputs(k_in) else None
         wide_rows = np.zeros((n_out, host_row(k_in)), np.int16)
         wide_rows[:, :k_in] = self.weights
         host_w = ctx.const(
@@ -912,7 +988,9 @@ class Int8Layer:
             host,
         )
         b = ctx.const(
-            f"{self.name}#int8bias", self.bias.astype(np.int32), f"{self.name} bias in accumulator units"
+            f"{self.name}#int8bias",
+            self.bias.astype(bias_type(self.bias)),
+            f"{self.name} bias in accumulator units",
         )
         finish = self._finish(ctx, dst)
         up = ctx.prefix.upper()
@@ -920,23 +998,32 @@ class Int8Layer:
         lines = [
             f"/* {self.name}: [{k_in}] -> [{n_out}]{' + ReLU' if self.relu else ''}, int8 x int8 -> int32 */",
             f"#if {up}_DSP",
-            f"for (uint32_t g = 0u; g < {groups}u; ++g) {{",
+            f"for (uint32_t g = 0u; g < {padded(k_in) // WORD}u; ++g) {{",
             "    uint32_t u;",
             f"    (void)memcpy(&u, &{src}[{WORD}u * g], sizeof u);",
             f"    {pairs}[2u * g] = __sxtb16((int32_t)u);",
             f"    {pairs}[2u * g + 1u] = {odd}((int32_t)u);",
             "}",
         ]
-        for run in row_blocks(n_out, groups):
-            lines += _dsp_pass(run, groups, w, b, pairs, (odd, barrier), finish)
+        if tail is not None:  # the input pair (x[4G], x[4G + 1]) of the tail, from the unpacked pairs
+            g = tail.first // WORD
+            lines += [
+                "{",
+                f"const uint32_t low = (uint32_t){pairs}[{2 * g}u] & 0xFFFFu;",
+                f"const uint32_t high = (uint32_t){pairs}[{2 * g + 1}u] << 16u;",
+                "const int32_t tail_pair = (int32_t)(low | high);",
+            ]
+        for run in row_blocks(n_out, k_in):
+            lines += _dsp_pass(run, (groups, tail), w, b, pairs, (odd, barrier), finish)
+        lines += ["}"] if tail is not None else []
         lines += [
             f"#elif {host}",
             *_host_lines(src, (wide, host_w, b, sums), self.weights.shape, finish),
             "#else",
         ]
         byte = ctx.function("byte", byte_source)
-        for run in row_blocks(n_out, groups):
-            lines += _portable_pass(run, groups, w, b, src, byte, finish)
+        for run in row_blocks(n_out, k_in):
+            lines += _portable_pass(run, (groups, tail), w, b, src, byte, finish)
         return [*lines, "#endif"]
 
     def _finish(self, ctx: EmitContext, dst: str) -> str:
@@ -944,6 +1031,15 @@ class Int8Layer:
         layer whose shifts are all negative (the usual case) calls the branch-free requantisation, which
         the portable loop's pass over the sums lets a compiler vectorise."""
         n_out = self.weights.shape[0]
+        if self.squash is not None:
+            ctx.function("tanh_q15", tanh_source)
+            requant16 = ctx.function("requantize16", requantize16_source)
+            m = ctx.const(
+                f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers"
+            )
+            sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+            t = f"{requant16}({{acc}}, {m}[{{n}}], {sh}[{{n}}])"
+            return f"{dst}[{{n}}] = {squash_c(ctx.prefix, self.squash, t)};"
         if self.out_scale is not None:
             s = ctx.const(f"{self.name}#int8scale", self.out_scale, f"{self.name} output scales [{n_out}]")
             return f"{dst}[{{n}}] = (float){{acc}} * {s}[{{n}}];"
@@ -952,9 +1048,13 @@ class Int8Layer:
         if not bool(np.all(self.shift < 0)):
             requant = ctx.function("requantize", general_source)
         m = ctx.const(f"{self.name}#int8mult", self.multiplier.astype(np.int32), f"{self.name} multipliers")
-        sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+        if bool(np.all(self.shift == self.shift[0])):  # one shift for the layer: a constant, no table
+            shift = str(int(self.shift[0]))
+        else:
+            sh = ctx.const(f"{self.name}#int8shift", self.shift.astype(np.int8), f"{self.name} shifts")
+            shift = f"{sh}[{{n}}]"
         low = self.out_zero if self.relu else INT8_MIN
-        return f"{dst}[{{n}}] = {requant}({{acc}}, {m}[{{n}}], {sh}[{{n}}], {self.out_zero}, {low});"
+        return f"{dst}[{{n}}] = {requant}({{acc}}, {m}[{{n}}], {shift}, {self.out_zero}, {low});"
 
 
 def _index(*terms: str) -> str:
@@ -1022,18 +1122,47 @@ def _dsp_group(rows: int, g: str, j: int, pairs: str, odd: str) -> list[str]:
     return [*lines, "}"]
 
 
+@dataclass(frozen=True)
+class Tail:
+    """A layer's last one or two inputs, their weights in tail words (:func:`pack_weights`)."""
+
+    first: int
+    """The first of these inputs (``4G``)."""
+    inputs: int
+
+
+def _dsp_tail(r: int, groups: int, odd: str) -> list[str]:
+    """The tail's multiply-adds for the pass's ``r`` sums: per two rows one word, one SMLAD a row against
+    ``tail_pair``, the input pair ``(x[4G], x[4G + 1])``."""
+    lines = []
+    for j in range(-(-r // 2)):
+        lines.append(f"const int32_t t{j} = w[{r * groups + j}u];")
+        lines.append(f"a{2 * j} = __smlad(tail_pair, __sxtb16(t{j}), a{2 * j});")
+        if 2 * j + 1 < r:
+            lines.append(f"a{2 * j + 1} = __smlad(tail_pair, {odd}(t{j}), a{2 * j + 1});")
+    return ["{", *(f"    {line}" for line in lines), "}"]
+
+
 def _dsp_pass(
-    run: RowBlocks, groups: int, w: str, b: str, pairs: str, fns: tuple[str, str], finish: str
+    run: RowBlocks,
+    layout: tuple[int, Tail | None],
+    w: str,
+    b: str,
+    pairs: str,
+    fns: tuple[str, str],
+    finish: str,
 ) -> list[str]:
     """The DSP kernel over one run of blocks: ``run.rows`` sums per pass, each input word pair loaded once
-    (``fns``: the odd-bytes and barrier functions)."""
-    (odd, barrier), r, step = fns, run.rows, _groups_per_iteration(groups)
+    (``layout``: the groups in words and the tail; ``fns``: the odd-bytes and barrier functions). Passes of
+    four rows run several groups per iteration (:data:`GROUPS_PER_ITERATION`), the few others one."""
+    (groups, tail), (odd, barrier), r = layout, fns, run.rows
+    step = _groups_per_iteration(groups) if r == ROWS_PER_PASS else 1
     whole = groups - groups % step
     body = [f"{barrier}();" if j else "" for j in range(step)]
     lines = [
         f"for (uint32_t b = 0u; b < {run.count}u; ++b) {{ /* {r} output(s) per pass, {4 * r} multiply-adds "
         f"per group of four inputs in {2 * r} SMLAD */",
-        f"    const int32_t *w = &{w}[{_index(str(run.offset), f'{r * groups} * b')}];",
+        f"    const int32_t *w = &{w}[{_index(str(run.offset), f'{run.words} * b')}];",
         *(f"    int32_t a{i} = {b}[{_index(_block(run), str(i))}];" for i in range(r)),
     ]
     if whole:
@@ -1046,6 +1175,8 @@ def _dsp_pass(
         lines.append("    }")
     for g in range(whole, groups):
         lines += [f"    {line}" for line in _dsp_group(r, "", g, pairs, odd)]
+    if tail is not None:
+        lines += [f"    {line}" for line in _dsp_tail(r, groups, odd)]
     lines += [f"    {finish.format(acc=f'a{i}', n=_index(_block(run), str(i)))}" for i in range(r)]
     return [*lines, "}"]
 
@@ -1108,22 +1239,34 @@ def _host_lines(
 
 
 def _portable_pass(
-    run: RowBlocks, groups: int, w: str, b: str, src: str, byte: str, finish: str
+    run: RowBlocks, layout: tuple[int, Tail | None], w: str, b: str, src: str, byte: str, finish: str
 ) -> list[str]:
-    """The portable loop over one run of blocks: a dot product per output, reading its packed words."""
-    r = run.rows
+    """The portable loop over one run of blocks: a dot product per output, reading its packed words, then
+    its bytes of the block's tail words."""
+    (groups, tail), r = layout, run.rows
     n = _index(_block(run), "i")
-    word = _index(str(run.offset), f"{r * groups} * b", f"{r} * g + i" if r > 1 else "g")
-    return [
-        f"for (uint32_t b = 0u; b < {run.count}u; ++b) {{",
-        f"    for (uint32_t i = 0u; i < {r}u; ++i) {{",
-        f"        int32_t acc = {b}[{n}];",
+    word = _index(str(run.offset), f"{run.words} * b", f"{r} * g + i" if r > 1 else "g")
+    words = [
         f"        for (uint32_t g = 0u; g < {groups}u; ++g) {{",
         f"            const uint32_t u = (uint32_t){w}[{word}];",
         *(f"            acc += (int32_t){src}[{_index(f'{WORD} * g', str(j))}] * {byte}(u, {j}u);"
           for j in range(WORD)),
         "        }",
+    ] if groups else []  # fmt: skip
+    if tail is not None:  # row i's bytes of its tail word: i % 2, then 2 + i % 2
+        at = _index(str(run.offset), f"{run.words} * b", str(r * groups), "(i >> 1u)" if r > 1 else "")
+        lane = "(i & 1u)" if r > 1 else ""
+        words += [
+            f"        const uint32_t h = (uint32_t){w}[{at}];",
+            *(f"        acc += (int32_t){src}[{tail.first + j}u] * {byte}(h, {_index(str(2 * j), lane)});"
+              for j in range(tail.inputs)),
+        ]  # fmt: skip
+    return [
+        f"for (uint32_t b = 0u; b < {run.count}u; ++b) {{",
+        f"    for (uint32_t i = 0u; i < {r}u; ++i) {{",
+        f"        int32_t acc = {b}[{n}];",
+        *words,
         f"        {finish.format(acc='acc', n=n)}",
         "    }",
         "}",
-    ]  # fmt: skip
+    ]

@@ -229,6 +229,47 @@ def test_int8_weights_firmware_is_bit_exact_on_qemu_and_fits_14_kb(tmp_path: Pat
     assert "int8_t" in (out / "c" / "policy.c").read_text()
 
 
+SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
+INT8_FLASH_TARGET = 14 * 1024
+INT8_CYCLES_TARGET = 25_000
+"""The project's int8 targets for the study actor on the Cortex-M4F: flash for its weights and code, and
+estimated cycles per inference."""
+
+
+def test_int8_study_actor_meets_the_flash_and_cycle_targets_on_the_m4f(tmp_path: Path) -> None:
+    """The shipped TD3 actor in full-integer int8 on the STM32F405: bit-exact with the model, within 14 KB of
+    flash and 25,000 estimated cycles, no weight padding (10,800 int8 weights: the first layer's two inputs
+    beyond a word in tail words) and one shift per hidden layer (no shift table)."""
+    out = tmp_path / "export"
+    args = ["export", str(SHIPPED_TD3), "--out", str(out), "--episodes", "0", "--quantize", "int8"]
+    assert main([*args, "--target", "cortex-m4"]) == 0
+    m4 = json.loads((out / "export_report.json").read_text())["targets"]["cortex-m4"]
+    assert m4["bit_exact_with_model"] is True
+    assert m4["flash_bytes"] <= INT8_FLASH_TARGET
+    assert m4["estimated_cycles_per_inference"] <= INT8_CYCLES_TARGET
+    text = (out / "c" / "policy.c").read_text()
+    assert "int32_t policy_w0_actor_mu_0[150]" in text  # 100 rows x (one word + half a tail word)
+    assert "actor.mu.0 shifts */" not in text and "actor.mu.2 shifts */" not in text
+
+
+def test_int8_folded_normalisation_is_bit_exact_on_the_m4f(tmp_path: Path) -> None:
+    """The shipped PPO with its VecNormalize statistics in int8: the Sub, Div and Clip before the layers fold
+    into the input quantisation (no float loop of theirs), and the M4F image prints the model's bits."""
+    static = SHIPPED_TD3.parent
+    out = tmp_path / "export"
+    args = ["export", str(static / "ppo.zip"), "--vecnormalize", str(static / "ppo_vecnormalize.npz")]
+    args += ["--out", str(out), "--episodes", "0", "--quantize", "int8", "--target", "cortex-m4"]
+    assert main(args) == 0
+    report = json.loads((out / "export_report.json").read_text())
+    assert report["verification"]["quantization"]["model_mismatches"] == 0
+    assert report["targets"]["cortex-m4"]["bit_exact_with_model"] is True
+    text = (out / "c" / "policy.c").read_text()
+    assert (
+        "folded in: normalize.sub, normalize.div, normalize.clip" in text
+        and "Sub 'normalize.sub'" not in text
+    )
+
+
 def test_q15_firmware_on_the_fpu_less_m3_is_bit_exact(tmp_path: Path) -> None:
     code, out = _export(tmp_path, [6, 100, 100, 2], "--quantize", "q15", "--target", "cortex-m3")
     assert code == 0
