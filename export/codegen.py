@@ -456,27 +456,49 @@ HOST_SOURCE = Template("""$banner
  * helpers (static in ${name}.c). A program is built from this file or from ${name}.c, never both. */
 #include "${name}_host.h"
 
+#include <stdint.h> /* the C library's own macros (__GLIBC__), which ${up}_TARGETS' condition reads */
+$targets
+#if ${up}_CLONES
+/* The deployable ${name}_step under the name ${name}_step_deployable, static: the host's ${name}_step below
+ * inlines it into each of its clones. */
+static int ${name}_step_deployable(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM]);
+#define ${name}_step ${name}_step_deployable
+#endif
 #include "${name}.c"
+#if ${up}_CLONES
+#undef ${name}_step
+
+/* ${name}_step for the host: the deployable step's code with every call it makes inlined (flatten), compiled
+ * once per clone, so the host's programs run it in the CPU's instruction set with the same bits. */
+${up}_TARGETS __attribute__((flatten))
+int ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM])
+{
+    return ${name}_step_deployable(obs, act);
+}
+#endif
 $body""")
-"""``{name}_host.c``: :data:`HOST_HEADER`'s function, after the deployable source."""
+"""``{name}_host.c``: the deployable source, ``{name}_step`` cloned per instruction set where
+:data:`TARGETS` allows, and :data:`HOST_HEADER`'s function."""
 
 TARGETS = Template("""
-/* x86-64 glibc, gcc: compiled for each of $names, the CPU's picked at load
- * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
- * order and all give the same bits. -D${up}_ONE_TARGET: the compiler's target only. */
+/* x86-64 glibc, gcc: ${name}_step and the batch's block compiled for each of $names, the CPU's
+ * picked at load time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in
+ * the same order and all give the same bits. -D${up}_ONE_TARGET: the compiler's target only. */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \\
     !defined(${up}_ONE_TARGET)
+#define ${up}_CLONES 1
 #define ${up}_TARGETS __attribute__((target_clones($clones), optimize("vect-cost-model=dynamic")))
 #else
+#define ${up}_CLONES 0
 #define ${up}_TARGETS
 #endif
 """)
-"""The block's function attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl has
+"""The host's functions' attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl has
 none), compiled by gcc, one clone per instruction set in :data:`TARGET_CLONES`, the CPU's picked when the
 program loads. No clone has a fused multiply-add instruction, so each rounds every product and sum of the
 source's fixed order and all give the same bits. The clones weigh vectorising by gcc's dynamic cost model:
 -O2's default takes no loop that needs a remainder after its whole vectors, which leaves a pass over 100
-outputs to SSE."""
+outputs to SSE. ``{NAME}_CLONES`` says whether the functions are cloned."""
 
 BLOCK_BATCH = Template("""
 /* A block of rows ($bytes bytes, ${name}_step_batch only): the observations, then the step's buffers, one
@@ -564,7 +586,8 @@ def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: 
 
 
 def _host_files(banner: str, name: str, ctx: _Context, block: tuple[list[str], str] | None) -> dict[str, str]:
-    """``{name}_host.h`` and ``{name}_host.c``: the batch entry point, for the host's builds only."""
+    """``{name}_host.h`` and ``{name}_host.c``: the cloned step and the batch entry point, for the host's
+    builds only."""
     up = name.upper()
     if block is None:
         body = ROW_BATCH.substitute(name=name, up=up)
@@ -575,15 +598,17 @@ def _host_files(banner: str, name: str, ctx: _Context, block: tuple[list[str], s
             f"static float {name}_b{b}[{BATCH_ROWS}][{size}];" for b, size in zip(names, sizes, strict=True)
         )
         lines, out = block
-        clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
-        targets = TARGETS.substitute(up=up, names=", ".join(TARGET_CLONES), clones=clones)
-        body = targets + BLOCK_BATCH.substitute(
+        body = BLOCK_BATCH.substitute(
             name=name, up=up, bytes=4 * BATCH_ROWS * sum(sizes), buffers=buffers, rows=BATCH_ROWS, out=out,
             block="\n".join(("    " + line) if line else "" for line in lines),
         )  # fmt: skip
+    clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
+    targets = TARGETS.substitute(up=up, name=name, names=", ".join(TARGET_CLONES), clones=clones)
     return {
         f"{name}{HOST_STEM}.h": HOST_HEADER.substitute(banner=banner, up=up, name=name, rows=BATCH_ROWS),
-        f"{name}{HOST_SUFFIX}": HOST_SOURCE.substitute(banner=banner, name=name, body=body),
+        f"{name}{HOST_SUFFIX}": HOST_SOURCE.substitute(
+            banner=banner, name=name, up=up, targets=targets, body=body
+        ),
     }
 
 
