@@ -36,7 +36,7 @@ order), so their bits are the same on every machine; float32's tanhf is the C li
 ONNX model by the export instead."""
 
 
-def test_the_deployable_policy_has_no_host_code_and_fixed_width_counters() -> None:
+def test_the_deployable_policy_has_no_host_code_and_fixed_width_types() -> None:
     files = generate(to_ir(tiny_model()))
     policy, host = files["policy.c"], files["policy_host.c"]
     for host_only in ("step_batch", "target_clones", "POLICY_TARGETS"):
@@ -47,6 +47,18 @@ def test_the_deployable_policy_has_no_host_code_and_fixed_width_counters() -> No
     assert '#include "policy.c"' in host and '#include "policy_host.h"' in host
     assert re.findall(r"for \((\w+) ", policy) and set(re.findall(r"for \((\w+) ", policy)) == {"uint32_t"}
     assert "memcpy" not in policy  # the finite test reads the float's bits through a union (MISRA 21.15)
+    header = files["policy.h"]
+    _assert_fixed_width(header, policy)
+    assert "#define POLICY_OBS_DIM 3u" in header and "#define POLICY_OK ((int32_t)0)" in header
+    assert "int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);" in header
+
+
+def _assert_fixed_width(*sources: str) -> None:
+    """No basic integer type in the code (MISRA C:2012 directive 4.6): sizes, indices, return codes and
+    counters are fixed-width (comments aside)."""
+    for source in sources:
+        code = re.sub(r"/\*.*?\*/", "", source, flags=re.DOTALL)
+        assert re.findall(r"\b(?:int|short|long|unsigned|signed)\b", code) == []
 
 
 @pytest.fixture(scope="module")
@@ -61,6 +73,7 @@ def test_the_integer_policies_give_the_pinned_bits_from_both_files(
 ) -> None:
     export = integer_exports[precision]
     obs = _observations(export)
+    _assert_fixed_width((export / "c" / "policy.h").read_text(), (export / "c" / "policy.c").read_text())
     build.make("lib", export / "c", tmp_path / "host")
     host = build.CPolicy(tmp_path / "host" / "libpolicy.so", "policy", obs.shape[1], 2)
     batch, codes = host.batch(obs)
