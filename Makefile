@@ -121,10 +121,11 @@ EXAMPLE_EPISODES ?= 200
 bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/bench
 	$(VENV)/bin/embedrl bench-env --steps $(BENCH_ENV_STEPS) --json $(OUT)/bench/env.json
 	$(VENV)/bin/embedrl bench-export --emx $(EMX) --json $(OUT)/bench/export.json
+	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-float32 --force --episodes 0
 	for q in int8 int8-weights q15; do \
 	    $(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-$$q --force --episodes 0 \
 	        --quantize $$q && $(VENV)/bin/embedrl bench-export --export-dir $(OUT)/bench/td3-$$q \
-	        --json $(OUT)/bench/export-$$q.json || exit 1; \
+	        --float32-dir $(OUT)/bench/td3-float32 --json $(OUT)/bench/export-$$q.json || exit 1; \
 	done
 	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
 	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes $(BENCH_HIL_EPISODES) \

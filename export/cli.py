@@ -296,7 +296,7 @@ def cmd_bench_export(args: argparse.Namespace) -> int:
     from embedrl.common import print_measurement
     from embedrl.export.inference_latency import run
 
-    print_measurement(run(args.export_dir, args.seed, args.emx), args.json)
+    print_measurement(run(args.export_dir, args.seed, args.emx, args.float32_dir), args.json)
     return 0
 
 
@@ -408,6 +408,11 @@ def _register_benchmarks(sub: Any) -> None:
     p.add_argument(
         "--emx", type=Path, help="emx-onnx-cgen's command: its C timed as a peer (make bench: tools/emx)"
     )
+    p.add_argument(
+        "--float32-dir", type=Path, metavar="FLOAT32_EXPORT_DIR",
+        help="the float32 export of the same policy, for a quantised EXPORT_DIR: both timed in the same "
+        "harness in turn, their ratio printed (c_ratio_to_float32)",
+    )  # fmt: skip
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_export)
 

@@ -272,7 +272,7 @@ def _interface_block(up: str, interface: Interface | None) -> str:
         for i, f in enumerate(fields):
             unit = f" {f.unit}" if f.unit else ""
             text = f"{f.description}: [{f.low:.9g}, {f.high:.9g}]{unit}".replace("*/", "* /")
-            lines.append(f"#define {up}_{kind}_{f.name.upper()} {i} /* {text} */")
+            lines.append(f"#define {up}_{kind}_{f.name.upper()} {i}u /* {text} */")
     lines.append(f"#define {up}_SAMPLE_TIME_S {c_float(interface.sample_time_s)} /* control period */")
     return "\n".join(lines) + "\n"
 
@@ -408,23 +408,25 @@ HEADER = Template("""$banner
 #ifndef ${up}_H
 #define ${up}_H
 
-#define ${up}_OBS_DIM ${obs_dim}
-#define ${up}_ACT_DIM ${act_dim}
-#define ${up}_STATE_DIM ${state_dim} /* floats carried from one step to the next (0: no memory) */
+#include <stdint.h>
+
+#define ${up}_OBS_DIM ${obs_dim}u
+#define ${up}_ACT_DIM ${act_dim}u
+#define ${up}_STATE_DIM ${state_dim}u /* floats carried from one step to the next (0: no memory) */
 $interface
 /* What ${name}_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
 #define ${up}_SAFE_ACTION {$safe}
 
 /* Return codes of ${name}_step. */
-#define ${up}_OK 0
-#define ${up}_ERR_OBS_NOT_FINITE 1 /* an observation was NaN or infinite: safe action written */
-#define ${up}_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
+#define ${up}_OK ((int32_t)0)
+#define ${up}_ERR_OBS_NOT_FINITE ((int32_t)1) /* an observation was NaN or infinite: safe action written */
+#define ${up}_ERR_ACT_NOT_FINITE ((int32_t)2) /* the network produced NaN or infinity: safe action written */
 
 /* Run the policy on one observation. Writes ${up}_ACT_DIM actions and returns ${up}_OK, or writes the
  * safe action ($safe) and returns an error code: no NaN ever leaves it.
  * A recurrent policy (${up}_STATE_DIM > 0) reads its state and keeps the next one for the next call; a
  * non-finite observation leaves the state as it was, a non-finite result resets it. */
-int ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM]);
+int32_t ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM]);
 
 /* Start a new episode: the recurrent state back to zero (nothing to do for a policy without memory).
  * Call it at start-up, at each episode start and whenever the safe state is entered. */
@@ -457,27 +459,49 @@ HOST_SOURCE = Template("""$banner
  * helpers (static in ${name}.c). A program is built from this file or from ${name}.c, never both. */
 #include "${name}_host.h"
 
+#include <stdint.h> /* the C library's own macros (__GLIBC__), which ${up}_TARGETS' condition reads */
+$targets
+#if ${up}_CLONES
+/* The deployable ${name}_step under the name ${name}_step_deployable, static: the host's ${name}_step below
+ * inlines it into each of its clones. */
+static int32_t ${name}_step_deployable(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM]);
+#define ${name}_step ${name}_step_deployable
+#endif
 #include "${name}.c"
+#if ${up}_CLONES
+#undef ${name}_step
+
+/* ${name}_step for the host: the deployable step's code with every call it makes inlined (flatten), compiled
+ * once per clone, so the host's programs run it in the CPU's instruction set with the same bits. */
+${up}_TARGETS __attribute__((flatten))
+int32_t ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM])
+{
+    return ${name}_step_deployable(obs, act);
+}
+#endif
 $body""")
-"""``{name}_host.c``: :data:`HOST_HEADER`'s function, after the deployable source."""
+"""``{name}_host.c``: the deployable source, ``{name}_step`` cloned per instruction set where
+:data:`TARGETS` allows, and :data:`HOST_HEADER`'s function."""
 
 TARGETS = Template("""
-/* x86-64 glibc, gcc: compiled for each of $names, the CPU's picked at load
- * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
- * order and all give the same bits. -D${up}_ONE_TARGET: the compiler's target only. */
+/* x86-64 glibc, gcc: ${name}_step and the batch's block compiled for each of $names, the CPU's
+ * picked at load time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in
+ * the same order and all give the same bits. -D${up}_ONE_TARGET: the compiler's target only. */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \\
     !defined(${up}_ONE_TARGET)
+#define ${up}_CLONES 1
 #define ${up}_TARGETS __attribute__((target_clones($clones), optimize("vect-cost-model=dynamic")))
 #else
+#define ${up}_CLONES 0
 #define ${up}_TARGETS
 #endif
 """)
-"""The block's function attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl has
+"""The host's functions' attribute: on x86-64 with glibc (whose loader runs gcc's ifunc resolvers; musl has
 none), compiled by gcc, one clone per instruction set in :data:`TARGET_CLONES`, the CPU's picked when the
 program loads. No clone has a fused multiply-add instruction, so each rounds every product and sum of the
 source's fixed order and all give the same bits. The clones weigh vectorising by gcc's dynamic cost model:
 -O2's default takes no loop that needs a remainder after its whole vectors, which leaves a pass over 100
-outputs to SSE."""
+outputs to SSE. ``{NAME}_CLONES`` says whether the functions are cloned."""
 
 BLOCK_BATCH = Template("""
 /* A block of rows ($bytes bytes, ${name}_step_batch only): the observations, then the step's buffers, one
@@ -491,20 +515,20 @@ $block
 }
 
 /* Each row's code as ${name}_step returns it, and its actions or the safe action. */
-static int ${name}_finish(const float obs[${up}_OBS_DIM], const float out[${up}_ACT_DIM],
-                         float act[${up}_ACT_DIM])
+static int32_t ${name}_finish(const float obs[${up}_OBS_DIM], const float out[${up}_ACT_DIM],
+                             float act[${up}_ACT_DIM])
 {
-    for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; ++i) {
+    for (uint32_t i = 0u; i < ${up}_OBS_DIM; ++i) {
         if (!${name}_finite(obs[i])) {
             return ${name}_safe(act, ${up}_ERR_OBS_NOT_FINITE);
         }
     }
-    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < ${up}_ACT_DIM; ++i) {
         if (!${name}_finite(out[i])) {
             return ${name}_safe(act, ${up}_ERR_ACT_NOT_FINITE);
         }
     }
-    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < ${up}_ACT_DIM; ++i) {
         act[i] = out[i];
     }
     return ${up}_OK;
@@ -516,14 +540,14 @@ int ${name}_step_batch(int n, const float *obs, float *act, int *status)
     for (int start = 0; start < n; start += $rows) {
         const int rows = n - start < $rows ? n - start : $rows;
         for (int r = 0; r < rows; ++r) {
-            for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; ++i) {
+            for (uint32_t i = 0u; i < ${up}_OBS_DIM; ++i) {
                 ${name}_bobs[r][i] = obs[(size_t)(start + r) * ${up}_OBS_DIM + i];
             }
         }
         ${name}_block((uint32_t)rows);
         for (int r = 0; r < rows; ++r) {
             const size_t row = (size_t)(start + r);
-            const int code = ${name}_finish(&obs[row * ${up}_OBS_DIM], $out, &act[row * ${up}_ACT_DIM]);
+            const int32_t code = ${name}_finish(&obs[row * ${up}_OBS_DIM], $out, &act[row * ${up}_ACT_DIM]);
             if (status != NULL) {
                 status[row] = code;
             }
@@ -542,7 +566,7 @@ int ${name}_step_batch(int n, const float *obs, float *act, int *status)
     int refused = 0;
     for (int i = 0; i < n; ++i) {
         const size_t row = (size_t)i;
-        const int code = ${name}_step(&obs[row * ${up}_OBS_DIM], &act[row * ${up}_ACT_DIM]);
+        const int32_t code = ${name}_step(&obs[row * ${up}_OBS_DIM], &act[row * ${up}_ACT_DIM]);
         if (status != NULL) {
             status[row] = code;
         }
@@ -565,7 +589,8 @@ def _header(banner: str, graph: Graph, name: str, safe: list[float], interface: 
 
 
 def _host_files(banner: str, name: str, ctx: _Context, block: tuple[list[str], str] | None) -> dict[str, str]:
-    """``{name}_host.h`` and ``{name}_host.c``: the batch entry point, for the host's builds only."""
+    """``{name}_host.h`` and ``{name}_host.c``: the cloned step and the batch entry point, for the host's
+    builds only."""
     up = name.upper()
     if block is None:
         body = ROW_BATCH.substitute(name=name, up=up)
@@ -576,15 +601,17 @@ def _host_files(banner: str, name: str, ctx: _Context, block: tuple[list[str], s
             f"static float {name}_b{b}[{BATCH_ROWS}][{size}];" for b, size in zip(names, sizes, strict=True)
         )
         lines, out = block
-        clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
-        targets = TARGETS.substitute(up=up, names=", ".join(TARGET_CLONES), clones=clones)
-        body = targets + BLOCK_BATCH.substitute(
+        body = BLOCK_BATCH.substitute(
             name=name, up=up, bytes=4 * BATCH_ROWS * sum(sizes), buffers=buffers, rows=BATCH_ROWS, out=out,
             block="\n".join(("    " + line) if line else "" for line in lines),
         )  # fmt: skip
+    clones = ", ".join(f'"{t}"' for t in TARGET_CLONES)
+    targets = TARGETS.substitute(up=up, name=name, names=", ".join(TARGET_CLONES), clones=clones)
     return {
         f"{name}{HOST_STEM}.h": HOST_HEADER.substitute(banner=banner, up=up, name=name, rows=BATCH_ROWS),
-        f"{name}{HOST_SUFFIX}": HOST_SOURCE.substitute(banner=banner, name=name, body=body),
+        f"{name}{HOST_SUFFIX}": HOST_SOURCE.substitute(
+            banner=banner, name=name, up=up, targets=targets, body=body
+        ),
     }
 
 
@@ -617,6 +644,7 @@ SOURCE = Template("""$banner
 #include "${name}.h"
 
 #include <math.h>
+#include <stdbool.h>
 #include <stdint.h>
 #include <string.h>
 $includes
@@ -629,7 +657,7 @@ $buffers
 $helpers
 /* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
  * compiler assume that no NaN or infinity exists and drop isfinite(). */
-static int ${name}_finite(float x)
+static bool ${name}_finite(float x)
 {
     union {
         float f;
@@ -639,9 +667,9 @@ static int ${name}_finite(float x)
     return (bits.u & 0x7f800000u) != 0x7f800000u;
 }
 
-static int ${name}_safe(float act[${up}_ACT_DIM], int code)
+static int32_t ${name}_safe(float act[${up}_ACT_DIM], int32_t code)
 {
-    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < ${up}_ACT_DIM; ++i) {
         act[i] = ${name}_safe_action[i];
     }
     return code;
@@ -652,10 +680,10 @@ void ${name}_reset(void)
 $reset
 }
 
-int ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM])
+int32_t ${name}_step(const float obs[${up}_OBS_DIM], float act[${up}_ACT_DIM])
 {
 $check_obs$body
-$check_act$check_state$keep_state    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+$check_act$check_state$keep_state    for (uint32_t i = 0u; i < ${up}_ACT_DIM; ++i) {
         act[i] = ${out}[i];
     }
     return ${up}_OK;
@@ -663,7 +691,7 @@ $check_act$check_state$keep_state    for (uint32_t i = 0u; i < (uint32_t)${up}_A
 """)
 """``{name}.c``: the deployable policy (weights, buffers, helpers, ``{name}_reset`` and ``{name}_step``)."""
 
-CHECK_OBS = Template("""    for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; ++i) {
+CHECK_OBS = Template("""    for (uint32_t i = 0u; i < ${up}_OBS_DIM; ++i) {
         if (!${name}_finite(obs[i])) {
             return ${name}_safe(act, ${up}_ERR_OBS_NOT_FINITE);
         }
@@ -671,7 +699,7 @@ CHECK_OBS = Template("""    for (uint32_t i = 0u; i < (uint32_t)${up}_OBS_DIM; +
 """)
 """The step's refusal of a non-finite observation."""
 
-CHECK_ACT = Template("""    for (uint32_t i = 0u; i < (uint32_t)${up}_ACT_DIM; ++i) {
+CHECK_ACT = Template("""    for (uint32_t i = 0u; i < ${up}_ACT_DIM; ++i) {
         if (!${name}_finite(${out}[i])) {
             ${reset}return ${name}_safe(act, ${up}_ERR_ACT_NOT_FINITE);
         }

@@ -12,7 +12,9 @@ bandwidth; the larger bounds any inference, and every time is also given as its 
 same bits in every build, the baseline's (no fused multiply-add) included, so its own ceiling is the larger
 of the weight read and the multiply-adds as a multiply then an add in AVX2 vectors
 (``limit_without_fma_ns``). The peers' actions are checked against the C's on :data:`AGREEMENT_SAMPLES`
-observations.
+observations. A quantised export can be timed against the same policy's float32 export (``float32_dir``):
+both in the same harness on the same observations, :data:`FLOAT32_ROUNDS` rounds taken in turn, the ratio
+of their medians printed as ``c_ratio_to_float32``.
 """
 
 from __future__ import annotations
@@ -47,6 +49,9 @@ AGREEMENT_SAMPLES = 256
 AGREEMENT_TOLERANCE = 1e-5
 TARGET_SPEEDUP_VS_ONNXRUNTIME = 5.0
 TARGET_C_NS = 1_200.0
+FLOAT32_ROUNDS = 3
+"""Rounds of the harness against the float32 export, each this export's then float32's (a machine busy for a
+moment slows one round of both, not one side)."""
 
 
 def study_actor(folder: Path, seed: int = 0) -> Path:
@@ -76,11 +81,16 @@ def _median_ns(fn: Any, samples: np.ndarray) -> float:
     return float(np.median(times))
 
 
-def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict[str, Any]:
+def run(
+    export_dir: Path | None, seed: int = 0, emx: Path | None = None, float32_dir: Path | None = None
+) -> dict[str, Any]:
     """Measure an export (or a fresh export of the study's actor shape) and return the numbers; ``emx``:
-    emx-onnx-cgen's command, whose C of the same ONNX is timed as a peer (None: not measured)."""
+    emx-onnx-cgen's command, whose C of the same ONNX is timed as a peer (None: not measured);
+    ``float32_dir``: the float32 export of the same policy, when ``export_dir`` is a quantised one."""
     if emx is not None and not emx.is_file():
         raise ExportError(f"no emx-onnx-cgen at {emx}: `make bench` installs it into tools/emx")
+    if float32_dir is not None and export_dir is None:
+        raise ExportError("--float32-dir needs EXPORT_DIR: a quantised export of the same policy")
     with owned_temporary_folder("embedrl-bench-") as tmp:
         work = Path(tmp)
         if export_dir is None:
@@ -100,10 +110,13 @@ def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict
                 "bench-export times policies without memory against batched peers; a recurrent policy's step "
                 "depends on its state: export it with --target cortex-m4 for its instructions per step"
             )
+        if float32_dir is not None:
+            _check_float32_export(float32_dir, report)
         rng = np.random.default_rng(seed)
         low, high = _observation_range(export_dir, report)
         samples = rng.uniform(low, high, size=(10_000, report["observation_dim"])).astype(np.float32)
         c_ns, c_batched_ns, c_actions = _c_time(export_dir, report, samples, work)
+        float32 = _against_float32(float32_dir, work)
         onnx_file = export_dir / "policy.onnx"
         if not onnx_file.is_file():
             onnx_file = Path(report["source"]["path"])
@@ -126,6 +139,7 @@ def run(export_dir: Path | None, seed: int = 0, emx: Path | None = None) -> dict
             c_batched_ns / peers["onnxruntime_batched_ns_per_observation"], 2
         ),
         **{k: v for k, v in limit.items()},
+        **float32,
         **peers,
         "onnxruntime_ratio_to_limit": round(peers["onnxruntime_ns_per_inference"] / limit["limit_ns"], 2),
         "onnxruntime_batched_ratio_to_fma_limit": round(
@@ -178,6 +192,49 @@ def _c_time(
     if batched.tobytes() != actions.tobytes():
         raise ExportError("policy_step_batch and policy_step disagree: the generated C is broken")
     return _printed(out, "ns_per_inference"), _printed(out, "ns_per_observation_batched"), actions
+
+
+def _against_float32(float32_dir: Path | None, work: Path) -> dict[str, Any]:
+    """This export's harness (built by :func:`_c_time`) and ``float32_dir``'s on the same observations, in
+    turn for :data:`FLOAT32_ROUNDS` rounds: each side's median ns per inference and their ratio (nothing
+    without ``float32_dir``)."""
+    if float32_dir is None:
+        return {}
+    build.make("bench", float32_dir / "c", work / "float32")
+    binaries = {"c": work / "build" / "bench_policy", "float32": work / "float32" / "bench_policy"}
+    times: dict[str, list[float]] = {side: [] for side in binaries}
+    for _ in range(FLOAT32_ROUNDS):
+        for side, binary in binaries.items():
+            command = [str(binary), str(work / "obs.bin"), str(C_REPEATS)]
+            out = subprocess.run(command, capture_output=True, text=True, check=True).stdout
+            times[side].append(_printed(out, "ns_per_inference"))
+    own, float32 = (float(np.median(times[side])) for side in binaries)
+    return {
+        "float32_export_dir": str(float32_dir),
+        "float32_c_ns_per_inference": round(float32, 1),
+        "c_ns_per_inference_beside_float32": round(own, 1),
+        "c_ratio_to_float32": round(own / float32, 3),
+    }
+
+
+def _check_float32_export(float32_dir: Path, report: dict[str, Any]) -> None:
+    """``float32_dir`` must be the float32 export of the policy ``report`` describes, under the same name."""
+    report_path = float32_dir / "export_report.json"
+    if not report_path.is_file():
+        raise ExportError(f"--float32-dir {float32_dir} is not an export folder (no export_report.json)")
+    other = json.loads(report_path.read_text())
+    if report.get("quantize") is None:
+        raise ExportError(
+            "--float32-dir compares a quantised export with its float32 one; EXPORT_DIR is float32"
+        )
+    if other.get("quantize") is not None:
+        raise ExportError(f"--float32-dir {float32_dir} is not a float32 export ({other['quantize']})")
+    if other["source"]["sha256"] != report["source"]["sha256"] or other["name"] != report["name"]:
+        theirs, ours = other["source"]["sha256"][:12], report["source"]["sha256"][:12]
+        raise ExportError(
+            f"--float32-dir {float32_dir} exports another policy (source sha256 {theirs}, name "
+            f"{other['name']!r}) than EXPORT_DIR ({ours}, {report['name']!r})"
+        )
 
 
 def _peers(

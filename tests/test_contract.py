@@ -28,11 +28,11 @@ def test_spec_env_policy_header_can_database_and_node_glue_agree() -> None:
 
     graph = to_ir(mlp_model([len(STATIC.observation), 8, len(STATIC.action)], ["Relu", "Tanh"]))
     header = generate(graph, "policy", STATIC.safe_action, interface=STATIC)["policy.h"]
-    indices = dict(re.findall(r"#define POLICY_((?:OBS|ACT)_\w+) (\d+) /\*", header))
+    indices = dict(re.findall(r"#define POLICY_((?:OBS|ACT)_\w+) (\d+)u /\*", header))
     expected = {f"OBS_{f.name.upper()}": str(i) for i, f in enumerate(STATIC.observation)}
     expected |= {f"ACT_{f.name.upper()}": str(i) for i, f in enumerate(STATIC.action)}
     assert indices == expected
-    assert f"#define POLICY_OBS_DIM {len(STATIC.observation)}" in header
+    assert f"#define POLICY_OBS_DIM {len(STATIC.observation)}u" in header
 
     db = database(STATIC)
     plan = layout(STATIC)

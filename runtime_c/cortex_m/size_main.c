@@ -14,14 +14,14 @@ int main(void)
 {
     float obs[POLICY_OBS_DIM];
     float act[POLICY_ACT_DIM];
-    for (int i = 0; i < POLICY_OBS_DIM; ++i) {
+    for (unsigned i = 0; i < POLICY_OBS_DIM; ++i) {
         obs[i] = io[i % PROBE_IO];
     }
-    int code = policy_step(obs, act);
-    for (int i = 0; i < POLICY_ACT_DIM; ++i) {
+    int32_t code = policy_step(obs, act);
+    for (unsigned i = 0; i < POLICY_ACT_DIM; ++i) {
         io[i % PROBE_IO] = act[i];
     }
-    return code;
+    return (int)code;
 }
 #else
 int main(void)

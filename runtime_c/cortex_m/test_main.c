@@ -24,14 +24,14 @@ extern const float embedrl_test_obs[][POLICY_OBS_DIM];
 extern void initialise_monitor_handles(void);
 extern uint32_t _sstack[]; /* the bottom of the stack reservation (sections.ld) */
 
-static int __attribute__((noinline)) no_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
+static int32_t __attribute__((noinline)) no_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
     __asm__ volatile("" : : "r"(obs), "r"(act) : "memory");
     return 0;
 }
 
 /* Ticks of one pass over the observations calling step (through a volatile pointer: the same call). */
-static uint32_t timed_pass(int (*volatile step)(const float *, float *), float act[POLICY_ACT_DIM])
+static uint32_t timed_pass(int32_t (*volatile step)(const float *, float *), float act[POLICY_ACT_DIM])
 {
     uint32_t start = board_timer_ticks();
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
@@ -71,8 +71,8 @@ int main(void)
 
     policy_reset(); /* a recurrent policy answers the vectors as one sequence from zero state */
     for (unsigned i = 0; i < embedrl_test_count; ++i) {
-        int code = policy_step(embedrl_test_obs[i], act);
-        printf("A %u %d", i, code);
+        int32_t code = policy_step(embedrl_test_obs[i], act);
+        printf("A %u %ld", i, (long)code);
         for (unsigned j = 0; j < POLICY_ACT_DIM; ++j) {
             printf(" %08lx", (unsigned long)bits(act[j]));
         }

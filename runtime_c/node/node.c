@@ -151,7 +151,7 @@ static void complete_observation(node_t *node, uint32_t now_ms)
         send_action(node, safe_action, node->pending_step);
     } else {
         uint32_t start = clock_us();
-        int status = policy_step(node->pending_obs, act);
+        int32_t status = policy_step(node->pending_obs, act);
         node->fresh = false;
         node->inference_us = clock_us() - start;
         if (status == POLICY_OK && policy_io_action_ok(act)) {

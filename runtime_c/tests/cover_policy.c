@@ -50,7 +50,7 @@ static long read_rows(const char *path)
     int extra = fgetc(f);
     (void)fclose(f);
     if (rows == 0u || extra != EOF) {
-        fprintf(stderr, "cover_policy: %s holds no rows of %d floats, or more than %u\n", path,
+        fprintf(stderr, "cover_policy: %s holds no rows of %u floats, or more than %u\n", path,
                 OBS_DIM, MAX_ROWS);
         return -1;
     }

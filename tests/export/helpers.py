@@ -18,6 +18,13 @@ from embedrl.export.onnx_import import to_ir
 _counter = itertools.count()
 
 
+def cpu_flags() -> set[str]:
+    """This CPU's feature flags as ``/proc/cpuinfo`` lists them (empty where there is none)."""
+    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").exists() else ""
+    line = next((row for row in text.splitlines() if row.startswith("flags")), "")
+    return set(line.split(":", 1)[-1].split())
+
+
 def make_model(
     nodes: list[onnx.NodeProto],
     inits: dict[str, Any],

@@ -134,7 +134,7 @@ def test_the_export_carries_the_scenarios_interface(models: dict[str, Path], tmp
     header = (out / "c" / "policy.h").read_text()
     for kind, fields in (("OBS", STATIC.observation), ("ACT", STATIC.action)):
         for i, f in enumerate(fields):
-            assert f"#define POLICY_{kind}_{f.name.upper()} {i} /* {f.description}: [" in header
+            assert f"#define POLICY_{kind}_{f.name.upper()} {i}u /* {f.description}: [" in header
     assert "#define POLICY_SAMPLE_TIME_S 0.300000012f" in header
     assert "#define POLICY_SAFE_ACTION {0.0f, 0.0f}" in header
 

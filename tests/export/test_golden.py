@@ -99,7 +99,7 @@ def test_no_malloc_no_stdio_and_named_layers() -> None:
 def test_name_prefixes_every_symbol(tmp_path: Path) -> None:
     files = generate(to_ir(tiny_model()), name="left")
     assert sorted(files) == ["left.c", "left.h", "left_host.c", "left_host.h"]
-    assert "#define LEFT_OBS_DIM 3" in files["left.h"] and "int left_step(" in files["left.h"]
+    assert "#define LEFT_OBS_DIM 3u" in files["left.h"] and "int32_t left_step(" in files["left.h"]
     assert "policy" not in files["left.c"].split("*/", 1)[1]
     # Two policies link into one program.
     for name in ("left", "right"):

@@ -10,6 +10,7 @@ import re
 import shlex
 import subprocess
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from embedrl.export.codegen import generate
 from embedrl.export.onnx_import import to_ir
 from embedrl.export.reference import OBSERVATIONS_FILE
 from tests.conftest import Exported, marks_its_users
+from tests.export.helpers import cpu_flags
 from tests.export.test_golden import tiny_model
 
 SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
@@ -35,7 +37,7 @@ int8's tanh a table in integers), so their bits are the same on every machine; f
 library's, checked against the ONNX model by the export instead."""
 
 
-def test_the_deployable_policy_has_no_host_code_and_fixed_width_counters() -> None:
+def test_the_deployable_policy_has_no_host_code_and_fixed_width_types() -> None:
     files = generate(to_ir(tiny_model()))
     policy, host = files["policy.c"], files["policy_host.c"]
     for host_only in ("step_batch", "target_clones", "POLICY_TARGETS"):
@@ -46,6 +48,18 @@ def test_the_deployable_policy_has_no_host_code_and_fixed_width_counters() -> No
     assert '#include "policy.c"' in host and '#include "policy_host.h"' in host
     assert re.findall(r"for \((\w+) ", policy) and set(re.findall(r"for \((\w+) ", policy)) == {"uint32_t"}
     assert "memcpy" not in policy  # the finite test reads the float's bits through a union (MISRA 21.15)
+    header = files["policy.h"]
+    _assert_fixed_width(header, policy)
+    assert "#define POLICY_OBS_DIM 3u" in header and "#define POLICY_OK ((int32_t)0)" in header
+    assert "int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);" in header
+
+
+def _assert_fixed_width(*sources: str) -> None:
+    """No basic integer type in the code (MISRA C:2012 directive 4.6): sizes, indices, return codes and
+    counters are fixed-width (comments aside)."""
+    for source in sources:
+        code = re.sub(r"/\*.*?\*/", "", source, flags=re.DOTALL)
+        assert re.findall(r"\b(?:int|short|long|unsigned|signed)\b", code) == []
 
 
 @pytest.fixture(scope="module")
@@ -60,6 +74,7 @@ def test_the_integer_policies_give_the_pinned_bits_from_both_files(
 ) -> None:
     export = integer_exports[precision]
     obs = _observations(export)
+    _assert_fixed_width((export / "c" / "policy.h").read_text(), (export / "c" / "policy.c").read_text())
     build.make("lib", export / "c", tmp_path / "host")
     host = build.CPolicy(tmp_path / "host" / "libpolicy.so", "policy", obs.shape[1], 2)
     batch, codes = host.batch(obs)
@@ -68,6 +83,57 @@ def test_the_integer_policies_give_the_pinned_bits_from_both_files(
     alone, alone_codes = _deployable_rows(export / "c", obs, tmp_path / "deployable.so")
     assert alone.view(np.uint32).tolist() == batch.view(np.uint32).tolist()
     assert alone_codes.tolist() == codes.tolist()
+
+
+@pytest.fixture(scope="module")
+@marks_its_users("slow")  # two exports (shared with other modules'), four builds
+def step_exports(exported: Exported) -> dict[str, Path]:
+    return {p: exported(SHIPPED_TD3, "--episodes", "0", *FLAGS[p]) for p in FLAGS}
+
+
+FLAGS = {"float32": (), "int8": ("--quantize", "int8")}
+
+
+@pytest.mark.parametrize("precision", list(FLAGS))
+def test_the_hosts_step_is_the_avx2_clone_with_the_baseline_bits(
+    step_exports: dict[str, Path], precision: str, tmp_path: Path
+) -> None:
+    export = step_exports[precision]
+    obs = _observations(export)
+    build.make("lib", export / "c", tmp_path / "clones")
+    library = tmp_path / "clones" / "libpolicy.so"
+    symbols = _symbols(library)
+    assert symbols["policy_step"][0] == "i"  # an ifunc: the loader picks a clone
+    assert {"policy_step.avx2", "policy_step.default"} <= set(symbols)
+    assert "policy_step_deployable" not in symbols  # inlined into each clone (flatten)
+    lib = ctypes.CDLL(str(library))
+    base = _address(lib.policy_reset) - symbols["policy_reset"][1]
+    picked = _address(lib.policy_step) - base  # dlsym answers an ifunc with the clone its resolver picked
+    if "avx2" in cpu_flags():
+        assert picked == symbols["policy_step.avx2"][1]
+    build.make("lib", export / "c", tmp_path / "baseline", "-O2 -DPOLICY_ONE_TARGET")
+    baseline_library = tmp_path / "baseline" / "libpolicy.so"
+    assert "policy_step.avx2" not in _symbols(baseline_library)
+    cloned = build.CPolicy(library, "policy", obs.shape[1], 2).rows(obs)
+    baseline = build.CPolicy(baseline_library, "policy", obs.shape[1], 2).rows(obs)
+    assert cloned[0].view(np.uint32).tolist() == baseline[0].view(np.uint32).tolist()
+    assert cloned[1].tolist() == baseline[1].tolist()
+    if precision in PINNED:
+        assert hashlib.sha256(cloned[0].tobytes() + cloned[1].tobytes()).hexdigest() == PINNED[precision]
+
+
+def _symbols(library: Path) -> dict[str, tuple[str, int]]:
+    """The library's symbols (binutils ``nm``): name -> (type letter, address)."""
+    out = subprocess.run(["nm", str(library)], capture_output=True, text=True, check=True).stdout
+    fields = (line.split() for line in out.splitlines())
+    return {f[2]: (f[1], int(f[0], 16)) for f in fields if len(f) == 3}
+
+
+def _address(function: Any) -> int:
+    """Where a ctypes function of a loaded library starts."""
+    address = ctypes.cast(function, ctypes.c_void_p).value
+    assert address is not None
+    return address
 
 
 def _observations(export: Path) -> np.ndarray:

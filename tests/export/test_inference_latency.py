@@ -119,3 +119,45 @@ def test_bench_export_times_emx_onnx_cgen_in_the_same_harness_and_checks_its_act
     assert not (tmp_path / "b.json").exists()
     assert main([*bench, "--emx", str(tmp_path / "nosuch")]) == 2
     assert "no emx-onnx-cgen at" in capsys.readouterr().err
+
+
+def test_bench_export_times_a_quantised_export_against_its_float32_export(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Both in the same harness in turn, the ratio of their medians printed; a float32-dir that is not the
+    same policy's float32 export is refused before anything is measured."""
+    model = make_model(
+        [helper.make_node("Gemm", ["x", "W"], ["y"], transB=1)],
+        {"W": np.random.default_rng(2).normal(size=(2, 6)).astype(np.float32)},
+        6,
+        2,
+    )
+    onnx.save(model, str(tmp_path / "m.onnx"))
+    args = ["export", str(tmp_path / "m.onnx"), "--episodes", "0", "--obs-range=-1:1", "--act-range=-10:10",
+            "--sample-time", "0.1"]  # fmt: skip
+    assert main([*args, "--out", str(tmp_path / "float32")]) == 0
+    assert main([*args, "--out", str(tmp_path / "int8"), "--quantize", "int8"]) == 0
+    out = tmp_path / "bench.json"
+    bench = ["bench-export", "--export-dir", str(tmp_path / "int8"), "--json", str(out)]
+    assert main([*bench, "--float32-dir", str(tmp_path / "float32")]) == 0
+    data = json.loads(out.read_text())
+    assert data["float32_c_ns_per_inference"] > 0 and data["c_ns_per_inference_beside_float32"] > 0
+    assert data["c_ratio_to_float32"] == pytest.approx(
+        data["c_ns_per_inference_beside_float32"] / data["float32_c_ns_per_inference"], rel=0.01
+    )
+    out.unlink()
+    capsys.readouterr()
+    assert main([*bench, "--float32-dir", str(tmp_path / "int8")]) == 2
+    assert "is not a float32 export (int8)" in capsys.readouterr().err
+    float32_bench = ["bench-export", "--export-dir", str(tmp_path / "float32"), "--json", str(out)]
+    assert main([*float32_bench, "--float32-dir", str(tmp_path / "float32")]) == 2
+    assert "EXPORT_DIR is float32" in capsys.readouterr().err
+    onnx.save(make_model([helper.make_node("Gemm", ["x", "W"], ["y"], transB=1)],
+                         {"W": np.ones((2, 6), np.float32)}, 6, 2), str(tmp_path / "other.onnx"))  # fmt: skip
+    other = ["export", str(tmp_path / "other.onnx"), *args[2:], "--out", str(tmp_path / "other")]
+    assert main(other) == 0
+    assert main([*bench, "--float32-dir", str(tmp_path / "other")]) == 2
+    assert "exports another policy" in capsys.readouterr().err
+    assert main(["bench-export", "--float32-dir", str(tmp_path / "float32")]) == 2
+    assert "--float32-dir needs EXPORT_DIR" in capsys.readouterr().err
+    assert not out.exists()

@@ -109,7 +109,7 @@ def test_an_onnx_without_an_env_exports_from_its_ranges(envless_export: Path) ->
     assert report["verification"]["c_vs_onnxruntime_max_abs_error"] <= 1e-5
     observations = np.load(envless_export / "test" / "observations.npy")
     assert observations.shape == (10_000, 17) and np.all(np.abs(observations) <= 10)
-    assert "POLICY_ACT_KNEE_R 3" in (envless_export / "c" / "policy.h").read_text()
+    assert "POLICY_ACT_KNEE_R 3u" in (envless_export / "c" / "policy.h").read_text()
 
 
 @pytest.mark.parametrize(

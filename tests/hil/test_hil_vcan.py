@@ -42,11 +42,11 @@ class TestCNodeOnVcan(HilContract):
         lying = tmp_path / "lying"
         shutil.copytree(export_dir, lying)
         source = lying / "c" / "policy.c"
-        text = source.read_text().replace("int policy_step(", "static int honest_policy_step(")
+        text = source.read_text().replace("int32_t policy_step(", "static int32_t honest_policy_step(")
         source.write_text(
-            text + "\nint policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])\n{\n"
+            text + "\nint32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])\n{\n"
             "    (void)honest_policy_step(obs, act);\n"
-            "    for (int i = 0; i < POLICY_ACT_DIM; ++i) {\n        act[i] = NAN;\n    }\n"
+            "    for (uint32_t i = 0u; i < POLICY_ACT_DIM; ++i) {\n        act[i] = NAN;\n    }\n"
             "    return POLICY_OK;\n}\n"
         )
         return lying

@@ -145,7 +145,7 @@ def _assert_sign_off_figures(keys: dict[str, str], export_dir: Path, export: dic
     header = re.search(r"weights: (\d+) bytes", (export_dir / "c" / "policy.h").read_text())
     assert header and keys["layers-weight-bytes"] == f"{int(header.group(1)):,}"
     assert keys["layers-header-agrees"] == "agrees"
-    assert keys["entry-policy_step"].startswith("int policy_step(const float obs[POLICY_OBS_DIM]")
+    assert keys["entry-policy_step"].startswith("int32_t policy_step(const float obs[POLICY_OBS_DIM]")
     assert keys["entry-node_init"].startswith("void node_init(")
     per_rule = [int(v) for k, v in keys.items() if k.startswith("misra-at-")]
     assert len(per_rule) > 5 and sum(per_rule) == int(keys["misra-findings"])

@@ -65,8 +65,8 @@ def test_the_walker_export_carries_the_walker_interface(walker_export: Path) -> 
     assert [f["name"] for f in interface["observation"]] == [f.name for f in WALKER.observation]
     assert [f["name"] for f in interface["action"]] == [f.name for f in WALKER.action]
     header = (walker_export / "c" / "policy.h").read_text()
-    assert "#define POLICY_OBS_DIM 17" in header
-    assert "#define POLICY_ACT_THIGH_TORQUE 0" in header
+    assert "#define POLICY_OBS_DIM 17u" in header
+    assert "#define POLICY_ACT_THIGH_TORQUE 0u" in header
 
 
 def test_a_walker_policy_in_lock_step_on_the_python_node(walker_export: Path, tmp_path: Path) -> None:

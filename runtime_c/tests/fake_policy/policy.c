@@ -11,16 +11,16 @@ void policy_reset(void)
     fake_policy_resets++;
 }
 
-static int safe(float act[POLICY_ACT_DIM], int code)
+static int32_t safe(float act[POLICY_ACT_DIM], int32_t code)
 {
     act[0] = safe_action[0];
     act[1] = safe_action[1];
     return code;
 }
 
-int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
+int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
-    for (int i = 0; i < POLICY_OBS_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_OBS_DIM; ++i) {
         if (!isfinite(obs[i])) {
             return safe(act, POLICY_ERR_OBS_NOT_FINITE);
         }

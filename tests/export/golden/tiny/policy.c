@@ -8,6 +8,7 @@
 #include "policy.h"
 
 #include <math.h>
+#include <stdbool.h>
 #include <stdint.h>
 #include <string.h>
 
@@ -177,7 +178,7 @@ static inline policy_floats4 policy_inputs4(const float **p)
 
 /* Finite test on the float's bits (exponent not all ones): it holds under -ffast-math, which lets a
  * compiler assume that no NaN or infinity exists and drop isfinite(). */
-static int policy_finite(float x)
+static bool policy_finite(float x)
 {
     union {
         float f;
@@ -187,9 +188,9 @@ static int policy_finite(float x)
     return (bits.u & 0x7f800000u) != 0x7f800000u;
 }
 
-static int policy_safe(float act[POLICY_ACT_DIM], int code)
+static int32_t policy_safe(float act[POLICY_ACT_DIM], int32_t code)
 {
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_ACT_DIM; ++i) {
         act[i] = policy_safe_action[i];
     }
     return code;
@@ -200,9 +201,9 @@ void policy_reset(void)
     /* no recurrent state */
 }
 
-int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
+int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
 {
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_OBS_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_OBS_DIM; ++i) {
         if (!policy_finite(obs[i])) {
             return policy_safe(act, POLICY_ERR_OBS_NOT_FINITE);
         }
@@ -400,12 +401,12 @@ int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         v = (v > 0.899999976f) ? 0.899999976f : v;
         policy_buf0[i] = v;
     }
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_ACT_DIM; ++i) {
         if (!policy_finite(policy_buf0[i])) {
             return policy_safe(act, POLICY_ERR_ACT_NOT_FINITE);
         }
     }
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_ACT_DIM; ++i) {
         act[i] = policy_buf0[i];
     }
     return POLICY_OK;

@@ -8,23 +8,25 @@
 #ifndef POLICY_H
 #define POLICY_H
 
-#define POLICY_OBS_DIM 3
-#define POLICY_ACT_DIM 2
-#define POLICY_STATE_DIM 0 /* floats carried from one step to the next (0: no memory) */
+#include <stdint.h>
+
+#define POLICY_OBS_DIM 3u
+#define POLICY_ACT_DIM 2u
+#define POLICY_STATE_DIM 0u /* floats carried from one step to the next (0: no memory) */
 
 /* What policy_step writes on any non-finite value, and what a node applies when it cannot trust its input. */
 #define POLICY_SAFE_ACTION {0.0f, 0.0f}
 
 /* Return codes of policy_step. */
-#define POLICY_OK 0
-#define POLICY_ERR_OBS_NOT_FINITE 1 /* an observation was NaN or infinite: safe action written */
-#define POLICY_ERR_ACT_NOT_FINITE 2 /* the network produced NaN or infinity: safe action written */
+#define POLICY_OK ((int32_t)0)
+#define POLICY_ERR_OBS_NOT_FINITE ((int32_t)1) /* an observation was NaN or infinite: safe action written */
+#define POLICY_ERR_ACT_NOT_FINITE ((int32_t)2) /* the network produced NaN or infinity: safe action written */
 
 /* Run the policy on one observation. Writes POLICY_ACT_DIM actions and returns POLICY_OK, or writes the
  * safe action (0.0f, 0.0f) and returns an error code: no NaN ever leaves it.
  * A recurrent policy (POLICY_STATE_DIM > 0) reads its state and keeps the next one for the next call; a
  * non-finite observation leaves the state as it was, a non-finite result resets it. */
-int policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
+int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
 
 /* Start a new episode: the recurrent state back to zero (nothing to do for a policy without memory).
  * Call it at start-up, at each episode start and whenever the safe state is entered. */

@@ -10,16 +10,37 @@
  * helpers (static in policy.c). A program is built from this file or from policy.c, never both. */
 #include "policy_host.h"
 
-#include "policy.c"
+#include <stdint.h> /* the C library's own macros (__GLIBC__), which POLICY_TARGETS' condition reads */
 
-/* x86-64 glibc, gcc: compiled for each of default, avx2, the CPU's picked at load
- * time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in the same
- * order and all give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */
+/* x86-64 glibc, gcc: policy_step and the batch's block compiled for each of default, avx2, the CPU's
+ * picked at load time (an ifunc); none has fused multiply-add, so every clone rounds the same operations in
+ * the same order and all give the same bits. -DPOLICY_ONE_TARGET: the compiler's target only. */
 #if defined(__GNUC__) && !defined(__clang__) && defined(__x86_64__) && defined(__GLIBC__) && \
     !defined(POLICY_ONE_TARGET)
+#define POLICY_CLONES 1
 #define POLICY_TARGETS __attribute__((target_clones("default", "avx2"), optimize("vect-cost-model=dynamic")))
 #else
+#define POLICY_CLONES 0
 #define POLICY_TARGETS
+#endif
+
+#if POLICY_CLONES
+/* The deployable policy_step under the name policy_step_deployable, static: the host's policy_step below
+ * inlines it into each of its clones. */
+static int32_t policy_step_deployable(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM]);
+#define policy_step policy_step_deployable
+#endif
+#include "policy.c"
+#if POLICY_CLONES
+#undef policy_step
+
+/* policy_step for the host: the deployable step's code with every call it makes inlined (flatten), compiled
+ * once per clone, so the host's programs run it in the CPU's instruction set with the same bits. */
+POLICY_TARGETS __attribute__((flatten))
+int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
+{
+    return policy_step_deployable(obs, act);
+}
 #endif
 
 /* A block of rows (320 bytes, policy_step_batch only): the observations, then the step's buffers, one
@@ -105,20 +126,20 @@ static void policy_block(uint32_t rows)
 }
 
 /* Each row's code as policy_step returns it, and its actions or the safe action. */
-static int policy_finish(const float obs[POLICY_OBS_DIM], const float out[POLICY_ACT_DIM],
-                         float act[POLICY_ACT_DIM])
+static int32_t policy_finish(const float obs[POLICY_OBS_DIM], const float out[POLICY_ACT_DIM],
+                             float act[POLICY_ACT_DIM])
 {
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_OBS_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_OBS_DIM; ++i) {
         if (!policy_finite(obs[i])) {
             return policy_safe(act, POLICY_ERR_OBS_NOT_FINITE);
         }
     }
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_ACT_DIM; ++i) {
         if (!policy_finite(out[i])) {
             return policy_safe(act, POLICY_ERR_ACT_NOT_FINITE);
         }
     }
-    for (uint32_t i = 0u; i < (uint32_t)POLICY_ACT_DIM; ++i) {
+    for (uint32_t i = 0u; i < POLICY_ACT_DIM; ++i) {
         act[i] = out[i];
     }
     return POLICY_OK;
@@ -130,14 +151,14 @@ int policy_step_batch(int n, const float *obs, float *act, int *status)
     for (int start = 0; start < n; start += 8) {
         const int rows = n - start < 8 ? n - start : 8;
         for (int r = 0; r < rows; ++r) {
-            for (uint32_t i = 0u; i < (uint32_t)POLICY_OBS_DIM; ++i) {
+            for (uint32_t i = 0u; i < POLICY_OBS_DIM; ++i) {
                 policy_bobs[r][i] = obs[(size_t)(start + r) * POLICY_OBS_DIM + i];
             }
         }
         policy_block((uint32_t)rows);
         for (int r = 0; r < rows; ++r) {
             const size_t row = (size_t)(start + r);
-            const int code = policy_finish(&obs[row * POLICY_OBS_DIM], policy_b0[r], &act[row * POLICY_ACT_DIM]);
+            const int32_t code = policy_finish(&obs[row * POLICY_OBS_DIM], policy_b0[r], &act[row * POLICY_ACT_DIM]);
             if (status != NULL) {
                 status[row] = code;
             }
