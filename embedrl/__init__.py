@@ -12,9 +12,17 @@ the C runtime ``runtime_c/``, shipped as package data), mapped onto these names 
 
 from __future__ import annotations
 
-from importlib import metadata
 
-try:
-    __version__ = metadata.version("embedrl")
-except metadata.PackageNotFoundError:
-    __version__ = "0+unknown"
+def __getattr__(name: str) -> str:
+    """``__version__``, read from the installed distribution's metadata when first asked for (importlib's
+    metadata reader is not imported by a program that never asks, e.g. a HIL session in an emulated guest)."""
+    if name != "__version__":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from importlib import metadata
+
+    try:
+        version = metadata.version("embedrl")
+    except metadata.PackageNotFoundError:
+        version = "0+unknown"
+    globals()["__version__"] = version
+    return version

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import can
+import numpy as np
 
 from embedrl.export.contract.layout import STEP_MODULO
 from embedrl.hil.codec import Action, Codec, Diag, Status
@@ -25,8 +26,11 @@ class Stats:
     frames_rx: int = 0
     rx_timeouts: int = 0
     latencies_us: list[float] = field(default_factory=list)
-    diffs: list[float] = field(default_factory=list)
-    first_divergent_step: int | None = None
+    exchanges: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
+    """Every answered step: its Step counter, the observation the node decoded, the node's action (compared
+    with the reference when the episodes are over: :mod:`embedrl.hil.compare`)."""
+    episode_starts: list[int] = field(default_factory=list)
+    """Where in :attr:`exchanges` each episode begins (a policy with memory starts again there)."""
     deadline_misses: int = 0
     step_starts: list[list[float]] = field(default_factory=list)
     """Real time: when each step's observation went out (monotonic seconds), per episode."""
@@ -44,7 +48,8 @@ class Stats:
 
     @staticmethod
     def merged(parts: list[Stats]) -> Stats:
-        """The links of several nodes as one: counts added, samples joined, the earliest divergence."""
+        """The links of several nodes as one: counts added, samples joined (each node's recorded steps stay
+        with its own link)."""
         out = Stats()
         for part in parts:
             out.frames_tx += part.frames_tx
@@ -53,12 +58,6 @@ class Stats:
             out.retries += part.retries
             out.send_failures += part.send_failures
             out.latencies_us += part.latencies_us
-            out.diffs += part.diffs
-            if part.first_divergent_step is not None:
-                first = out.first_divergent_step
-                out.first_divergent_step = min(
-                    part.first_divergent_step, first if first is not None else 1 << 30
-                )
         out.last_status, out.last_diag = parts[0].last_status, parts[0].last_diag
         return out
 

@@ -5,8 +5,8 @@ same :class:`~embedrl.hil.link.Link` and socket, the answer received and decoded
 responder (``runtime_c/bench/can_responder.c``: receives a step's observation frames as the node does and
 answers the last with one action frame at once: no E2E check, no inference). The lock-step rate: the HIL
 session with the C node (:func:`embedrl.hil.session.run`), steps per second of its episodes' wall-clock
-time (the environment, the reference policy and every check included). Their ratio says how much of the
-bus's speed a HIL step uses.
+time (the environment and every check included; the session's comparison with the reference policy comes
+after its episodes and is skipped here). Their ratio says how much of the bus's speed a HIL step uses.
 
 Inside the guest this module runs as ``python -m embedrl.hil.round_trip CONFIG.json``.
 """
@@ -144,7 +144,7 @@ def run_bench(options: Any, exchanges: int, guest: Any = None) -> dict[str, Any]
             scratch = where.scratch()
             cfg = session_config(options, interface, node_binary=str(work / "build" / "policy_node"),
                                  iface=where.iface, results=str(scratch / "results.json"),
-                                 slowdown=where.slowdown)  # fmt: skip
+                                 slowdown=where.slowdown, compare=False)  # fmt: skip
             config = {"session": asdict(cfg), "responder": str(work / "build" / "can_responder"),
                       "exchanges": exchanges, "out": str(scratch / "bench.json")}  # fmt: skip
             (scratch / "config.json").write_text(json.dumps(config))

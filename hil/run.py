@@ -478,8 +478,9 @@ def _guest_session(
     options: RunOptions, interface: Interface, guest: Guest | None, work: Path, binary: Path
 ) -> dict[str, Any]:
     """The C node built in ``work`` (``binary``) and the session, both in ``guest`` (or the selected
-    sandbox)."""
-    from embedrl.hil import coverage, sandbox
+    sandbox); the node's actions are compared with the reference here, after the session (the guest
+    needs no ONNX runtime, and under emulation would take its time loading one)."""
+    from embedrl.hil import compare, coverage, sandbox
 
     with nullcontext(guest) if guest else sandbox.opened(options.sandbox_mode, work / "sandbox") as where:
         if options.timeout_ms is None and where.slowdown > 1 and not NODE_KINDS[options.node].simulated_time:
@@ -493,7 +494,7 @@ def _guest_session(
         cfg = session_config(
             options, interface, node_binary=str(binary), iface=where.iface,
             log=str(log) if log else None, results=str(scratch / "results.json"), slowdown=where.slowdown,
-            progress=str(scratch / "progress"),
+            progress=str(scratch / "progress"), compare=False,
             coverage_profile=str(profiles / coverage.PROFILE_PATTERN) if options.coverage else None,
         )  # fmt: skip
         emulator: AbstractContextManager[None] = nullcontext()
@@ -512,6 +513,7 @@ def _guest_session(
             why = where.diagnose(f"the HIL session failed (status {job.status}): {job.last_lines()}")
             raise HilError(str(why))
         results: dict[str, Any] = json.loads(Path(cfg.results).read_text())
+        compare.fill(results, interface, lambda: compare.reference(cfg.export_dir, cfg.onnx))
         binary = Path(cfg.node_binary or "")
         if image:
             results["firmware"]["stack_bound"] = _firmware_stack_bound(options, binary)

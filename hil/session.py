@@ -1,8 +1,10 @@
 """One HIL session: the simulator drives a policy node over a CAN bus, episode by episode.
 
 Lock-step (the basis of every verdict): each step the simulator sends the observation frames, waits
-for the node's action for that step, applies it and steps the physics; the exported ONNX policy runs
-on the observation the node decoded and the difference is recorded. A step not answered within
+for the node's action for that step, applies it and steps the physics, and records the observation the
+node decoded with its action; once the episodes are over the export's reference runs on those
+observations and the differences go into the results (:mod:`embedrl.hil.compare`; here, or on the host
+for a session in a guest). A step not answered within
 :data:`RETRY_S` (or half the node's watchdog, if shorter) is sent again with fresh E2E counters, as a
 cyclic sender would, until ``action_timeout_s``; a node never answers a step twice. ``realtime`` paces
 the loop at the interface's sample time and counts deadline misses (a report, not a verdict). The
@@ -37,17 +39,17 @@ from embedrl.export.contract.layout import (
     STEP_MODULO,
     WATCHDOG_MS,
 )
-from embedrl.export.reference import OnnxPolicy, reference_policy
+from embedrl.hil import compare
 from embedrl.hil.codec import Action, Codec, Diag, Status
 from embedrl.hil.faults import Context, Injector, Scheduled, is_safe, parse_schedule
 from embedrl.hil.firmware import FirmwareNode, instruction_summary
 from embedrl.hil.link import Link, Stats
 from embedrl.hil.node_kinds import DEFAULT_NODE, NODE_KINDS
-from embedrl.hil.nodes import PolicyNode, action_ok
-from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode, start_episode
+from embedrl.hil.nodes import PolicyNode
+from embedrl.train.evaluate import EpisodeResult, episode_result, run_episode
 from embedrl.train.interface import NO_ENV, Interface
 
-TOLERANCE = 1e-5
+TOLERANCE = compare.TOLERANCE
 NODE_BOOT_S = 1.0
 """The node is up when its first status frame arrives (or after this long)."""
 RETRY_S = 0.25
@@ -113,13 +115,15 @@ class SessionConfig:
     coverage_profile: str | None = None
     """The C node's ``LLVM_PROFILE_FILE`` (a node built for coverage writes its raw profile there when it
     exits); None: the environment's."""
+    compare: bool = True
+    """Compare the node's actions with the reference when the episodes are over; False: the results keep
+    the recorded steps for the caller to compare (:func:`embedrl.hil.compare.fill`), as the host does for
+    a session in a guest (which then never loads the ONNX runtime)."""
 
 
 def _session_policy(cfg: SessionConfig) -> Callable[[np.ndarray], np.ndarray]:
     """The batch policy the node must reproduce: the export's reference for its precision, or the ONNX."""
-    if cfg.export_dir is not None:
-        return reference_policy(Path(cfg.export_dir))
-    return OnnxPolicy(Path(cfg.onnx))
+    return compare.reference(cfg.export_dir, cfg.onnx)
 
 
 class NodeFault(Exception):
@@ -144,7 +148,6 @@ class BusPolicy:
 
     def __init__(self, cfg: SessionConfig, interface: Interface, link: Link, node: PolicyNode) -> None:
         self.cfg, self.interface, self.link, self.node = cfg, interface, link, node
-        self.reference = _session_policy(cfg)
         self.step = 0
         """Global step counter: the ``Step`` signal (mod 4096)."""
         self.episode = -1
@@ -171,7 +174,7 @@ class BusPolicy:
         its EpisodeStart frame)."""
         self.episode += 1
         self.in_episode = 0
-        start_episode(self.reference)
+        self.link.stats.episode_starts.append(len(self.link.stats.exchanges))
         self.link.send(self.link.codec.encode_episode_start(self.step))
         if self.cfg.realtime:
             self.link.stats.step_starts.append([])
@@ -209,20 +212,14 @@ class BusPolicy:
         frames: list[can.Message],
         start: int,
     ) -> np.ndarray:
-        """Record the node's answer to this step against the ONNX policy; an unanswered step is a fault."""
+        """Record the node's answer to this step with the observation it decoded (compared with the reference
+        when the episodes are over); an unanswered step is a fault."""
         stats = self.link.stats
         if action is None:
             stats.rx_timeouts += 1
             raise NodeFault(self._silence_reason(start / 1e9))
         stats.latencies_us.append((time.monotonic_ns() - start) / 1000.0)
-        reference = np.asarray(self.reference(decoded.reshape(1, -1).astype(np.float32))).reshape(-1)
-        if not action_ok(reference, self.interface):  # what a correct node sends instead
-            reference = np.asarray(self.interface.safe_action, dtype=np.float32)
-        diff = float(np.max(np.abs(action.action.astype(np.float64) - reference)))
-        diff = diff if np.isfinite(diff) else float("inf")
-        stats.diffs.append(diff)
-        if diff > TOLERANCE and stats.first_divergent_step is None:
-            stats.first_divergent_step = self.step
+        stats.exchanges.append((self.step, decoded, action.action))
         self.previous = frames
         self.step += 1
         self.in_episode += 1
@@ -365,12 +362,12 @@ def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
         with _nodes_on_one_bus(cfg, interface, cfg.nodes) as (links, nodes, policies):
             envs += [gym.make(interface.env_id) for _ in range(cfg.nodes)]
             for index in range(cfg.episodes):
-                marks = [len(link.stats.diffs) for link in links]
+                marks = [len(link.stats.exchanges) for link in links]
                 seeds = [node_seed(cfg.seed, index, k) for k in range(cfg.nodes)]
                 rows = _together(policies, envs, seeds, interface.sample_time_s)
                 for k, row in enumerate(rows):
-                    diffs = links[k].stats.diffs[marks[k] :]
-                    row.update(node=k, injected=[], max_action_abs_diff=max(diffs, default=None))
+                    row.update(node=k, injected=[])
+                    row[compare.EXCHANGES] = compare.share(k, marks[k], links[k].stats)
                 episodes += rows
                 _progress(cfg, index + 1)
                 if not all(node.alive() for node in nodes):
@@ -378,7 +375,7 @@ def _run_nodes(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
     finally:
         for env in envs:
             env.close()
-    return _write_nodes_results(cfg, links, episodes, interface.sample_time_s)
+    return _write_nodes_results(cfg, interface, links, episodes)
 
 
 def _together(
@@ -500,7 +497,7 @@ def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
         with _nodes_on_one_bus(cfg, interface, len(agents)) as (links, nodes, policies):
             for index in range(cfg.episodes):
                 seed = cfg.seed + index
-                marks = [len(link.stats.diffs) for link in links]
+                marks = [len(link.stats.exchanges) for link in links]
                 obs, _ = env.reset(seed=seed)
                 totals = [0.0] * len(agents)
                 faults: list[str | None] = [None] * len(agents)
@@ -525,30 +522,30 @@ def _run_robots(cfg: SessionConfig, interface: Interface) -> dict[str, Any]:
                 for k in range(len(agents)):
                     steps = len(env.trajectories[k]) - 1
                     hit = env._world.hits[k] if env._world is not None else None
-                    diffs = links[k].stats.diffs[marks[k] :]
                     killed = cfg.kill_node is not None and cfg.kill_node[:2] == (k, index)
                     episodes.append({
                         "seed": seed, "outcome": "fault" if faults[k] else env.outcomes[k], "steps": steps,
                         "episode_return": totals[k], "time_s": steps * interface.sample_time_s,
                         "collided_with": hit, "trajectory": list(env.trajectories[k]), "fault": faults[k],
                         "node": k, "injected": ["kill"] if killed else [],
-                        "max_action_abs_diff": max(diffs, default=None), "robots": list(env.outcomes),
+                        compare.EXCHANGES: compare.share(k, marks[k], links[k].stats),
+                        "robots": list(env.outcomes),
                     })  # fmt: skip
                 _progress(cfg, index + 1)
                 if not all(node.alive() for node in nodes):
                     break  # a node is gone: its robot could only fault in later episodes
     finally:
         env.close()
-    return _write_nodes_results(cfg, links, episodes, interface.sample_time_s)
+    return _write_nodes_results(cfg, interface, links, episodes)
 
 
 def _write_nodes_results(
-    cfg: SessionConfig, links: list[Link], episodes: list[dict[str, Any]], sample_time: float
+    cfg: SessionConfig, interface: Interface, links: list[Link], episodes: list[dict[str, Any]]
 ) -> dict[str, Any]:
     """Several nodes' results: merged statistics, every node's last status and diagnostics."""
     stats = Stats.merged([link.stats for link in links])
-    results = _results(cfg, stats, episodes, [], sample_time)
-    results["action_diffs"] = {str(k): link.stats.diffs for k, link in enumerate(links)}
+    results = _results(cfg, stats, episodes, [], interface.sample_time_s)
+    results[compare.EXCHANGES] = {str(k): compare.recorded(link.stats) for k, link in enumerate(links)}
     results["nodes"] = [
         {
             "node_id": k,
@@ -561,8 +558,15 @@ def _write_nodes_results(
     results["sequence_errors"] = sum(
         int(n["status"]["sequence_errors"]) for n in results["nodes"] if n["status"]
     )
+    _compared(cfg, results, interface)
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
+
+
+def _compared(cfg: SessionConfig, results: dict[str, Any], interface: Interface) -> None:
+    """The node's actions compared with the reference now (``cfg.compare``), else left to the caller."""
+    if cfg.compare:
+        compare.fill(results, interface, lambda: _session_policy(cfg))
 
 
 def _progress(cfg: SessionConfig, done: int) -> None:
@@ -627,8 +631,8 @@ def run(cfg: SessionConfig, interface: Interface | None = None) -> dict[str, Any
                     "fault": str(fault),
                 }
             row["injected"] = [r["kind"] for r in policy.injections if r["episode"] == index]
-            row["max_action_abs_diff"] = max(stats.diffs[first_diff:], default=None)
-            first_diff = len(stats.diffs)
+            row[compare.EXCHANGES] = compare.share(0, first_diff, stats)
+            first_diff = len(stats.exchanges)
             episodes.append(row)
             _progress(cfg, index + 1)
             if row["fault"] and not node.alive():
@@ -645,6 +649,8 @@ def run(cfg: SessionConfig, interface: Interface | None = None) -> dict[str, Any
             "step_instructions": node.step_instructions(),
             "stack_peak_bytes": node.stack_peak(),
         }
+    results[compare.EXCHANGES] = {"0": compare.recorded(stats)}
+    _compared(cfg, results, interface)
     Path(cfg.results).write_text(json.dumps(results, indent=2) + "\n")
     return results
 
@@ -661,9 +667,6 @@ def _results(
     return {
         "episodes": episodes,
         "steps": int(sum(e["steps"] for e in episodes)),
-        "max_action_abs_diff": max(stats.diffs) if stats.diffs else None,
-        "action_diffs": {"0": stats.diffs},
-        "first_divergent_step": stats.first_divergent_step,
         "frames_tx": stats.frames_tx,
         "frames_rx": stats.frames_rx,
         "crc_errors": link_errors(status, "crc_errors"),

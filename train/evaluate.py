@@ -12,17 +12,18 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
-from tqdm import tqdm
 
 from embedrl.common import provenance, table
 from embedrl.train import ENV_ID
 from embedrl.train.robot import SAMPLE_TIME
 from embedrl.train.scenarios import BY_ENV_ID, team_env
-from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
+
+if TYPE_CHECKING:
+    from embedrl.train.two_robots_env import WarehouseTwoRobotsEnv
 
 Policy = Callable[[np.ndarray], np.ndarray]
 """Observation (float32[6]) in, action (float32[2]) out."""
@@ -293,6 +294,8 @@ def evaluate(
         sample_time = SAMPLE_TIME if spec is None else spec.sample_time_s
     if episodes < 1:
         raise ValueError(f"episodes must be at least 1, got {episodes}")
+    from tqdm import tqdm
+
     bar = tqdm(range(episodes), desc=f"eval {name}", unit="ep", disable=not progress)
     spec = BY_ENV_ID.get(env_id)
     if spec is not None and spec.robots > 1:

@@ -1,26 +1,34 @@
 """The HIL contract against the compiled C node over real SocketCAN vcan0, in the sandbox ``--sandbox
 auto`` picks on this machine (the verdict), plus what only the sandboxed path has.
 
-One sandbox guest serves the whole session (the ``guest`` fixture); the first test boots its own, as
-the command does.
+One sandbox guest serves the whole session (the ``guest`` fixture), one QEMU guest the emulated timing
+(``qemu_guest``, shared with the other QEMU tests); the first test boots its own, as the command does.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import shutil
 import signal
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
+import embedrl.hil.sandbox as sandbox
 from embedrl.hil.errors import HilError
+from embedrl.hil.options import DEFAULT_TIMEOUT_MS
+from embedrl.hil.run import ACTION_TIMEOUT_S
 from embedrl.hil.sandbox import Guest
 from embedrl.hil.sandbox.base import JobResult
+from embedrl.hil.sandbox.qemu import TCG_SLOWDOWN
 from tests.hil.contract import NODE_TIMEOUT_MS, HilContract
-from tests.hil.helpers import REQUIRED, hil
+from tests.hil.helpers import hil, hil_report
 from tests.test_user_errors import run_and_interrupt
 
 pytestmark = pytest.mark.slow
@@ -131,18 +139,53 @@ def test_two_signals_2_s_apart_end_the_guest_and_everything_it_started(
     assert not (tmp_path / "h.json").exists()
 
 
+@pytest.mark.qemu
 def test_under_qemu_emulation_the_default_timing_passes_five_episodes(
-    export_dir: Path, tmp_path: Path
+    qemu_guest: Guest, export_dir: Path, tmp_path: Path
 ) -> None:
-    # Python runs ~10x slower under pure emulation: the default watchdog and answer wait stretch with it.
-    from embedrl.hil.sandbox.qemu import QemuProvider
-
-    reason = QemuProvider().missing()
-    if reason:
-        if "qemu" in REQUIRED:
-            pytest.fail(f"qemu is required here but unavailable: {reason}")
-        pytest.skip(f"qemu unavailable: {reason}")
-    report = hil(None, export_dir, tmp_path, "--sandbox", "qemu", "--episodes", "5", "--seed", "0")
+    """Python runs ~10x slower under pure emulation: the default watchdog and answer wait stretch with it
+    (by the guest's ``slowdown``), on the session's QEMU guest; the command that boots its own QEMU for
+    ``--sandbox qemu`` stretches them alike (the next test)."""
+    report = hil(qemu_guest, export_dir, tmp_path, "--sandbox", "qemu", "--episodes", "5", "--seed", "0")
     assert report["sandbox"] == "qemu" and report["verdict"]["passed"], report["verdict"]
+    assert report["episodes"] == 5
     assert report["node_status"]["timeouts"] == 0 and report["rx_timeouts"] == 0
     assert report["node_diag"]["action_faults"] == 0
+
+
+class _CapturingGuest(Guest):
+    """An emulated QEMU guest that keeps the session settings of each job it is given and runs nothing."""
+
+    provider, description, boot_s, slowdown = "qemu", "qemu: capturing", 0.1, TCG_SLOWDOWN
+
+    def __init__(self, folder: Path) -> None:
+        self.folder = folder
+        self.settings: list[dict[str, Any]] = []
+
+    def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:
+        self.settings.append(json.loads(Path(argv[-1]).read_text()))  # python -m embedrl.hil.session FILE
+        return JobResult(1, "not run")
+
+    def scratch(self) -> Path:
+        return Path(tempfile.mkdtemp(dir=self.folder))
+
+
+def test_the_command_booting_qemu_stretches_the_default_timing_as_a_given_qemu_guest_does(
+    export_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    given, booted = _CapturingGuest(tmp_path), _CapturingGuest(tmp_path)
+
+    @contextlib.contextmanager
+    def opened(mode: str, workdir: Path, say: Callable[[str], None] = print) -> Iterator[Guest]:
+        assert mode == "qemu"
+        yield booted
+
+    monkeypatch.setattr(sandbox, "opened", opened)  # what `--sandbox qemu` boots
+    for guest in (given, None):
+        with pytest.raises(HilError, match="the HIL session failed") as caught:
+            hil_report(guest, export_dir, "--sandbox", "qemu", "--episodes", "5", "--seed", "0")
+        shutil.rmtree(str(caught.value).rsplit(" kept in ", 1)[1].rstrip("]"))
+    [by_command], [by_guest] = booted.settings, given.settings
+    stretched = (round(DEFAULT_TIMEOUT_MS * TCG_SLOWDOWN), ACTION_TIMEOUT_S * TCG_SLOWDOWN)
+    assert (by_command["node_timeout_ms"], by_command["action_timeout_s"]) == stretched
+    assert (by_guest["node_timeout_ms"], by_guest["action_timeout_s"]) == stretched

@@ -7,9 +7,10 @@ another working folder into a folder whose path has spaces. Each source is expor
 export's own reference for that precision (:mod:`embedrl.export.reference`).
 
 Every source x precision through the Python reference node, and through the compiled C node over vcan in
-the shared guest (``--sandbox auto``), plus rows under QEMU that cover every precision, every scenario and
-the foreign ONNX there: every pair of values of the five factors meets in at least one row (:data:`C_ROWS`,
-checked by a test). The 21 exports take minutes: the matrix is in the slow tier.
+the shared guest (``--sandbox auto``), plus rows on the session's QEMU guest (``qemu_guest``, shared with the
+other QEMU tests) that cover every precision, every scenario and the foreign ONNX there: every pair of values
+of the five factors meets in at least one row (:data:`C_ROWS`, checked by a test). The 21 exports take
+minutes: the matrix is in the slow tier.
 """
 
 from __future__ import annotations
@@ -22,11 +23,10 @@ from typing import Any
 import onnx
 import pytest
 
-import embedrl.hil.sandbox as sandbox
 from embedrl.cli import main
 from embedrl.hil.sandbox import Guest
 from tests.conftest import marks_its_users
-from tests.hil.helpers import REQUIRED, hil
+from tests.hil.helpers import hil
 
 ROOT = Path(__file__).resolve().parents[2]
 POLICIES = ROOT / "policies"
@@ -125,22 +125,15 @@ def test_every_source_and_precision_through_the_python_node(
     assert report["sandbox"] == "none"
 
 
-@pytest.fixture(scope="module")
-@marks_its_users("sandbox", "qemu")
-def qemu_guest(tmp_path_factory: pytest.TempPathFactory) -> Any:
-    from embedrl.hil.sandbox.qemu import QemuProvider
-
-    reason = QemuProvider().missing()
-    if reason:
-        if "qemu" in REQUIRED:
-            pytest.fail(f"qemu is required here but unavailable: {reason}")
-        pytest.skip(f"qemu unavailable: {reason}")
-    with sandbox.opened("qemu", tmp_path_factory.mktemp("qemu")) as booted:
-        yield booted
+def _marked(row: tuple[str, str, str]) -> Any:
+    """A C row as a test parameter with the tiers of the guest the test asks for by name (``guest`` or
+    ``qemu_guest``: fixtures looked up at run time mark nothing at collection)."""
+    qemu = [pytest.mark.qemu] if row[2] == "qemu" else []
+    return pytest.param(*row, marks=[pytest.mark.sandbox, *qemu])
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("source", "precision", "where"), C_ROWS)
+@pytest.mark.parametrize(("source", "precision", "where"), [_marked(row) for row in C_ROWS])
 def test_the_c_node_over_vcan_on_a_pairwise_cover(
     source: str,
     precision: str,

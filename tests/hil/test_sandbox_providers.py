@@ -1,8 +1,11 @@
 """Every CAN sandbox provider on this machine runs a real lock-step HIL episode over vcan.
 
-One test per provider candidate (host, each UML kernel, QEMU), each on its own booted guest. A provider
-is skipped only where it really cannot work (not installed, or a known CPU incompatibility), and the
-skip says why; CI sets ``EMBEDRL_REQUIRE_SANDBOXES=uml,qemu`` so those two cannot silently skip.
+One test per provider candidate (host, each UML kernel, QEMU), each on a guest of that provider: its own
+for host and UML (a boot takes seconds), the session's QEMU guest for QEMU (``qemu_guest``, booted and
+self-tested by the same :func:`embedrl.hil.sandbox.open_guest`, shared with the other QEMU tests: a boot
+under pure emulation takes about a minute). A provider is skipped only where it really cannot work (not
+installed, or a known CPU incompatibility), and the skip says why; CI sets
+``EMBEDRL_REQUIRE_SANDBOXES=uml,qemu`` so those two cannot silently skip.
 """
 
 from __future__ import annotations
@@ -13,25 +16,38 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 import embedrl.hil.sandbox as sandbox
 from embedrl.hil.sandbox import Guest, Provider
+from embedrl.hil.sandbox.qemu import QemuProvider
 from tests.conftest import marks_its_users
 from tests.hil.helpers import boot_or_skip, hil
 from tests.test_reaper import ended_within_deadline
 
 pytestmark = pytest.mark.slow
 CANDIDATES = sandbox.providers("auto")
+SHARED_GUESTS = {QemuProvider.name: "qemu_guest"}
+"""Providers whose guest the session shares (a fixture of tests/hil/conftest.py) instead of a boot here."""
 
 
-@pytest.fixture(scope="module", params=CANDIDATES, ids=[p.slug for p in CANDIDATES])
+def _candidate(provider: Provider) -> Any:
+    """A provider as a parameter of :func:`provider_guest`, in the ``qemu`` tier if it is QEMU."""
+    qemu = [pytest.mark.qemu] if provider.name == QemuProvider.name else []
+    return pytest.param(provider, id=provider.slug, marks=qemu)
+
+
+@pytest.fixture(scope="module", params=[_candidate(p) for p in CANDIDATES])
 @marks_its_users("sandbox")
 def provider_guest(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> Iterator[Guest]:
     provider: Provider = request.param
+    if provider.name in SHARED_GUESTS:
+        yield request.getfixturevalue(SHARED_GUESTS[provider.name])  # closed when the session ends
+        return
     guest = boot_or_skip(provider, tmp_path_factory.mktemp(provider.slug))
     yield guest
     guest.close()
