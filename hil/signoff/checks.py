@@ -22,7 +22,9 @@ def verdict(data: dict[str, Any], hils: list[tuple[str, dict[str, Any]]]) -> dic
     for t in data["targets"]:
         checks += [_resources(t), _stack(t)]
     unexplained = len(data["coding_standard"]["unexplained"])
-    checks.append(_row("MISRA C:2012", unexplained == 0, f"{unexplained} finding(s) without a deviation"))
+    analysed = ", ".join(c["name"] for c in data["coding_standard"].get("configurations", []))
+    misra = f"{unexplained} finding(s) without a deviation" + (f" (analysed: {analysed})" if analysed else "")
+    checks.append(_row("MISRA C:2012", unexplained == 0, misra))
     broken = [c for c in data["chain"] if not c["ok"]]
     outside = [c["name"] for c in data["chain"] if not c["in_bundle"]]
     checks.append(

@@ -218,11 +218,30 @@ def coding_standard(facts: dict[str, Any]) -> str:
         "distributed) over the firmware node as deployed: "
         f"<span data-key=\"misra-findings\">{c['findings']}</span> findings, {state}. Compiler "
         f"warnings: <code>{escape(facts['warnings'])}</code> with <code>-Werror</code>: none.</p>"
-        "<h3>Findings by rule</h3>" + CATEGORY_NOTE
+        + _configurations(c)
+        + "<h3>Findings by rule</h3>" + CATEGORY_NOTE
         + table(["rule", "category", "findings", "files (findings)"], rows)
         + "<h3>Findings by file and line</h3>" + _findings_at(c)
         + "<h3>Deviation log</h3>" + table(["rule", "files", "findings allowed", "why"], log)
     )  # fmt: skip
+
+
+def _configurations(c: dict[str, Any]) -> str:
+    """The configurations analysed: each one's macros and how many findings occur in it."""
+    analysed = c.get("configurations", [])
+    names = ", ".join(a["name"] for a in analysed)
+    rows = [
+        [cell(a["name"]), cell(" ".join(f"-D{d}" for d in a["defines"]) or "-"),
+         cell(a["compiler"] or "none of a compiler's (the standard C forms)"), cell(a["findings"])]
+        for a in analysed
+    ]  # fmt: skip
+    return (
+        "<h3>Configurations analysed</h3><p>The program is analysed once per configuration it is built for "
+        "(cppcheck's <code>-D</code>), a target's with the macros its compiler predefines for its flags; "
+        "each finding is listed once, with the configurations it occurs in where not all: "
+        f'<span data-key="misra-configurations">{escape(names)}</span>.</p>'
+        + table(["configuration", "macros", "predefined by", "findings in it"], rows)
+    )
 
 
 CATEGORY_NOTE = (
@@ -239,9 +258,12 @@ def _category(category: str | None) -> str:
 
 def _findings_at(c: dict[str, Any]) -> str:
     """Every finding as file:line, one collapsible block per rule (HTML ``details``: no script)."""
+    every = [a["name"] for a in c.get("configurations", [])]
     per_rule: dict[str, list[str]] = {}
     for f in c.get("at", []):
-        per_rule.setdefault(f["rule"], []).append(f"{f['file']}:{f['line']}")
+        where = f.get("configurations", every)
+        only = f" ({', '.join(where)} only)" if where != every else ""
+        per_rule.setdefault(f["rule"], []).append(f"{f['file']}:{f['line']}{only}")
     blocks = []
     for rule, places in sorted(per_rule.items(), key=lambda item: _rule_order(item[0])):
         category = _category(c.get("categories", {}).get(rule))

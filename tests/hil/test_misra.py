@@ -8,10 +8,15 @@ from pathlib import Path
 
 import pytest
 
+from embedrl.export import build
+from embedrl.export.target import TARGETS
 from embedrl.hil import misra
 from embedrl.hil.misra import Deviation, Finding
 from tests.conftest import Exported, marks_its_users
 from tests.hil.conftest import SHIPPED_TD3
+
+EVERY_TARGET = {name: build.compiler(name)["command"] for name in TARGETS}
+"""Each Cortex-M target's compiler command (``make -C runtime_c flags TARGET=...``), as exports record it."""
 
 
 @pytest.fixture(scope="module")
@@ -24,9 +29,18 @@ def exports(exported: Exported) -> dict[str, Path]:
     return out
 
 
+@pytest.fixture(scope="module")
+@marks_its_users("slow", "qemu")  # the export runs the M4 firmware on QEMU
+def target_export(exported: Exported) -> Path:
+    """The shipped TD3 exported for the M4 (as ``make demo`` exports it): its report records the target."""
+    return exported(SHIPPED_TD3, "--episodes", "0", "--target", "cortex-m4")
+
+
 @pytest.mark.parametrize("precision", ["float32", "int8-weights", "q15", "int8"])
 def test_every_finding_on_the_deployed_node_is_explained(exports: dict[str, Path], precision: str) -> None:
-    result = misra.check(exports[precision])
+    """In the host's configuration and every Cortex-M target's: the log holds whatever --target builds."""
+    result = misra.check(exports[precision], targets=EVERY_TARGET)
+    assert [c.name for c in result.configurations] == ["host", *TARGETS]
     assert result.unexplained == []
     files = {f.file for f in result.findings}
     assert {"c/policy.c", "runtime_c/node/node.c", "runtime_c/cortex_m/slcan.c", "can/policy_dbc.c"} <= files
@@ -47,6 +61,90 @@ def test_a_new_violation_in_the_generated_code_fails(exports: dict[str, Path], t
     )
     problems = misra.check(changed).unexplained
     assert any(p.startswith("c/policy.c:") and "15.1 has no deviation" in p for p in problems), problems
+
+
+def test_a_violation_only_in_the_cortex_m_forms_is_reported_for_an_export_with_a_target(
+    target_export: Path, tmp_path: Path
+) -> None:
+    """A goto in the VLDM form of the float dot products (compiled on a Cortex-M core with a single-precision
+    FPU, GNU C): the host's configuration never compiles it, the export's cortex-m4 does."""
+    changed = tmp_path / "export"
+    shutil.copytree(target_export, changed)
+    _plant_goto(changed / "c" / "policy.c", "    #if POLICY_VLDM\n")
+    result = misra.check(changed)
+    assert [c.name for c in result.configurations] == ["host", "cortex-m4"]
+    gotos = [f for f in result.findings if f.rule == "15.1"]
+    assert [(f.file, f.configurations) for f in gotos] == [("c/policy.c", ("cortex-m4",))], gotos
+    assert any(p.startswith("c/policy.c:") and "15.1 has no deviation" in p for p in result.unexplained)
+    host, m4 = result.to_json()["configurations"]
+    assert m4["findings"] > host["findings"] and "-mcpu=cortex-m4" in m4["compiler"]
+    assert misra.check(changed, targets={}).unexplained == []  # the host's configuration alone misses it
+
+
+@pytest.mark.parametrize(
+    ("precision", "branch", "configurations"),
+    [
+        ("float32", "    #elif POLICY_DOT_PRODUCTS\n", ("cortex-m3",)),  # C dot products: no FPU
+        ("int8", "    #if POLICY_DSP\n", ("cortex-m4", "cortex-m7")),  # the DSP loop
+    ],
+)
+def test_a_violation_in_one_target_form_is_reported_in_the_configurations_that_compile_it(
+    exports: dict[str, Path], tmp_path: Path, precision: str, branch: str, configurations: tuple[str, ...]
+) -> None:
+    changed = tmp_path / "export"
+    shutil.copytree(exports[precision], changed)
+    _plant_goto(changed / "c" / "policy.c", branch)
+    gotos = [f for f in misra.check(changed, targets=EVERY_TARGET).findings if f.rule == "15.1"]
+    assert [(f.file, f.configurations) for f in gotos] == [("c/policy.c", configurations)], gotos
+
+
+def _plant_goto(policy: Path, branch: str) -> None:
+    """A goto (rule 15.1) as the first statement of the first ``branch`` line's block in ``policy``."""
+    text = policy.read_text()
+    assert branch in text, branch
+    policy.write_text(text.replace(branch, branch + "    goto planted;\nplanted:\n", 1))
+
+
+def test_a_targets_configuration_takes_its_compilers_predefined_macros() -> None:
+    tested = {"__ARM_FEATURE_SIMD32", "__x86_64__", "POLICY_VLDM"}  # as the sources test them
+    m4, m3, m7 = (misra.target_configuration(n, EVERY_TARGET[n], tested) for n in ("cortex-m4", "cortex-m3",
+                                                                                 "cortex-m7"))  # fmt: skip
+    for c in (m4, m3, m7):
+        assert {"__ARM_ARCH_PROFILE=77", "__ARM_ARCH=7"} <= set(c.defines) and c.compiler, c
+        assert any(d.startswith("__GNUC__=") for d in c.defines), c
+        assert not any(d.startswith(("__x86_64__", "POLICY_VLDM")) for d in c.defines), c
+    assert {"__ARM_FP=4", "__ARM_FEATURE_DSP=1", "__ARM_FEATURE_SIMD32=1"} <= set(m4.defines)
+    assert {"__ARM_FP=14", "__ARM_FEATURE_DSP=1"} <= set(m7.defines)  # fpv5-d16: single and double
+    assert not any(d.startswith(("__ARM_FP=", "__ARM_FEATURE_DSP")) for d in m3.defines)  # no FPU, no DSP
+
+
+def test_the_macros_the_sources_test_are_read_from_their_conditionals(tmp_path: Path) -> None:
+    source = tmp_path / "a.c"
+    source.write_text(
+        "#if defined(__ARM_FP) && \\\n    (__ARM_FEATURE_DSP == 1) /* NOT_THIS */\n#endif\n"
+        "#ifdef __GNUC__\n#elif X_Y\n#endif\nint __ARM_NOT_TESTED;\n"
+    )
+    assert misra.tested_macros([source]) == {"defined", "__ARM_FP", "__ARM_FEATURE_DSP", "__GNUC__", "X_Y"}
+
+
+def test_the_report_shows_the_configurations_and_where_a_finding_occurs() -> None:
+    from embedrl.hil.signoff import sections
+
+    host = misra.Configuration("host", misra.HOST_DEFINES)
+    m4 = misra.Configuration(
+        "cortex-m4", ("__ARM_ARCH_PROFILE=77", "__ARM_FP=4"), "arm-none-eabi-gcc -mcpu=cortex-m4"
+    )
+    findings = [
+        Finding("8.9", "c/policy.c", 7, ("host", "cortex-m4")),
+        Finding("8.9", "c/policy.c", 12, ("cortex-m4",)),
+    ]
+    log = [Deviation("8.9", ("c/*",), "(A) tables", None)]
+    summary = misra.Result(findings, log, [], "float32", (host, m4)).to_json()
+    assert [(c["name"], c["findings"]) for c in summary["configurations"]] == [("host", 1), ("cortex-m4", 2)]
+    html = sections.coding_standard({"coding_standard": summary, "warnings": "cc -Wall"})
+    assert 'data-key="misra-configurations">host, cortex-m4<' in html
+    assert "-D__ARM_ARCH_PROFILE=77 -D__ARM_FP=4" in html and "arm-none-eabi-gcc -mcpu=cortex-m4" in html
+    assert "c/policy.c:12 (cortex-m4 only)" in html and "c/policy.c:7</code>" in html
 
 
 def test_counted_deviations_catch_one_more_and_one_fewer() -> None:

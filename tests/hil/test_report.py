@@ -111,6 +111,7 @@ def test_the_page_opens_offline_with_every_section_and_key_figure(
     assert dom.keys["node-stack-bound-cortex-m4"] == str(m4["node_firmware"]["stack_bound"]["bytes"])
     assert dom.keys["instructions-cortex-m4"] == f"{round(m4['instructions_per_inference']):,}"
     assert dom.keys["misra-unexplained"] == "0" and int(dom.keys["misra-findings"]) > 0
+    assert dom.keys["misra-configurations"] == "host, cortex-m4"  # the target's code is analysed too
     assert dom.keys["chain-intact"] == "intact"
     assert dom.keys["check-coverage"] == "yes" and dom.keys["coverage-policy.c-lines"] == "86/86 (100%)"
     assert dom.keys["coverage-policy.c-branches"] == "44/44 (100%)"

@@ -105,7 +105,10 @@ static float policy_buf1[4];
 
 #if POLICY_VLDM
 typedef struct {
-    float v[4];
+    float v0;
+    float v1;
+    float v2;
+    float v3;
 } policy_floats4;
 #endif
 
@@ -125,14 +128,15 @@ static inline policy_floats4 policy_row4(const float **p)
                      :
                      : "memory");
     *p = at;
-    const policy_floats4 r = {{v0, v1, v2, v3}};
+    const policy_floats4 r = {v0, v1, v2, v3};
     return r;
 }
 #endif
 
 #if POLICY_VLDM
 typedef struct {
-    float v[2];
+    float v0;
+    float v1;
 } policy_floats2;
 #endif
 
@@ -150,7 +154,7 @@ static inline policy_floats2 policy_row2(const float **p)
                      :
                      : "memory");
     *p = at;
-    const policy_floats2 r = {{v0, v1}};
+    const policy_floats2 r = {v0, v1};
     return r;
 }
 #endif
@@ -171,7 +175,7 @@ static inline policy_floats4 policy_inputs4(const float **p)
                      :
                      : "memory");
     *p = at;
-    const policy_floats4 r = {{v0, v1, v2, v3}};
+    const policy_floats4 r = {v0, v1, v2, v3};
     return r;
 }
 #endif
@@ -227,26 +231,26 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         {
             const float xk = policy_buf0[0];
             const policy_floats4 w = policy_row4(&wp);
-            a0 = a0 + (xk * w.v[0]);
-            a1 = a1 + (xk * w.v[1]);
-            a2 = a2 + (xk * w.v[2]);
-            a3 = a3 + (xk * w.v[3]);
+            a0 = a0 + (xk * w.v0);
+            a1 = a1 + (xk * w.v1);
+            a2 = a2 + (xk * w.v2);
+            a3 = a3 + (xk * w.v3);
         }
         {
             const float xk = policy_buf0[1];
             const policy_floats4 w = policy_row4(&wp);
-            a0 = a0 + (xk * w.v[0]);
-            a1 = a1 + (xk * w.v[1]);
-            a2 = a2 + (xk * w.v[2]);
-            a3 = a3 + (xk * w.v[3]);
+            a0 = a0 + (xk * w.v0);
+            a1 = a1 + (xk * w.v1);
+            a2 = a2 + (xk * w.v2);
+            a3 = a3 + (xk * w.v3);
         }
         {
             const float xk = policy_buf0[2];
             const policy_floats4 w = policy_row4(&wp);
-            a0 = a0 + (xk * w.v[0]);
-            a1 = a1 + (xk * w.v[1]);
-            a2 = a2 + (xk * w.v[2]);
-            a3 = a3 + (xk * w.v[3]);
+            a0 = a0 + (xk * w.v0);
+            a1 = a1 + (xk * w.v1);
+            a2 = a2 + (xk * w.v2);
+            a3 = a3 + (xk * w.v3);
         }
         policy_buf1[n] = a0;
         policy_buf1[n + 1u] = a1;
@@ -316,28 +320,28 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         for (uint32_t k = 0u; k < 4u; k += 4u) {
             const policy_floats4 xs = policy_inputs4(&xp);
             {
-                const float xk = xs.v[0];
+                const float xk = xs.v0;
                 const policy_floats2 w = policy_row2(&wp);
-                a0 = a0 + (xk * w.v[0]);
-                a1 = a1 + (xk * w.v[1]);
+                a0 = a0 + (xk * w.v0);
+                a1 = a1 + (xk * w.v1);
             }
             {
-                const float xk = xs.v[1];
+                const float xk = xs.v1;
                 const policy_floats2 w = policy_row2(&wp);
-                a0 = a0 + (xk * w.v[0]);
-                a1 = a1 + (xk * w.v[1]);
+                a0 = a0 + (xk * w.v0);
+                a1 = a1 + (xk * w.v1);
             }
             {
-                const float xk = xs.v[2];
+                const float xk = xs.v2;
                 const policy_floats2 w = policy_row2(&wp);
-                a0 = a0 + (xk * w.v[0]);
-                a1 = a1 + (xk * w.v[1]);
+                a0 = a0 + (xk * w.v0);
+                a1 = a1 + (xk * w.v1);
             }
             {
-                const float xk = xs.v[3];
+                const float xk = xs.v3;
                 const policy_floats2 w = policy_row2(&wp);
-                a0 = a0 + (xk * w.v[0]);
-                a1 = a1 + (xk * w.v[1]);
+                a0 = a0 + (xk * w.v0);
+                a1 = a1 + (xk * w.v1);
             }
         }
         policy_buf0[n] = a0;
