@@ -131,11 +131,16 @@ bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/be
 	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes $(BENCH_HIL_EPISODES) \
 	    --exchanges $(BENCH_HIL_EXCHANGES) --json $(OUT)/bench/hil.json
 
-# Instructions and estimated cycles per inference on the Cortex-M cores: embedrl's C against emx-onnx-cgen's
-# C of the same shipped policy, both on QEMU in one run.
-bench-target: $(STAMP) $(EMX) ## instructions and cycles per inference on Cortex-M, embedrl vs emx-onnx-cgen
+# Instructions, estimated cycles and cycles per multiply-add per inference on the Cortex-M cores: embedrl's C
+# of the shipped policy in every precision, its float32 beside emx-onnx-cgen's C of the same ONNX, on QEMU.
+bench-target: $(STAMP) $(EMX) ## cycles per inference and per multiply-add on Cortex-M, every precision, beside emx-onnx-cgen
 	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3 --force --episodes 0
 	$(VENV)/bin/embedrl bench-target --export-dir $(OUT)/bench/td3 --emx $(EMX) --json $(OUT)/bench/target.json
+	for q in int8 int8-weights q15; do \
+	    $(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-target-$$q --force \
+	        --episodes 0 --quantize $$q && $(VENV)/bin/embedrl bench-target \
+	        --export-dir $(OUT)/bench/td3-target-$$q --json $(OUT)/bench/target-$$q.json || exit 1; \
+	done
 
 # A TD3 with the study's 6-100-100-2 actor trained in a minute by imitating the potential-field controller
 # (independent of the shipped policies), exported with the full verification (10,000 samples, 200 episodes).

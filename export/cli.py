@@ -267,21 +267,28 @@ def _print_summary(report: dict[str, Any]) -> None:
 
 
 def cmd_bench_target(args: argparse.Namespace) -> int:
-    from embedrl.common import table, write_json
+    from embedrl.common import read_json, table, write_json
     from embedrl.export import target, target_comparison
 
     if not (args.export_dir / "policy.onnx").is_file():
         raise ExportError(f"{args.export_dir}: no policy.onnx (give an `embedrl export` folder)")
-    report = target_comparison.run(args.export_dir, args.target or list(target.TARGETS), args.emx)
+    quantize = read_json(args.export_dir / "export_report.json").get("quantize") or "float32"
+    emx = args.emx if quantize == "float32" else None
+    if emx is None:
+        print(f"{quantize}: measured alone (emx-onnx-cgen generates float32 C; see the float32 export's run)")
+    report = target_comparison.run(args.export_dir, args.target or list(target.TARGETS), emx)
     rows: list[tuple[str, str]] = []
     for t in report["targets"]:
-        for who in ("embedrl", "emx_onnx_cgen"):
+        for who in ("embedrl", "emx_onnx_cgen")[: 1 if emx is None else 2]:
             f = t[who]
             rows.append((
-                f"{t['target']} {who}: instructions / est. cycles / flash",
+                f"{t['target']} {who} {quantize if who == 'embedrl' else 'float32'}: instructions / "
+                "est. cycles (per multiply-add) / flash",
                 f"{f['instructions_per_inference']:,.0f} / {f['estimated_cycles_per_inference']:,} "
-                f"(CPI {f['cycles_per_instruction']}) / {f['flash_bytes']:,} B",
+                f"({f['estimated_cycles_per_multiply_add']}) / {f['flash_bytes']:,} B",
             ))  # fmt: skip
+        if emx is None:
+            continue
         ratios = f"{t['ratio_instructions']}x instructions, {t['ratio_cycles']}x cycles"
         agree = f"actions agree within {t['max_action_difference']:.2g}"
         rows.append((f"{t['target']} emx / embedrl", f"{ratios} ({agree})"))

@@ -7,6 +7,8 @@ int8 weights) and ``reference`` (NumPy, in ``float64`` or bit-exact ``int8``), s
 
 from __future__ import annotations
 
+from typing import Any
+
 from embedrl.export.ops.base import EmitContext, Emitter, Shape
 from embedrl.export.ops.elementwise import (
     Add,
@@ -53,4 +55,21 @@ EMITTERS: dict[str, Emitter] = {
 }
 """The supported ops: the only place an op is registered."""
 
-__all__ = ["EMITTERS", "EmitContext", "Emitter", "Shape"]
+
+def multiply_adds(node: Any, graph: Any) -> int:
+    """Multiply-accumulates of one step of ``node``: a matrix product's weights, a recurrent cell's input and
+    recurrent weights; element-wise and shape ops have none."""
+    emitter = EMITTERS[node.op]
+    if getattr(emitter, "linear", False):
+        return int(emitter.affine(node, graph.constants).weights.size)
+    if isinstance(emitter, (LSTM, GRU)):
+        return sum(graph.size(i) for i in node.inputs[1:3] if i and graph.is_constant(i))
+    return 0
+
+
+def graph_multiply_adds(graph: Any) -> int:
+    """Multiply-accumulates of one step of the whole graph."""
+    return sum(multiply_adds(node, graph) for node in graph.nodes)
+
+
+__all__ = ["EMITTERS", "EmitContext", "Emitter", "Shape", "graph_multiply_adds", "multiply_adds"]

@@ -14,6 +14,8 @@ import re
 from pathlib import Path
 from typing import Any
 
+from embedrl.export.ops import multiply_adds
+
 FLOAT_BYTES = 4
 """Activations are float32 between layers (a q15 section's int16 buffers are inside its layers)."""
 C_TYPE_BYTES = {"float": 4, "int8_t": 1, "uint8_t": 1, "int16_t": 2, "int32_t": 4, "int64_t": 8}
@@ -50,7 +52,7 @@ def layer_table(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
             "op": node.op, "name": node.name,
             "input_shape": list(graph.shapes[node.inputs[0]]),
             "output_shape": list(graph.shapes[node.outputs[0]]),
-            "macs": macs(node, graph), "weight_bytes": per_node.get(node.name, 0),
+            "macs": multiply_adds(node, graph), "weight_bytes": per_node.get(node.name, 0),
             "activation_bytes": 0 if emitter_alias else FLOAT_BYTES * graph.size(node.outputs[0]),
             "work": _work(node, graph, emitter_alias),
         })  # fmt: skip
@@ -84,25 +86,11 @@ def const_arrays(source: str, name: str) -> list[tuple[str, int]]:
     return out
 
 
-def macs(node: Any, graph: Any) -> int:
-    """Multiply-accumulates of one step: a matrix product's weights, a recurrent cell's input and recurrent
-    weights; element-wise and shape ops have none."""
-    from embedrl.export.ops import EMITTERS
-    from embedrl.export.ops.recurrent import Recurrent
-
-    emitter = EMITTERS[node.op]
-    if getattr(emitter, "linear", False):
-        return int(emitter.affine(node, graph.constants).weights.size)
-    if isinstance(emitter, Recurrent):
-        return sum(graph.size(i) for i in node.inputs[1:3] if i and graph.is_constant(i))
-    return 0
-
-
 def _work(node: Any, graph: Any, alias: bool) -> int:
     """What a node's share of the cycles is apportioned by: its MACs, or one per output element."""
     if alias:
         return 0
-    return macs(node, graph) or graph.size(node.outputs[0])
+    return multiply_adds(node, graph) or graph.size(node.outputs[0])
 
 
 def _is_alias(op: str) -> bool:

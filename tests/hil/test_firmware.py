@@ -8,6 +8,7 @@ interface alone (no kernel CAN), then lock-step episodes through ``vcan0`` in th
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import socket
@@ -400,3 +401,21 @@ def test_the_target_benchmark_refuses_without_its_peer_in_one_line(
     assert refused.value.code == 2
     err = capsys.readouterr().err.strip()
     assert "invalid choice: 'cortex-m0'" in err and "cortex-m4" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_the_target_benchmark_measures_a_quantised_export_alone_with_its_cycles_per_multiply_add(
+    quantized_exports: dict[str, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "target.json"
+    argv = ["bench-target", "--export-dir", str(quantized_exports["q15"]), "--target", "cortex-m4"]
+    assert main([*argv, "--emx", str(tmp_path / "nosuch"), "--json", str(out)]) == 0  # no peer: not needed
+    printed = capsys.readouterr().out
+    assert "q15: measured alone" in printed and "emx_onnx_cgen" not in printed
+    report = json.loads(out.read_text())
+    assert report["peer"] is None and [t["target"] for t in report["targets"]] == ["cortex-m4"]
+    ours = report["targets"][0]["embedrl"]
+    assert ours["multiply_adds"] == 6 * 100 + 100 * 100 + 100 * 2  # the shipped TD3's actor
+    per_mac = ours["estimated_cycles_per_inference"] / ours["multiply_adds"]
+    assert ours["estimated_cycles_per_multiply_add"] == pytest.approx(per_mac, abs=0.005)
+    assert f"({ours['estimated_cycles_per_multiply_add']})" in printed
