@@ -21,6 +21,10 @@ FLOAT_BYTES = 4
 C_TYPE_BYTES = {"float": 4, "int8_t": 1, "uint8_t": 1, "int16_t": 2, "int32_t": 4, "int64_t": 8}
 _CONST = re.compile(r"^static const (\w+) (\w+)((?:\[\d+\])+) = \{", re.M)
 _HEADER_WEIGHTS = re.compile(r"weights: (\d+) bytes of const data")
+_HOST_ONLY = re.compile(
+    r"^#if (defined\(__x86_64__\)|!\(defined\(__ARM_ARCH_PROFILE\))[^\n]*\n.*?^#endif", re.M | re.S
+)
+"""A block of the generated C that only the host compiles (its layouts of the weights)."""
 
 
 def layer_table(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
@@ -73,10 +77,12 @@ def layer_table(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
 
 def const_arrays(source: str, name: str) -> list[tuple[str, int]]:
     """(key, bytes) of each ``static const`` weight array of a generated ``<name>.c`` (``key``: the
-    sanitised name the generator gave it, after ``<name>_w<k>_``); the safe action is not a weight."""
+    sanitised name the generator gave it, after ``<name>_w<k>_``) as a Cortex-M target compiles it, as the
+    header's count does: the host's own layouts of the weights (input-major float rows, int16 rows for AVX2)
+    are left out. The safe action is not a weight."""
     out = []
     prefix = re.compile(rf"^{re.escape(name)}_w\d+_")
-    for ctype, symbol, dims in _CONST.findall(source):
+    for ctype, symbol, dims in _CONST.findall(_HOST_ONLY.sub("", source)):
         if not prefix.match(symbol):
             continue
         count = 1
