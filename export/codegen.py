@@ -459,6 +459,7 @@ HOST_SOURCE = Template("""$banner
  * helpers (static in ${name}.c). A program is built from this file or from ${name}.c, never both. */
 #include "${name}_host.h"
 
+#include <stddef.h>
 #include <stdint.h> /* the C library's own macros (__GLIBC__), which ${up}_TARGETS' condition reads */
 $targets
 #if ${up}_CLONES
@@ -646,8 +647,7 @@ SOURCE = Template("""$banner
 #include <math.h>
 #include <stdbool.h>
 #include <stdint.h>
-#include <string.h>
-$includes
+$string_h$includes
 $declarations
 
 static const float ${name}_safe_action[${up}_ACT_DIM] = ${up}_SAFE_ACTION;
@@ -728,6 +728,7 @@ def _source(
         check_obs = check_act = check_state = ""
     return SOURCE.substitute(
         banner=banner, name=name, up=up, ram=ram, reset=reset, out=out_ref,
+        string_h="#include <string.h>\n" if ctx.graph.states else "",  # memset of the recurrent state
         includes="".join("\n" + line for line in includes) + ("\n" if includes else ""),
         declarations="\n".join(ctx.declarations),
         buffers="\n".join(buffers) if buffers else "/* none */",

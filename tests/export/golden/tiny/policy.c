@@ -10,7 +10,6 @@
 #include <math.h>
 #include <stdbool.h>
 #include <stdint.h>
-#include <string.h>
 
 /* normalize.sub operand [3] */
 static const float policy_w0_mean[3] = {

@@ -10,6 +10,7 @@
  * helpers (static in policy.c). A program is built from this file or from policy.c, never both. */
 #include "policy_host.h"
 
+#include <stddef.h>
 #include <stdint.h> /* the C library's own macros (__GLIBC__), which POLICY_TARGETS' condition reads */
 
 /* x86-64 glibc, gcc: policy_step and the batch's block compiled for each of default, avx2, the CPU's
