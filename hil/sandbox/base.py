@@ -9,6 +9,7 @@ nothing about the commands it ran. When the guest dies, its console log says why
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shlex
 import signal
@@ -42,7 +43,17 @@ fi"""
 """Guest shell code that brings ``vcan0`` up, CAN FD capable (MTU 72, classic frames pass as well), once
 the CAN modules are loaded; failures go to the console."""
 BUSY_POLLS = 40
-"""Polls of the job queue, 50 ms apart, before an idle guest polls once a second."""
+"""Polls of the job queue, 50 ms apart, before an idle guest (its shell loop and its Python job server)
+polls once a second."""
+SERVER_PRELOAD = ("embedrl.hil.session", "embedrl.hil.round_trip")
+"""The guest's Python job server (:mod:`~embedrl.hil.sandbox.forkserver`) imports these programs'
+dependencies once; a job ``python -m`` one of them runs in a fork of the server."""
+SERVER_READY = "forkserver"
+SERVER_FAILED = "forkserver.failed"
+SERVER_LOG = "forkserver.log"
+PYTHON_JOB = ".py.json"
+"""A job for the server: ``job-N.py.json``, ``{"module", "args", "cwd", "env"}``; its output and status go
+to ``job-N.out`` and ``job-N.rc`` as a shell job's (``job-N.sh``)."""
 OUTPUT_LINES = 6
 """Lines of a failed job's output quoted in an error."""
 
@@ -164,6 +175,7 @@ class VmGuest(Guest):
         self.closed = False
         self._busy = False
         self._jobs = 0
+        self._server_started = False
         self.queue.mkdir(parents=True, exist_ok=True)
         for stale in self.queue.iterdir():
             stale.unlink()
@@ -198,27 +210,81 @@ class VmGuest(Guest):
     def run(self, argv: list[str], cwd: Path, timeout_s: float) -> JobResult:
         if self.closed:
             raise SandboxError(f"{self.description}: the guest is shut down")
-        self._jobs += 1
-        name = f"job-{self._jobs}"
+        deadline = time.monotonic() + timeout_s
         env = {
             "HOME": os.environ.get("HOME", "/root"),
             "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
             "PYTHONUNBUFFERED": "1",
             "PYTHONDONTWRITEBYTECODE": "1",
         }
+        if argv[:2] == [self.python, "-m"] and argv[2] in SERVER_PRELOAD and self._server_runs(env):
+            name = self._next_job()
+            job = {"module": argv[2], "args": argv[3:], "cwd": str(cwd), "env": env}
+            tmp = self.queue / f"{name}.tmp"
+            tmp.write_text(json.dumps(job))
+            tmp.rename(self.queue / f"{name}{PYTHON_JOB}")
+            taken = self._result(name, argv, deadline, timeout_s, server=True)
+            if taken is not None:
+                return taken
+        return self._result(self._shell_job(argv, cwd, env), argv, deadline, timeout_s) or JobResult(1, "")
+
+    def _next_job(self) -> str:
+        self._jobs += 1
+        return f"job-{self._jobs}"
+
+    def _shell_job(self, argv: list[str], cwd: Path, env: dict[str, str]) -> str:
+        """Queue ``argv`` for the guest's shell loop; the job's name."""
+        name = self._next_job()
         lines = [f"export {k}={shlex.quote(v)}" for k, v in env.items()]
         lines += [f"cd {shlex.quote(str(cwd))} || exit 125", shlex.join(argv)]
         tmp = self.queue / f"{name}.tmp"
         tmp.write_text("\n".join(lines) + "\n")
         tmp.rename(self.queue / f"{name}.sh")  # the guest only picks up complete job files
+        return name
+
+    def _server_runs(self, env: dict[str, str]) -> bool:
+        """Whether the guest's Python job server runs, started
+        now in the background if it was not: it takes a queued job once its imports are done."""
+        if not self._server_started:
+            self._server_started = True
+            server = shlex.join([self.python, "-m", "embedrl.hil.sandbox.forkserver", str(self.queue)])
+            log, failed = (shlex.quote(str(self.queue / name)) for name in (SERVER_LOG, SERVER_FAILED))
+            start = f'{server} > {log} 2>&1 || echo "exited with status $?" >> {failed}'
+            started = self._result(
+                self._shell_job(["sh", "-c", f"({start}) &"], Path("/"), env), ["sh"], None
+            )
+            if started is None or started.status != 0:
+                why = started.last_lines() if started else "no result"
+                (self.queue / SERVER_FAILED).write_text(f"not started: {why}\n")
+        return not (self.queue / SERVER_FAILED).exists()
+
+    def _result(
+        self, name: str, argv: list[str], deadline: float | None, timeout_s: float = 0.0, server: bool = False
+    ) -> JobResult | None:
+        """Job ``name``'s status and output once it has ended; ``None`` for a job queued for the Python job
+        server (``server``) that failed before taking it (its file removed: the caller queues it for the
+        shell). SandboxError if the guest dies, the server dies while running the job, or ``deadline``
+        passes."""
         status_file = self.queue / f"{name}.rc"
-        deadline = time.monotonic() + timeout_s
+        python_job = self.queue / f"{name}{PYTHON_JOB}"
         self._busy = True
         while not status_file.is_file():
             if self.process.poll() is not None:
                 self.closed = True
                 raise SandboxError(self._died(f"died while running `{shlex.join(argv)}`"))
-            if time.monotonic() > deadline:
+            failed = _read(self.queue / SERVER_FAILED) if server else ""
+            if failed:
+                with contextlib.suppress(FileNotFoundError):
+                    python_job.unlink()  # not taken yet
+                    self._busy = False
+                    return None
+                if not status_file.is_file():
+                    self._busy = False
+                    raise SandboxError(
+                        f"{self.description}: the guest's Python job server ended ({failed.strip()}) while "
+                        f"running `{shlex.join(argv)}`; its log: {_read(self.queue / SERVER_LOG)[-300:]}"
+                    )
+            if deadline is not None and time.monotonic() > deadline:
                 self.closed = True
                 self._kill()  # the guest is busy with the stuck job: it would not hear a stop request
                 so_far = JobResult(0, _read(self.queue / f"{name}.out")).last_lines()
