@@ -176,6 +176,14 @@ MAX_WIDTH = 65_536
 """The largest uncompressed archive entry read by default (a control policy is far smaller)."""
 
 
+class _NoOptimizer:
+    """The optimizer of a policy loaded to infer: none (a torch optimizer would import torch's compiler,
+    1-2 s of every process that loads a policy)."""
+
+    def __init__(self, params: Any, **kwargs: Any) -> None:
+        del params, kwargs
+
+
 def load_sb3(
     path: Path,
     vecnormalize: Path | None = None,
@@ -233,6 +241,7 @@ def load_sb3(
 
     recurrent = issubclass(cls, RecurrentActorCriticPolicy)
     _check_architecture(path, kwargs, obs_space.shape[0], act_space.shape[0], max_parameters, recurrent)
+    kwargs.update(optimizer_class=_NoOptimizer, optimizer_kwargs={})
     try:
         policy = cls(obs_space, act_space, lambda _: 0.0, **kwargs)
     except TypeError as exc:
