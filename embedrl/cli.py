@@ -151,7 +151,10 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 128 + (signal.SIGTERM if isinstance(exc, Terminated) else signal.SIGINT)
     finally:
-        for s, handler in previous.items():
+        # A caller in this process gets its handlers back; the command's own process keeps ignoring a
+        # signal after the first until it has ended (a second Ctrl-C during its exit would end it by SIGINT,
+        # not with 130).
+        for s, handler in previous.items() if not args.as_command else ():
             signal.signal(s, handler)
 
 
