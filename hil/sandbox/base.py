@@ -43,17 +43,19 @@ fi"""
 """Guest shell code that brings ``vcan0`` up, CAN FD capable (MTU 72, classic frames pass as well), once
 the CAN modules are loaded; failures go to the console."""
 BUSY_POLLS = 40
-"""Polls of the job queue, 50 ms apart, before an idle guest (its shell loop and its Python job server)
-polls once a second."""
+"""Polls of the job queue, 50 ms apart, before an idle guest (its job server, or its shell loop) polls once
+a second."""
 SERVER_PRELOAD = ("embedrl.hil.session", "embedrl.hil.round_trip")
-"""The guest's Python job server (:mod:`~embedrl.hil.sandbox.forkserver`) imports these programs'
-dependencies once; a job ``python -m`` one of them runs in a fork of the server."""
-SERVER_READY = "forkserver"
-SERVER_FAILED = "forkserver.failed"
-SERVER_LOG = "forkserver.log"
+"""Programs whose jobs (``python -m`` one of them) run in a fork of the guest's job server
+(:mod:`~embedrl.hil.sandbox.job_server`), which imports their dependencies once."""
+SHELL_JOB = ".sh"
 PYTHON_JOB = ".py.json"
-"""A job for the server: ``job-N.py.json``, ``{"module", "args", "cwd", "env"}``; its output and status go
-to ``job-N.out`` and ``job-N.rc`` as a shell job's (``job-N.sh``)."""
+"""A job is ``job-N.sh`` (a shell script) or ``job-N.py.json`` (``{"module", "args", "cwd", "env"}``); its
+output goes to ``job-N.out``, its exit status to ``job-N.rc``."""
+SERVER_FAILED = "job-server.failed"
+"""Written by the guest's script when its job server ended before the host asked it to stop (its own shell
+loop then runs the shell jobs); the server's output is in ``job-server.log``."""
+SERVER_LOG = "job-server.log"
 OUTPUT_LINES = 6
 """Lines of a failed job's output quoted in an error."""
 
@@ -175,12 +177,11 @@ class VmGuest(Guest):
         self.closed = False
         self._busy = False
         self._jobs = 0
-        self._server_started = False
         self.queue.mkdir(parents=True, exist_ok=True)
         for stale in self.queue.iterdir():
             stale.unlink()
         script = workdir / "guest.sh"
-        script.write_text(_guest_script(self.queue, setup, shutdown))
+        script.write_text(_guest_script(self.queue, setup, shutdown, self.python))
         script.chmod(0o755)
         self.script = script
         start = time.monotonic()
@@ -217,53 +218,34 @@ class VmGuest(Guest):
             "PYTHONUNBUFFERED": "1",
             "PYTHONDONTWRITEBYTECODE": "1",
         }
-        if argv[:2] == [self.python, "-m"] and argv[2] in SERVER_PRELOAD and self._server_runs(env):
+        server = not (self.queue / SERVER_FAILED).exists()
+        if server and argv[:2] == [self.python, "-m"] and argv[2] in SERVER_PRELOAD:
             name = self._next_job()
             job = {"module": argv[2], "args": argv[3:], "cwd": str(cwd), "env": env}
             tmp = self.queue / f"{name}.tmp"
             tmp.write_text(json.dumps(job))
-            tmp.rename(self.queue / f"{name}{PYTHON_JOB}")
-            taken = self._result(name, argv, deadline, timeout_s, server=True)
+            tmp.rename(self.queue / f"{name}{PYTHON_JOB}")  # the guest only picks up complete job files
+            taken = self._result(name, argv, deadline, timeout_s, python=True)
             if taken is not None:
                 return taken
-        return self._result(self._shell_job(argv, cwd, env), argv, deadline, timeout_s) or JobResult(1, "")
-
-    def _next_job(self) -> str:
-        self._jobs += 1
-        return f"job-{self._jobs}"
-
-    def _shell_job(self, argv: list[str], cwd: Path, env: dict[str, str]) -> str:
-        """Queue ``argv`` for the guest's shell loop; the job's name."""
         name = self._next_job()
         lines = [f"export {k}={shlex.quote(v)}" for k, v in env.items()]
         lines += [f"cd {shlex.quote(str(cwd))} || exit 125", shlex.join(argv)]
         tmp = self.queue / f"{name}.tmp"
         tmp.write_text("\n".join(lines) + "\n")
-        tmp.rename(self.queue / f"{name}.sh")  # the guest only picks up complete job files
-        return name
+        tmp.rename(self.queue / f"{name}{SHELL_JOB}")
+        return self._result(name, argv, deadline, timeout_s) or JobResult(1, "")
 
-    def _server_runs(self, env: dict[str, str]) -> bool:
-        """Whether the guest's Python job server runs, started
-        now in the background if it was not: it takes a queued job once its imports are done."""
-        if not self._server_started:
-            self._server_started = True
-            server = shlex.join([self.python, "-m", "embedrl.hil.sandbox.forkserver", str(self.queue)])
-            log, failed = (shlex.quote(str(self.queue / name)) for name in (SERVER_LOG, SERVER_FAILED))
-            start = f'{server} > {log} 2>&1 || echo "exited with status $?" >> {failed}'
-            started = self._result(
-                self._shell_job(["sh", "-c", f"({start}) &"], Path("/"), env), ["sh"], None
-            )
-            if started is None or started.status != 0:
-                why = started.last_lines() if started else "no result"
-                (self.queue / SERVER_FAILED).write_text(f"not started: {why}\n")
-        return not (self.queue / SERVER_FAILED).exists()
+    def _next_job(self) -> str:
+        self._jobs += 1
+        return f"job-{self._jobs}"
 
     def _result(
-        self, name: str, argv: list[str], deadline: float | None, timeout_s: float = 0.0, server: bool = False
+        self, name: str, argv: list[str], deadline: float, timeout_s: float, python: bool = False
     ) -> JobResult | None:
-        """Job ``name``'s status and output once it has ended; ``None`` for a job queued for the Python job
-        server (``server``) that failed before taking it (its file removed: the caller queues it for the
-        shell). SandboxError if the guest dies, the server dies while running the job, or ``deadline``
+        """Job ``name``'s status and output once it has ended; ``None`` for a Python job (``python``) the job
+        server ended before taking (its file removed: the caller queues it for the guest's shell loop).
+        SandboxError if the guest dies, the server ends while running a Python job, or ``deadline``
         passes."""
         status_file = self.queue / f"{name}.rc"
         python_job = self.queue / f"{name}{PYTHON_JOB}"
@@ -272,7 +254,9 @@ class VmGuest(Guest):
             if self.process.poll() is not None:
                 self.closed = True
                 raise SandboxError(self._died(f"died while running `{shlex.join(argv)}`"))
-            failed = _read(self.queue / SERVER_FAILED) if server else ""
+            failed = (
+                _read(self.queue / SERVER_FAILED) if python else ""
+            )  # a shell job: the shell loop runs it
             if failed:
                 with contextlib.suppress(FileNotFoundError):
                     python_job.unlink()  # not taken yet
@@ -281,10 +265,10 @@ class VmGuest(Guest):
                 if not status_file.is_file():
                     self._busy = False
                     raise SandboxError(
-                        f"{self.description}: the guest's Python job server ended ({failed.strip()}) while "
+                        f"{self.description}: the guest's job server ended ({failed.strip()}) while "
                         f"running `{shlex.join(argv)}`; its log: {_read(self.queue / SERVER_LOG)[-300:]}"
                     )
-            if deadline is not None and time.monotonic() > deadline:
+            if time.monotonic() > deadline:
                 self.closed = True
                 self._kill()  # the guest is busy with the stuck job: it would not hear a stop request
                 so_far = JobResult(0, _read(self.queue / f"{name}.out")).last_lines()
@@ -346,8 +330,9 @@ def _read(path: Path) -> str:
         return ""
 
 
-def _guest_script(queue: Path, setup: str, shutdown: str) -> str:
+def _guest_script(queue: Path, setup: str, shutdown: str, python: str) -> str:
     q = shlex.quote(str(queue))
+    server = shlex.join([python, "-m", "embedrl.hil.sandbox.job_server", str(queue)])
     return f"""#!/bin/sh
 # Written by embedrl (hil/sandbox/base.py): set up (vcan0), then run the jobs the host puts in the queue.
 Q={q}
@@ -355,12 +340,17 @@ PATH="${{PATH:+$PATH:}}{":".join(SYSTEM_TOOL_DIRS)}"
 export PATH
 {setup}
 uname -r > "$Q/ready.tmp" && mv "$Q/ready.tmp" "$Q/ready"
+# The job server (hil/sandbox/job_server.py) runs the jobs until the host asks it to stop; should it end
+# before, this script's own loop runs the shell jobs.
+PYTHONDONTWRITEBYTECODE=1 {server} > "$Q/{SERVER_LOG}" 2>&1
+status=$?
+[ -e "$Q/stop" ] || echo "exited with status $status" > "$Q/{SERVER_FAILED}"
 idle=0
 while [ ! -e "$Q/stop" ]; do
     idle=$((idle + 1))
-    for job in "$Q"/job-*.sh; do
+    for job in "$Q"/job-*{SHELL_JOB}; do
         [ -e "$job" ] || continue
-        n="${{job%.sh}}"
+        n="${{job%{SHELL_JOB}}}"
         sh "$job" > "$n.out" 2>&1
         echo $? > "$n.rc.tmp" && mv "$n.rc.tmp" "$n.rc"
         rm -f "$job"

@@ -12,6 +12,7 @@ if __name__ == "__main__":
     how, *rest = sys.argv[1:]
     print(f"name={__name__} argv={sys.argv[1:]} cwd={os.getcwd()} path0={sys.path[0]}")
     print(f"unbuffered={os.environ.get('PYTHONUNBUFFERED')}", file=sys.stderr)
+    print(f"preloaded={'embedrl.hil.session' in sys.modules}")  # imported before the job started
     if how == "exit":
         sys.exit(int(rest[0]))
     if how == "raise":
