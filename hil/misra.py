@@ -19,12 +19,16 @@ The program is analysed in each configuration it is built for (cppcheck checks o
 per run): ``host``, the standard C forms a compiler without GNU C and Cortex-M macros compiles, and for an
 export made with ``--target`` each Cortex-M target's, with the macros its compiler predefines for the
 target's flags (``arm-none-eabi-gcc ... -dM -E``): the dot products, the VLDM form and int8's DSP loop the
-firmware runs. A finding is reported once, with the configurations it occurs in.
+firmware runs. A finding is reported once, with the configurations it occurs in. cppcheck's findings for a
+program and configuration are kept for the life of the process (:data:`_ANALYSED`), keyed by the content of
+every file it reads: a report that checks the export a test or script checked before runs no cppcheck again.
 """
 
 from __future__ import annotations
 
 import fnmatch
+import functools
+import hashlib
 import json
 import re
 import shlex
@@ -298,14 +302,35 @@ def run_cppcheck(
             Configuration(HOST, HOST_DEFINES),
             *(target_configuration(name, command, tested) for name, command in (targets or {}).items()),
         )
+        program = _program_digest(Path(tmp), sources, includes)
         places: dict[tuple[str, str, int], list[str]] = {}
         for configuration in analysed:
-            for rule, label, line in _cppcheck_once(configuration, sources, includes, roots):
+            key = (program, configuration.defines)
+            if key not in _ANALYSED:
+                _ANALYSED[key] = _cppcheck_once(configuration, sources, includes, roots)
+            for rule, label, line in _ANALYSED[key]:
                 names = places.setdefault((rule, label, line), [])
                 if configuration.name not in names:
                     names.append(configuration.name)
     findings = [Finding(rule, label, line, tuple(names)) for (rule, label, line), names in places.items()]
     return sorted(findings, key=lambda f: (f.file, f.line, f.rule)), analysed
+
+
+_ANALYSED: dict[tuple[str, tuple[str, ...]], list[tuple[str, str, int]]] = {}
+"""(program digest, configuration's macros) -> cppcheck's (rule, label, line) findings, in this process."""
+
+
+def _program_digest(tmp: Path, sources: list[Path], includes: list[Path]) -> str:
+    """SHA-256 of everything a cppcheck run over the copied program reads: cppcheck's version and options,
+    the sources and include folders named (relative to ``tmp``) and every file under ``tmp`` with its
+    content."""
+    digest = hashlib.sha256(json.dumps([cppcheck_version(), CPPCHECK]).encode())
+    for path in (*sources, *includes):
+        digest.update(f"\0named {path.relative_to(tmp)}".encode())
+    for path in sorted(p for p in tmp.rglob("*") if p.is_file()):
+        digest.update(f"\0file {path.relative_to(tmp)}\0".encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 def _copy_program(export_dir: Path, tmp: Path) -> tuple[dict[str, Path], list[Path], list[Path]]:
@@ -402,6 +427,7 @@ def _label(path: Path, roots: dict[str, Path]) -> str:
     return str(path)
 
 
+@functools.cache
 def cppcheck_version() -> str:
     try:
         return subprocess.run(["cppcheck", "--version"], capture_output=True, text=True).stdout.strip()

@@ -98,6 +98,24 @@ def test_a_violation_in_one_target_form_is_reported_in_the_configurations_that_c
     assert [(f.file, f.configurations) for f in gotos] == [("c/policy.c", configurations)], gotos
 
 
+def test_a_program_is_analysed_again_only_when_a_file_cppcheck_reads_changed(
+    exports: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = misra.check(exports["q15"])
+
+    def analyse_again(*args: object) -> None:
+        raise AssertionError("cppcheck ran again")
+
+    monkeypatch.setattr(misra, "_cppcheck_once", analyse_again)
+    moved = tmp_path / "the same export"
+    shutil.copytree(exports["q15"], moved)
+    assert misra.check(moved).findings == first.findings  # same files elsewhere: no new analysis
+    header = moved / "can" / "policy_io.h"
+    header.write_text(header.read_text() + "\n/* changed */\n")
+    with pytest.raises(AssertionError, match="cppcheck ran again"):
+        misra.check(moved)
+
+
 def _plant_goto(policy: Path, branch: str) -> None:
     """A goto (rule 15.1) as the first statement of the first ``branch`` line's block in ``policy``."""
     text = policy.read_text()
