@@ -127,8 +127,7 @@ bench: deps $(STAMP) $(EMX) ## env, export and HIL benchmarks, JSON in $(OUT)/be
 	        --quantize $$q && $(VENV)/bin/embedrl bench-export --export-dir $(OUT)/bench/td3-$$q \
 	        --float32-dir $(OUT)/bench/td3-float32 --json $(OUT)/bench/export-$$q.json || exit 1; \
 	done
-	$(VENV)/bin/embedrl export policies/static/td3.zip --out $(OUT)/bench/td3-hil --force --episodes 0
-	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-hil --episodes $(BENCH_HIL_EPISODES) \
+	$(VENV)/bin/embedrl hil bench --export-dir $(OUT)/bench/td3-float32 --episodes $(BENCH_HIL_EPISODES) \
 	    --exchanges $(BENCH_HIL_EXCHANGES) --json $(OUT)/bench/hil.json
 
 # Instructions, estimated cycles and cycles per multiply-add per inference on the Cortex-M cores: embedrl's C
