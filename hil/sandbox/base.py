@@ -332,7 +332,7 @@ def _read(path: Path) -> str:
 
 def _guest_script(queue: Path, setup: str, shutdown: str, python: str) -> str:
     q = shlex.quote(str(queue))
-    server = shlex.join([python, "-m", "embedrl.hil.sandbox.job_server", str(queue)])
+    server = shlex.join([python, "-m", "embedrl.hil.sandbox.job_server", str(queue), *SERVER_PRELOAD])
     return f"""#!/bin/sh
 # Written by embedrl (hil/sandbox/base.py): set up (vcan0), then run the jobs the host puts in the queue.
 Q={q}

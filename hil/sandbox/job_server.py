@@ -2,17 +2,19 @@
 another, until the host asks it to stop.
 
 A shell job (``job-N.sh``) runs in ``sh``. A Python job (``job-N.py.json``: ``python -m MODULE ARGS`` for
-one of :data:`~embedrl.hil.sandbox.base.SERVER_PRELOAD`'s programs) runs in a fork of this server, which
-imports those programs' dependencies once, at the first such job: a guest under pure emulation runs Python
-about ten times slower than the host, and importing numpy, gymnasium, python-can, cantools and the
-simulator took ~32 s of every job. A Python job runs as ``python -m`` would run it: the module as
-``__main__`` (``runpy``), its arguments in ``sys.argv``, its folder first on ``sys.path``, its environment;
-should the imports fail, every Python job runs in a new interpreter instead. Either kind leaves its output
-in ``job-N.out`` and its exit status in ``job-N.rc`` (128 + N for a job ended by signal N, as ``sh``
-reports it). The server polls the queue as the shell loop it replaces did, and never forks to do so.
+one of :data:`~embedrl.hil.sandbox.base.SERVER_PRELOAD`'s programs, which the command line names) runs in a
+fork of this server, which imports those programs' dependencies once, at the first such job: a guest under
+pure emulation runs Python about ten times slower than the host, and importing numpy, gymnasium,
+python-can, cantools and the simulator took ~32 s of every job. A Python job runs as ``python -m`` would
+run it: the module as ``__main__`` (``runpy``), its arguments in ``sys.argv``, its folder first on
+``sys.path``, its environment; should the imports fail, every Python job runs in a new interpreter instead.
+Either kind leaves its output in ``job-N.out`` and its exit status in ``job-N.rc`` (128 + N for a job ended
+by signal N, as ``sh`` reports it). The server polls the queue as the shell loop it replaces did, and never
+forks to do so.
 
-Run as ``python -m embedrl.hil.sandbox.job_server QUEUE`` by the guest's script, which falls back to its
-own shell loop should the server end before the host asks it to stop.
+Run as ``python -m embedrl.hil.sandbox.job_server QUEUE MODULE...`` (the programs whose imports it makes) by
+the guest's script, which falls back to its own shell loop should the server end before the host asks it
+to stop.
 """
 
 from __future__ import annotations
@@ -25,8 +27,9 @@ import sys
 import time
 import traceback
 from pathlib import Path
+from typing import Any
 
-from embedrl.hil.sandbox.base import BUSY_POLLS, PYTHON_JOB, SERVER_PRELOAD, SHELL_JOB
+from embedrl.hil.sandbox.base import BUSY_POLLS, PYTHON_JOB, SHELL_JOB
 
 BUSY_POLL_S = 0.05
 IDLE_POLL_S = 1.0
@@ -35,8 +38,9 @@ CWD_MISSING = 125
 
 
 class _Preload:
-    """Whether the programs' imports are done (None: not tried yet)."""
+    """The programs whose imports the server makes, and whether they are done (None: not tried yet)."""
 
+    modules: tuple[str, ...] = ()
     done: bool | None = None
 
 
@@ -64,7 +68,7 @@ def _python_job(path: Path) -> None:
     path.unlink()
     if _Preload.done is None:
         try:
-            for module in SERVER_PRELOAD:
+            for module in _Preload.modules:
                 __import__(module)
             _Preload.done = True
         except Exception:  # the jobs then run in new interpreters, which report the error themselves
@@ -89,8 +93,8 @@ def _python_job(path: Path) -> None:
     _finish(base, _status(os.waitpid(pid, 0)[1]))
 
 
-def _enter(job: dict[str, object]) -> bool:
-    os.environ.update(job["env"])  # type: ignore[arg-type]
+def _enter(job: dict[str, Any]) -> bool:
+    os.environ.update(job["env"])
     try:
         os.chdir(str(job["cwd"]))
     except OSError as exc:
@@ -99,20 +103,19 @@ def _enter(job: dict[str, object]) -> bool:
     return True
 
 
-def _exec(job: dict[str, object]) -> int:
+def _exec(job: dict[str, Any]) -> int:
     """In the fork, without the imports: the job in a new interpreter."""
     if not _enter(job):
         return CWD_MISSING
-    os.execv(sys.executable, [sys.executable, "-m", str(job["module"]), *job["args"]])  # type: ignore[misc]
-    return 1  # not reached
+    os.execv(sys.executable, [sys.executable, "-m", str(job["module"]), *job["args"]])
 
 
-def _run(job: dict[str, object]) -> int:
+def _run(job: dict[str, Any]) -> int:
     """In the fork: the job as ``python -m`` runs it; its exit status."""
     if not _enter(job):
         return CWD_MISSING
     module = str(job["module"])
-    sys.argv = [module, *job["args"]]  # type: ignore[misc]
+    sys.argv = [module, *job["args"]]
     sys.path[0] = os.getcwd()  # the server's own folder until now (it was started with -m)
     sys.modules.pop(module, None)  # imported as a dependency: run a fresh copy as __main__, as -m does
     try:
@@ -146,4 +149,5 @@ def serve(queue: Path) -> None:
 
 
 if __name__ == "__main__":
+    _Preload.modules = tuple(sys.argv[2:])
     serve(Path(sys.argv[1]))

@@ -26,8 +26,11 @@ def guest(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[VmGuest]:
     monkeypatch.setenv("PYTHONPATH", str(ROOT))  # tests.hil.guest_job from any folder, as embedrl is
     work = tmp_path / "guest folder"  # a space: every path in the protocol is quoted
     work.mkdir()
-    with VmGuest("local", "local shell", ["sh", str(work / "guest.sh")], work, "", "true", 30.0) as booted:
+    booted = VmGuest("local", "local shell", ["sh", str(work / "guest.sh")], work, "", "true", 30.0)
+    try:
         yield booted
+    finally:
+        booted.close()
 
 
 def python_job(guest: VmGuest, *args: str, cwd: Path = ROOT) -> base.JobResult:
@@ -102,6 +105,24 @@ def test_when_the_server_ends_early_the_guests_shell_loop_runs_the_jobs(guest: V
     result = python_job(guest, "exit", "6")  # a new interpreter, from the shell loop
     assert result.status == 6 and "preloaded=False" in result.output
     assert _server(guest) is None and not list(guest.queue.glob(f"*{base.PYTHON_JOB}"))
+
+
+def test_should_the_imports_fail_a_python_job_runs_in_a_new_interpreter(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(base, "SERVER_PRELOAD", (JOB, "tests.hil.no_such_module"))
+    monkeypatch.setenv("PYTHONPATH", str(ROOT))
+    booted = VmGuest("local", "local shell", ["sh", str(tmp_path / "guest.sh")], tmp_path, "", "true", 30.0)
+    try:
+        results = [python_job(booted, "exit", "7"), python_job(booted, "raise")]
+        assert [r.status for r in results] == [7, 1] and "preloaded=False" in results[0].output
+        assert "ValueError: raised by the job" in results[1].output
+        assert (
+            "No module named 'tests.hil.no_such_module'" in (tmp_path / "queue" / base.SERVER_LOG).read_text()
+        )
+        assert _server(booted) is not None  # the server goes on
+    finally:
+        booted.close()
 
 
 def test_a_guest_stops_when_asked_with_its_server_idle(guest: VmGuest) -> None:
