@@ -15,6 +15,10 @@ from embedrl.train import arguments
 from embedrl.train.arguments import add_export_dir_argument, add_model_file_arguments, add_scenario_argument
 from embedrl.train.scenarios import DEFAULT_SCENARIO
 
+EMX_IN_CHECKOUT = Path(__file__).resolve().parents[1] / "tools" / "emx" / "bin" / "emx-onnx-cgen"
+"""Where ``make bench`` and ``make bench-target`` install emx-onnx-cgen: bench-target's peer, from any
+working directory."""
+
 
 def _safe_action(text: str) -> tuple[float, ...]:
     try:
@@ -431,8 +435,10 @@ def _register_benchmarks(sub: Any) -> None:
         "--target", action="append", choices=tuple(TARGETS), default=[],
         help="a Cortex-M target, repeatable (default: every one)",
     )  # fmt: skip
-    p.add_argument("--emx", type=Path, default=Path("tools/emx/bin/emx-onnx-cgen"),
-                   help="emx-onnx-cgen's command (make bench-target installs it)")  # fmt: skip
+    p.add_argument(
+        "--emx", type=Path, default=EMX_IN_CHECKOUT,
+        help="emx-onnx-cgen's command (default: the checkout's; make bench-target installs it)",
+    )  # fmt: skip
     p.add_argument("--json", type=Path, help="write the measurement here")
     p.set_defaults(func=cmd_bench_target)
 

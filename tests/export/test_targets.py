@@ -459,3 +459,13 @@ def test_the_stm32f100_counts_an_inference_as_the_mps2_board_does(tmp_path: Path
     assert on_f100.instructions_per_inference > 1000
     resolution = 2 * (40 + f100.tick_instructions) / 256  # a tick at each end of each timed loop
     assert abs(on_f100.instructions_per_inference - on_mps2.instructions_per_inference) <= resolution
+
+
+def test_bench_targets_peer_is_the_checkouts_from_any_working_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from embedrl.cli import build_parser
+
+    monkeypatch.chdir(tmp_path)
+    emx = build_parser().parse_args(["bench-target", "an export"]).emx
+    assert emx == RUNTIME_C.parent / "tools" / "emx" / "bin" / "emx-onnx-cgen" and emx.is_absolute()
