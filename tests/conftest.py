@@ -8,8 +8,9 @@
   ``slow`` (minutes of work, e.g. many exports); a test that does such a thing itself carries the marker.
   ``make test-fast`` deselects all four; ``make test`` runs everything.
 - Side by side: ``make test`` runs the suite on two pytest-xdist workers, a test file per worker at a time
-  (``--dist loadfile``: a file's module and session fixtures are made once per worker), the longest files
-  first (:data:`LONGEST_FIRST`); each worker has its own temporary folder, so a test that counts the
+  (``--dist loadfile``: a file's module and session fixtures are made once per worker; the files that use the
+  QEMU guest go to one worker together, :data:`ONE_QEMU_GUEST`), the longest files first
+  (:data:`LONGEST_FIRST`); each worker has its own temporary folder, so a test that counts the
   temporary folders a run leaves sees only its own worker's.
 - SIGTERM stops the session as Ctrl-C does (fixtures torn down, guests closed), also when it arrives while
   a test runs ``embedrl.cli.main`` in-process, whose own handler would otherwise turn it into one failed
@@ -50,6 +51,13 @@ LONGEST_FIRST = (
     "tests/hil/test_firmware.py",
 )
 """Test files that take minutes, collected first so that side by side they start first, not last."""
+ONE_QEMU_GUEST = (
+    "tests/hil/test_paths_matrix.py",
+    "tests/hil/test_hil_vcan.py",
+    "tests/hil/test_sandbox_providers.py",
+)
+"""The test files that use the session's QEMU guest (``qemu_guest``): side by side, one work unit, so that one
+worker boots one guest for all of them (a boot and the guest's imports take minutes of a core)."""
 
 
 def marks_its_users(*markers: str) -> Callable[[Fixture], Fixture]:
@@ -121,10 +129,27 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if not isinstance(item, pytest.Function):
             continue
+        path = item.nodeid.split("::", 1)[0]
+        if "qemu_guest" in item.fixturenames and path not in ONE_QEMU_GUEST:
+            raise pytest.UsageError(f"{path} uses qemu_guest: add it to ONE_QEMU_GUEST (tests/conftest.py)")
         for definitions in item._fixtureinfo.name2fixturedefs.values():  # the fixtures it uses, transitively
             for definition in definitions:
                 for marker in getattr(definition.func, "tier_markers", ()):
                     item.add_marker(marker)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """``--dist loadfile`` with the files of :data:`ONE_QEMU_GUEST` as one work unit."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadFileScheduling
+
+    class OneQemuGuest(LoadFileScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            path = super()._split_scope(nodeid)
+            return ONE_QEMU_GUEST[0] if path in ONE_QEMU_GUEST else path
+
+    return OneQemuGuest(config, log)  # type: ignore[arg-type]
 
 
 class _Stopped:
