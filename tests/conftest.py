@@ -144,12 +144,12 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
         return None
     from xdist.scheduler import LoadFileScheduling
 
-    class OneQemuGuest(LoadFileScheduling):
+    class OneQemuGuest(LoadFileScheduling):  # type: ignore[misc]  # xdist has no type information
         def _split_scope(self, nodeid: str) -> str:
             path = super()._split_scope(nodeid)
             return ONE_QEMU_GUEST[0] if path in ONE_QEMU_GUEST else path
 
-    return OneQemuGuest(config, log)  # type: ignore[arg-type]
+    return OneQemuGuest(config, log)
 
 
 class _Stopped:
