@@ -409,17 +409,18 @@ class Silence(Injector):
 
 def _safe(ctx: Context) -> tuple[float | None, list[float] | None]:
     """The node's first safe action within :data:`SILENCE_S` of real time: how long after the silence
-    began (seconds) and its values; (None, None) if none came."""
+    began (seconds: to the frame's arrival at the socket, so that a busy machine's delay in waking this
+    process does not count against the node) and its values; (None, None) if none came."""
     from embedrl.hil.codec import Action
 
-    last_sent = time.monotonic()
+    began, last_sent = time.time(), time.monotonic()
     deadline = last_sent + SILENCE_S
     while (remaining := deadline - time.monotonic()) > 0:
         decoded = ctx.link.receive(remaining)
         if decoded is False:
             break
         if isinstance(decoded, Action) and is_safe(decoded.action, ctx.interface):
-            return time.monotonic() - last_sent, decoded.action.tolist()
+            return max(ctx.link.received_at - began, 0.0), decoded.action.tolist()
     return None, None
 
 

@@ -82,6 +82,9 @@ class Link:
         self.channel = channel
         self.log = logger or (can.Logger(log) if log else None)
         self.owns_log = logger is None
+        self.received_at = 0.0
+        """When the last frame :meth:`receive` returned reached this machine's socket (``time.time()``
+        seconds: the kernel's receive time on SocketCAN), not when this process got to read it."""
 
     def send(self, frames: list[can.Message]) -> None:
         stamp = time.time() if self.log else 0.0  # only the log shows it: no clock read without one
@@ -107,6 +110,7 @@ class Link:
             return False
         if msg is None:
             return False
+        self.received_at = msg.timestamp or time.time()
         # python-can flags frames from another local socket (the node) as Tx; they are received here.
         msg.is_rx = True
         msg.channel = self.channel
