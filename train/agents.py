@@ -84,6 +84,15 @@ def env_kwargs(cfg: Any) -> dict[str, Any]:
     return out
 
 
+def model_class(algo: str, cfg: Any) -> type[BaseAlgorithm]:
+    """The class a run's checkpoints load with: the algorithm's, or sbx's TD3 for the jax backend."""
+    if getattr(cfg, "backend", "torch") == "jax":
+        from embedrl.train.jax_agents import jax_td3_class
+
+        return jax_td3_class()  # type: ignore[no-any-return]
+    return CLASSES[algo]
+
+
 def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) -> BaseAlgorithm:
     """A fresh SB3 model; a new policy_kwargs dict every time (SB3 writes into it)."""
     common: dict[str, Any] = {
@@ -149,6 +158,12 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
         )
     if isinstance(cfg, TD3Config):
         noise = NormalActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n))
+        if cfg.backend == "jax":
+            if cfg.two_branch_critic:
+                raise ValueError("the jax backend trains SB3's standard critic: --set two_branch_critic=false")
+            from embedrl.train.jax_agents import build_jax_td3
+
+            return build_jax_td3(cfg, env, seed, tb, noise)
         return TD3(
             deterministic_policy,
             env,

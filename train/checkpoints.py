@@ -126,7 +126,7 @@ def save_checkpoint(out: Path, model: BaseAlgorithm, env: VecEnv, state: dict[st
 
 
 def load_checkpoint(
-    checkpoint: Path, algo: str, tb: Path
+    checkpoint: Path, algo: str, tb: Path, cls: type[BaseAlgorithm] | None = None
 ) -> tuple[BaseAlgorithm, VecEnv, dict[str, Any], dict[str, Any]]:
     """Model, training env, counters and random generators' states of a checkpoint (the run's own files:
     pickles it wrote itself)."""
@@ -138,7 +138,7 @@ def load_checkpoint(
             env: VecEnv = pickle.load(f)
         if (checkpoint / "vecnormalize.pkl").is_file():
             env = VecNormalize.load(str(checkpoint / "vecnormalize.pkl"), env)
-        model = CLASSES[algo].load(
+        model = (cls or CLASSES[algo]).load(
             checkpoint / "model.zip", env=env, device="cpu", tensorboard_log=str(tb), force_reset=False
         )
         if isinstance(model, OffPolicyAlgorithm):

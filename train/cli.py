@@ -118,6 +118,7 @@ TRAIN_DEFAULTS: dict[str, Any] = {
     "max_episodes": 100_000,
     "checkpoint_every": 10_000,
     "eval_every": 5_000,
+    "eval_episodes": 100,
     "stop": "validation",
 }
 """A new run's defaults. Unset on the command line (None), so that ``--resume`` can tell a flag that was
@@ -203,6 +204,7 @@ def cmd_train(args: argparse.Namespace) -> int:
             **{
                 k: saved["budget"][k] for k in ("max_steps", "max_episodes", "checkpoint_every", "eval_every")
             },
+            "eval_episodes": saved["budget"].get("eval_episodes", TRAIN_DEFAULTS["eval_episodes"]),
             "stop": saved["budget"].get("stop", "validation"),
         }
         longer = given.get("max_steps", 0) > own["max_steps"]  # training on past the budget is allowed
@@ -226,6 +228,7 @@ def cmd_train(args: argparse.Namespace) -> int:
         max_episodes=values["max_episodes"],
         checkpoint_every=values["checkpoint_every"],
         eval_every=values["eval_every"],
+        eval_episodes=values["eval_episodes"],
         stop=values["stop"],
     )
     out = args.resume or args.out
@@ -419,6 +422,8 @@ def _register_train(sub: Any) -> None:
                    help=f"env steps between checkpoints {_default('checkpoint_every')}")  # fmt: skip
     p.add_argument("--eval-every", type=_positive,
                    help=f"env steps between validation evaluations {_default('eval_every')}")  # fmt: skip
+    p.add_argument("--eval-episodes", type=_positive,
+                   help=f"episodes per validation evaluation {_default('eval_episodes')}")  # fmt: skip
     p.add_argument(
         "--stop",
         choices=STOP_RULES,

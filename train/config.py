@@ -126,6 +126,9 @@ class TD3Config(OffPolicyConfig):
     """Critic updates per actor update."""
     target_policy_noise: float = 0.2
     """Target policy smoothing noise."""
+    backend: str = "torch"
+    """Where the updates run: ``torch`` (SB3) or ``jax`` (sbx-rl, :mod:`train.jax_agents`: one compiled program
+    per ``train_freq`` block; the run's models are saved as SB3 torch zips all the same)."""
 
 
 @dataclass(frozen=True)
@@ -348,6 +351,12 @@ def _preset(algo: str, name: str) -> AlgoConfig:
 
 WALKER_NET_ARCH = (400, 300)
 """The walker presets' hidden layers: RL Zoo's for Walker2d (the deck's option list does not fix them)."""
+WALKER_TD3_NET_ARCH = (64, 64)
+"""The walker's TD3: a network the Cortex-M4F runs well inside the 8 ms sample time, and the JAX backend
+trains at several times SB3's speed (docs/walker.md)."""
+WALKER_BLOCK = 32
+"""The walker's TD3 collects this many env steps, then makes as many updates in one compiled program (the
+deck's workers also send their experiences every 32 steps)."""
 
 
 def walker_preset(algo: str, name: str) -> AlgoConfig:
@@ -363,7 +372,8 @@ def walker_preset(algo: str, name: str) -> AlgoConfig:
     (:data:`train.monitor.CRITERIA`).
 
     ``tuned`` (DDPG, TD3, SAC): RL Zoo's Walker2d settings (10,000 random steps first, exploration noise 0.1:
-    Gaussian for TD3, DDPG keeps its OU noise; batch 256, SB3's standard networks).
+    Gaussian for TD3, DDPG keeps its OU noise; batch 256, SB3's standard networks). TD3 runs on JAX with
+    64-64 networks, collecting and updating in blocks of :data:`WALKER_BLOCK` steps.
     """
     if name == "deck":
         if algo != "ddpg":
@@ -384,8 +394,9 @@ def walker_preset(algo: str, name: str) -> AlgoConfig:
             tau=5e-3, actor_learning_rate=1e-3, noise_sigma=0.1,
         ),
         "td3": TD3Config(
-            learning_starts=start, batch_size=batch, net_arch=arch, two_branch_critic=False, reward=reward,
-            tau=5e-3, noise_sigma=0.1,
+            learning_starts=start, batch_size=batch, net_arch=WALKER_TD3_NET_ARCH, two_branch_critic=False,
+            reward=reward, tau=5e-3, noise_sigma=0.1, backend="jax", train_freq=WALKER_BLOCK,
+            gradient_steps=WALKER_BLOCK,
         ),
         "sac": SACConfig(
             learning_starts=start, batch_size=batch, net_arch=(256, 256), two_branch_critic=False,
@@ -430,6 +441,12 @@ AT_LEAST_ONE = (
     "n_lstm_layers",
 )
 """Counts that must be at least one."""
+MAX_LAYERS = 8
+"""Hidden layers a network may have (``net_arch``)."""
+MAX_LAYER_WIDTH = 4096
+"""Units a hidden layer may have: wider layers do not fit a microcontroller (or this machine's memory)."""
+BACKENDS = ("torch", "jax")
+"""TD3's update engines (:data:`train.jax_agents.BACKENDS`; kept here so the config imports no JAX)."""
 
 
 def with_overrides(config: AlgoConfig, assignments: Sequence[str]) -> AlgoConfig:
@@ -464,6 +481,11 @@ def _check_range(key: str, value: Any) -> None:
         raise ValueError(f"--set {key}={value}: must be at least 1")
     elif isinstance(value, tuple) and any(v < 1 for v in value):
         raise ValueError(f"--set {key}={','.join(map(str, value))}: every size must be at least 1")
+    elif isinstance(value, tuple) and (len(value) > MAX_LAYERS or any(v > MAX_LAYER_WIDTH for v in value)):
+        raise ValueError(
+            f"--set {key}={','.join(map(str, value))}: at most {MAX_LAYERS} layers of at most "
+            f"{MAX_LAYER_WIDTH} units (a policy for a microcontroller)"
+        )
 
 
 def _parse(key: str, raw: str, current: Any) -> Any:
@@ -471,6 +493,8 @@ def _parse(key: str, raw: str, current: Any) -> Any:
 
     if key == "reward" and raw not in (*REWARDS, *VARIANTS):
         raise ValueError(f"--set reward={raw}: choose from {', '.join((*REWARDS, *VARIANTS))}")
+    if key == "backend" and raw not in BACKENDS:
+        raise ValueError(f"--set backend={raw}: choose from {', '.join(BACKENDS)}")
     try:
         if isinstance(current, bool):
             if raw.lower() not in ("true", "false"):

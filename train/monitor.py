@@ -66,6 +66,10 @@ CURVE_FIELDS = ("episode", "steps", "return", "length", "average50", "q0", "succ
 
 def q0(model: BaseAlgorithm, obs: np.ndarray) -> float:
     """The critic's estimate of a state's value (MATLAB's Episode Q0)."""
+    from embedrl.train.jax_agents import is_jax_model, jax_q0
+
+    if is_jax_model(model):
+        return jax_q0(model, obs)
     with torch.no_grad():
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32).reshape(1, -1))
         policy: Any = model.policy

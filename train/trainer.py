@@ -44,7 +44,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecNormalize
 
 from embedrl.common import VALIDATION_SEED, provenance
 from embedrl.train import deck_reward
-from embedrl.train.agents import build_model, env_kwargs, make_env
+from embedrl.train.agents import build_model, env_kwargs, make_env, model_class
 from embedrl.train.checkpoints import (
     complete_checkpoint,
     episodes_within,
@@ -70,6 +70,7 @@ from embedrl.train.config import (
 from embedrl.train.demonstrations import demonstration_episodes, seed_replay_buffer, warm_start
 from embedrl.train.errors import UsageError
 from embedrl.train.evaluate import evaluate
+from embedrl.train.jax_agents import is_jax_model, save_as_torch
 from embedrl.train.models import normalization_of, save_normalization, stamp_model
 from embedrl.train.monitor import (
     CRITERIA,
@@ -196,7 +197,7 @@ class _Run:
         self.generators: dict[str, Any] = {}
         if resume:
             self.model, self.env, self.state, self.generators = load_checkpoint(
-                complete_checkpoint(out), config.algo, out / "tb"
+                complete_checkpoint(out), config.algo, out / "tb", model_class(config.algo, cfg)
             )
             truncate_curve(out / "curve.csv", len(self.state.get("returns", [])))
             if (out / EVALUATIONS_FILE).exists():
@@ -255,7 +256,10 @@ class _Run:
     def save_model(self, name: str) -> None:
         """The model as ``name``.zip, stamped, with its normalisation statistics as ``name``_vecnormalize."""
         out = self.out
-        self.model.save(out / f"{name}.zip")
+        if is_jax_model(self.model):  # an SB3 torch zip, checked against the JAX actor
+            save_as_torch(self.model, out / f"{name}.zip")
+        else:
+            self.model.save(out / f"{name}.zip")
         stamp_model(
             out / f"{name}.zip",
             normalization_of(self.env) if self.normalize else None,
