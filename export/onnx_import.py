@@ -20,6 +20,8 @@ import onnx.external_data_helper
 from google.protobuf.message import DecodeError
 from onnx import numpy_helper
 
+from embedrl.escape import c_comment
+from embedrl.export.onnx_text import safe_text
 from embedrl.export.errors import InvalidModelError, UnsupportedOpError
 from embedrl.export.ir import AttrValue, Graph, Node
 from embedrl.export.ops import EMITTERS
@@ -59,8 +61,9 @@ def load_onnx(path: Path, limits: Limits = Limits()) -> onnx.ModelProto:
         model = onnx.load(str(path), load_external_data=False)
     except (DecodeError, ValueError, RuntimeError, OSError) as exc:
         raise InvalidModelError(
-            f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {exc})"
+            f"{path}: not a readable ONNX model ({exc.__class__.__name__}: {c_comment(str(exc))})"
         ) from None
+    safe_text(model)  # the author's names and text never go further as they came
     _check_sizes(path, model, size, limits)
     _check_graph(path, model, limits)
     try:

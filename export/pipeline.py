@@ -46,6 +46,7 @@ from embedrl.export.full_integer import Given, IntegerSection
 from embedrl.export.interpret import Section
 from embedrl.export.ir import Graph
 from embedrl.export.onnx_import import Limits, load_onnx
+from embedrl.export.onnx_text import safe_text
 from embedrl.export.reference import OBSERVATIONS_FILE, OnnxPolicy
 from embedrl.export.sb3_onnx import build_onnx
 from embedrl.train.errors import InvalidModelFileError, UnsupportedModelFileError
@@ -440,7 +441,7 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
         log(f"      with the normalisation statistics {vecnorm_path}")
     onnx_path = staging / "policy.onnx"  # saved by _lower, with the interface in its metadata
     return Loaded(
-        build_onnx(loaded, tool_version()), onnx_path, loaded, vecnorm_path, {"policy.onnx": onnx_path}
+        safe_text(build_onnx(loaded, tool_version())), onnx_path, loaded, vecnorm_path, {"policy.onnx": onnx_path}
     )
 
 

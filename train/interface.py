@@ -18,7 +18,16 @@ import numpy as np
 
 NAME = re.compile(r"[a-z][a-z0-9_]*")
 """Field names are lower-case identifiers: they become C macros and CAN signal names."""
+SCENARIO_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
+"""An interface's ``name``: a scenario's name, or the last part of an env id."""
+ENV_ID = re.compile(r"([A-Za-z0-9][A-Za-z0-9_./-]{0,99})?")
+"""An ``env_id``: gymnasium's id syntax without its ``module:`` form (which would import a module)."""
+TEXT = re.compile(r"[A-Za-z0-9 _()+,./=:;%'`<>^!|~@$&\[\]{}-]{0,160}")
+"""A description or a unit: printable ASCII without ``*``, ``\\``, ``?``, ``#`` or ``"`` (what could end a
+C comment, continue a line, form a trigraph, or end a DBC string), at most 160 characters."""
 FORMAT_VERSION = 1
+MAX_FIELDS = 256
+"""Observation or action fields an interface may have."""
 MAX_STATE_SIZE = 65_536
 """The most floats of recurrent state an interface may declare."""
 INTERFACE_FILE = "interface.json"
@@ -145,7 +154,8 @@ class Interface:
         """Parse an ``interface.json`` (untrusted: every field is checked)."""
         try:
             if data.get("format") != FORMAT_VERSION:
-                raise InterfaceError(f"unsupported interface format {data.get('format')!r}")
+                raise InterfaceError(f"unsupported interface format {_shown(data.get('format'))}")
+            _check_text(data)
             return Interface(
                 str(data["name"]),
                 str(data["env_id"]),
@@ -160,6 +170,38 @@ class Interface:
             if isinstance(exc, InterfaceError):
                 raise
             raise InterfaceError(f"not a valid interface description: {exc!r}") from None
+
+
+def _shown(value: Any) -> str:
+    """A value from a file, as an error message may show it: one line, bounded."""
+    return repr(value)[:60].encode("ascii", "backslashreplace").decode()
+
+
+def _check_text(data: dict[str, Any]) -> None:
+    """The file's text fields against :data:`SCENARIO_NAME`, :data:`ENV_ID` and :data:`TEXT`: types,
+    lengths and characters, before anything is built from them."""
+    rules: list[tuple[str, Any, re.Pattern[str]]] = [
+        ("name", data["name"], SCENARIO_NAME),
+        ("env_id", data["env_id"], ENV_ID),
+    ]
+    for kind in ("observation", "action"):
+        fields = data[kind]
+        if not isinstance(fields, list) or len(fields) > MAX_FIELDS:
+            raise InterfaceError(f"{kind} must be a list of at most {MAX_FIELDS} fields")
+        for k, f in enumerate(fields):
+            if not isinstance(f, dict):
+                raise InterfaceError(f"{kind}[{k}] must be an object")
+            rules += [
+                (f"{kind}[{k}].name", f["name"], NAME),
+                (f"{kind}[{k}].description", f["description"], TEXT),
+                (f"{kind}[{k}].unit", f["unit"], TEXT),
+            ]
+    for where, value, pattern in rules:
+        if not isinstance(value, str) or not pattern.fullmatch(value):
+            raise InterfaceError(
+                f"{where} {_shown(value)} is not allowed: it must match {pattern.pattern} (text in an "
+                "interface becomes C comments, CAN database strings and report text)"
+            )
 
 
 def _field(data: Any) -> Field:

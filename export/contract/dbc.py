@@ -16,6 +16,7 @@ from cantools.database.can.formats.dbc.dbc_attribute_definition import DbcAttrib
 from cantools.database.can.formats.dbc.dbc_specifics import DbcSpecifics
 from cantools.database.conversion import BaseConversion
 
+from embedrl.escape import dbc_text as safe_dbc_text
 from embedrl.export.contract.errors import ContractError
 from embedrl.export.contract.layout import (
     BUS_STATES,
@@ -59,9 +60,9 @@ def _value(slot: Slot, receiver: str, start: int) -> Signal:
         conversion=BaseConversion.factory(scale=slot.scale, offset=0),
         minimum=dbc_number(slot.field.low),
         maximum=dbc_number(slot.field.high),
-        unit=slot.field.unit or None,
+        unit=safe_dbc_text(slot.field.unit) or None,
         receivers=[receiver],
-        comment=slot.field.description,
+        comment=safe_dbc_text(slot.field.description),
     )
 
 
@@ -70,7 +71,7 @@ def database(interface: Interface, node_id: int = 0, fd: bool = False) -> Databa
     messages = node_messages(interface, node_id, fd=fd)
     nodes = [Node(SIMULATOR, None), Node(NODE, None)]
     return Database(
-        messages, nodes, version=f"embedrl {interface.name}", dbc_specifics=_fd_bus() if fd else None
+        messages, nodes, version=f"embedrl {safe_dbc_text(interface.name)}", dbc_specifics=_fd_bus() if fd else None
     )
 
 
@@ -188,7 +189,7 @@ def bus_database(interface: Interface, nodes: int, fd: bool = False) -> Database
         ecus.append(Node(ecu, None))
         messages += node_messages(interface, k, ecu, suffix, fd)
     return Database(
-        messages, ecus, version=f"embedrl {interface.name} x{nodes}", dbc_specifics=_fd_bus() if fd else None
+        messages, ecus, version=f"embedrl {safe_dbc_text(interface.name)} x{nodes}", dbc_specifics=_fd_bus() if fd else None
     )
 
 

@@ -4,7 +4,7 @@ generated C holds for it, the RAM of its output and its share of each target's e
 
 The weight bytes are read from the deployed file, not computed from a precision's layout: each ``static
 const`` array of ``c/<name>.c`` is attributed to the node whose name or constant input it is named after
-(the generator's ``<name>_w<k>_<key>`` symbols); an array named after none stays unattributed, in its own
+(the identifier that starts the comment the generator writes above each ``<name>_w<k>``); an array named after none stays unattributed, in its own
 row, and the total is checked against the generated header's own count.
 """
 
@@ -14,12 +14,14 @@ import re
 from pathlib import Path
 from typing import Any
 
+from embedrl.escape import identifier
 from embedrl.export.ops import multiply_adds
 
 FLOAT_BYTES = 4
 """Activations are float32 between layers (a q15 section's int16 buffers are inside its layers)."""
 C_TYPE_BYTES = {"float": 4, "int8_t": 1, "uint8_t": 1, "int16_t": 2, "int32_t": 4, "int64_t": 8}
-_CONST = re.compile(r"^static const (\w+) (\w+)((?:\[\d+\])+) = \{", re.M)
+_CONST = re.compile(r"^/\* (\w+): [^\n]*\*/\nstatic const (\w+) (\w+)((?:\[\d+\])+) = \{", re.M)
+"""A weight array with the comment the generator writes above it (``export.codegen.const_comment``)."""
 _HEADER_WEIGHTS = re.compile(r"weights: (\d+) bytes of const data")
 _HOST_ONLY = re.compile(
     r"^#if (defined\(__x86_64__\)|!\(defined\(__ARM_ARCH_PROFILE\))[^\n]*\n.*?^#endif", re.M | re.S
@@ -77,18 +79,18 @@ def layer_table(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
 
 def const_arrays(source: str, name: str) -> list[tuple[str, int]]:
     """(key, bytes) of each ``static const`` weight array of a generated ``<name>.c`` (``key``: the
-    sanitised name the generator gave it, after ``<name>_w<k>_``) as a Cortex-M target compiles it, as the
+    identifier the generator's comment above ``<name>_w<k>`` starts with) as a Cortex-M target compiles it, as the
     header's count does: the host's own layouts of the weights (input-major float rows, int16 rows for AVX2)
     are left out. The safe action is not a weight."""
     out = []
-    prefix = re.compile(rf"^{re.escape(name)}_w\d+_")
-    for ctype, symbol, dims in _CONST.findall(_HOST_ONLY.sub("", source)):
-        if not prefix.match(symbol):
+    prefix = re.compile(rf"{re.escape(name)}_w\d+")
+    for key, ctype, symbol, dims in _CONST.findall(_HOST_ONLY.sub("", source)):
+        if not prefix.fullmatch(symbol):
             continue
         count = 1
         for d in re.findall(r"\d+", dims):
             count *= int(d)
-        out.append((prefix.sub("", symbol), count * C_TYPE_BYTES[ctype]))
+        out.append((key, count * C_TYPE_BYTES[ctype]))
     return out
 
 
@@ -106,5 +108,5 @@ def _is_alias(op: str) -> bool:
 
 
 def _sanitize(key: str) -> str:
-    """The generator's symbol part of a constant's key (``export.codegen``'s rule)."""
-    return re.sub(r"[^A-Za-z0-9_]", "_", key.split("#")[0]).strip("_")[:40] or "v"
+    """The identifier of a constant's key in the generator's comment (``export.codegen.const_comment``)."""
+    return identifier(key.split("#")[0])

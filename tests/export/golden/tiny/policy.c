@@ -11,17 +11,17 @@
 #include <stdbool.h>
 #include <stdint.h>
 
-/* normalize.sub operand [3] */
-static const float policy_w0_mean[3] = {
+/* mean: normalize.sub operand [3] */
+static const float policy_w0[3] = {
     -1.60383677f, 0.0640999153f, 0.740891278f
 };
-/* normalize.div operand [3] */
-static const float policy_w1_std[3] = {
+/* std: normalize.div operand [3] */
+static const float policy_w1[3] = {
     0.761692405f, 0.819097042f, 0.618091226f
 };
 #if !(defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE))
-/* fc1 weights, input-major [3][4] */
-static const float policy_w2_W1[3][4] = {
+/* W1: fc1 weights, input-major [3][4] */
+static const float policy_w2[3][4] = {
     {
         -1.4788233f, 0.343744576f, -0.860280216f, -2.15913892f
     },
@@ -33,20 +33,20 @@ static const float policy_w2_W1[3][4] = {
     }
 };
 #endif
-/* fc1 bias [4] */
-static const float policy_w3_b1[4] = {
+/* b1: fc1 bias [4] */
+static const float policy_w3[4] = {
     0.520134151f, -1.00216579f, 0.268345535f, 0.767174721f
 };
 #if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE)
-/* fc1 weights [3][4] in the order the VLDM passes read them */
-static const float policy_w4_W1[12] = {
+/* W1: fc1 weights [3][4] in the order the VLDM passes read them */
+static const float policy_w4[12] = {
     -1.4788233f, 0.343744576f, -0.860280216f, -2.15913892f, 0.945472956f, -0.512443721f,
     0.519493222f, 0.434733957f, -1.66613543f, 1.32375896f, -1.26514375f, 1.73328936f
 };
 #endif
 #if !(defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE))
-/* fc2 weights, input-major [4][2] */
-static const float policy_w5_W2[4][2] = {
+/* W2: fc2 weights, input-major [4][2] */
+static const float policy_w5[4][2] = {
     {
         1.19127202f, -0.0324150845f
     },
@@ -61,13 +61,13 @@ static const float policy_w5_W2[4][2] = {
     }
 };
 #endif
-/* fc2 bias [2] */
-static const float policy_w6_b2[2] = {
+/* b2: fc2 bias [2] */
+static const float policy_w6[2] = {
     0.100000001f, -0.200000003f
 };
 #if defined(__ARM_ARCH_PROFILE) && (__ARM_ARCH_PROFILE == 'M') && defined(__GNUC__) && defined(__ARM_FP) && ((__ARM_FP & 4) != 0) && !defined(POLICY_PORTABLE)
-/* fc2 weights [4][2] in the order the VLDM passes read them */
-static const float policy_w7_W2[8] = {
+/* W2: fc2 weights [4][2] in the order the VLDM passes read them */
+static const float policy_w7[8] = {
     1.19127202f, -0.0324150845f, -1.15741086f, 0.0131815793f, 0.696279407f, -0.679249942f,
     0.351383686f, -0.620532036f
 };
@@ -213,20 +213,20 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     /* Sub 'normalize.sub' [1x3] -> [1x3] */
     for (uint32_t i = 0u; i < 3u; ++i) {
-        policy_buf0[i] = obs[i] - policy_w0_mean[i];
+        policy_buf0[i] = obs[i] - policy_w0[i];
     }
     /* Div 'normalize.div' [1x3] -> [1x3] */
     for (uint32_t i = 0u; i < 3u; ++i) {
-        policy_buf0[i] = policy_buf0[i] / policy_w1_std[i];
+        policy_buf0[i] = policy_buf0[i] / policy_w1[i];
     }
     /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
     #if POLICY_VLDM
     for (uint32_t n = 0u; n < 4u; n += 4u) {
-        float a0 = policy_w3_b1[n];
-        float a1 = policy_w3_b1[n + 1u];
-        float a2 = policy_w3_b1[n + 2u];
-        float a3 = policy_w3_b1[n + 3u];
-        const float *wp = &policy_w4_W1[3u * n]; /* input by input */
+        float a0 = policy_w3[n];
+        float a1 = policy_w3[n + 1u];
+        float a2 = policy_w3[n + 2u];
+        float a3 = policy_w3[n + 3u];
+        const float *wp = &policy_w4[3u * n]; /* input by input */
         {
             const float xk = policy_buf0[0];
             const policy_floats4 w = policy_row4(&wp);
@@ -258,13 +258,13 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     #elif POLICY_DOT_PRODUCTS
     for (uint32_t n = 0u; n < 4u; n += 4u) {
-        float a0 = policy_w3_b1[n];
-        float a1 = policy_w3_b1[n + 1u];
-        float a2 = policy_w3_b1[n + 2u];
-        float a3 = policy_w3_b1[n + 3u];
+        float a0 = policy_w3[n];
+        float a1 = policy_w3[n + 1u];
+        float a2 = policy_w3[n + 2u];
+        float a3 = policy_w3[n + 3u];
         {
             const float xk = policy_buf0[0];
-            const float *row = &policy_w2_W1[0][n]; /* the pass's 4 weight(s) of this input */
+            const float *row = &policy_w2[0][n]; /* the pass's 4 weight(s) of this input */
             a0 = a0 + (xk * row[0]);
             a1 = a1 + (xk * row[1]);
             a2 = a2 + (xk * row[2]);
@@ -272,7 +272,7 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         }
         {
             const float xk = policy_buf0[1];
-            const float *row = &policy_w2_W1[1][n]; /* the pass's 4 weight(s) of this input */
+            const float *row = &policy_w2[1][n]; /* the pass's 4 weight(s) of this input */
             a0 = a0 + (xk * row[0]);
             a1 = a1 + (xk * row[1]);
             a2 = a2 + (xk * row[2]);
@@ -280,7 +280,7 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         }
         {
             const float xk = policy_buf0[2];
-            const float *row = &policy_w2_W1[2][n]; /* the pass's 4 weight(s) of this input */
+            const float *row = &policy_w2[2][n]; /* the pass's 4 weight(s) of this input */
             a0 = a0 + (xk * row[0]);
             a1 = a1 + (xk * row[1]);
             a2 = a2 + (xk * row[2]);
@@ -293,16 +293,16 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     #else
     for (uint32_t n = 0u; n < 4u; ++n) {
-        policy_buf1[n] = policy_w3_b1[n];
+        policy_buf1[n] = policy_w3[n];
     }
     for (uint32_t n = 0u; n < 4u; ++n) {
-        policy_buf1[n] = policy_buf1[n] + (policy_buf0[0] * policy_w2_W1[0][n]);
+        policy_buf1[n] = policy_buf1[n] + (policy_buf0[0] * policy_w2[0][n]);
     }
     for (uint32_t n = 0u; n < 4u; ++n) {
-        policy_buf1[n] = policy_buf1[n] + (policy_buf0[1] * policy_w2_W1[1][n]);
+        policy_buf1[n] = policy_buf1[n] + (policy_buf0[1] * policy_w2[1][n]);
     }
     for (uint32_t n = 0u; n < 4u; ++n) {
-        policy_buf1[n] = policy_buf1[n] + (policy_buf0[2] * policy_w2_W1[2][n]);
+        policy_buf1[n] = policy_buf1[n] + (policy_buf0[2] * policy_w2[2][n]);
     }
     #endif
     /* Relu 'relu1' [1x4] -> [1x4] */
@@ -312,9 +312,9 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
     #if POLICY_VLDM
     for (uint32_t n = 0u; n < 2u; n += 2u) {
-        float a0 = policy_w6_b2[n];
-        float a1 = policy_w6_b2[n + 1u];
-        const float *wp = &policy_w7_W2[4u * n]; /* input by input */
+        float a0 = policy_w6[n];
+        float a1 = policy_w6[n + 1u];
+        const float *wp = &policy_w7[4u * n]; /* input by input */
         const float *xp = policy_buf1;
         for (uint32_t k = 0u; k < 4u; k += 4u) {
             const policy_floats4 xs = policy_inputs4(&xp);
@@ -348,30 +348,30 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     #elif POLICY_DOT_PRODUCTS
     for (uint32_t n = 0u; n < 2u; n += 2u) {
-        float a0 = policy_w6_b2[n];
-        float a1 = policy_w6_b2[n + 1u];
+        float a0 = policy_w6[n];
+        float a1 = policy_w6[n + 1u];
         for (uint32_t k = 0u; k < 4u; k += 4u) {
             {
                 const float xk = policy_buf1[k];
-                const float *row = &policy_w5_W2[k][n]; /* the pass's 2 weight(s) of this input */
+                const float *row = &policy_w5[k][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
             {
                 const float xk = policy_buf1[k + 1u];
-                const float *row = &policy_w5_W2[k + 1u][n]; /* the pass's 2 weight(s) of this input */
+                const float *row = &policy_w5[k + 1u][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
             {
                 const float xk = policy_buf1[k + 2u];
-                const float *row = &policy_w5_W2[k + 2u][n]; /* the pass's 2 weight(s) of this input */
+                const float *row = &policy_w5[k + 2u][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
             {
                 const float xk = policy_buf1[k + 3u];
-                const float *row = &policy_w5_W2[k + 3u][n]; /* the pass's 2 weight(s) of this input */
+                const float *row = &policy_w5[k + 3u][n]; /* the pass's 2 weight(s) of this input */
                 a0 = a0 + (xk * row[0]);
                 a1 = a1 + (xk * row[1]);
             }
@@ -381,7 +381,7 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
     }
     #else
     for (uint32_t n = 0u; n < 2u; ++n) {
-        policy_buf0[n] = policy_w6_b2[n];
+        policy_buf0[n] = policy_w6[n];
     }
     for (uint32_t k = 0u; k < 4u; k += 4u) {
         const float x0 = policy_buf1[k];
@@ -389,7 +389,7 @@ int32_t policy_step(const float obs[POLICY_OBS_DIM], float act[POLICY_ACT_DIM])
         const float x2 = policy_buf1[k + 2u];
         const float x3 = policy_buf1[k + 3u];
         for (uint32_t n = 0u; n < 2u; ++n) {
-            policy_buf0[n] = policy_buf0[n] + (x0 * policy_w5_W2[k][n]) + (x1 * policy_w5_W2[k + 1u][n]) + (x2 * policy_w5_W2[k + 2u][n]) + (x3 * policy_w5_W2[k + 3u][n]);
+            policy_buf0[n] = policy_buf0[n] + (x0 * policy_w5[k][n]) + (x1 * policy_w5[k + 1u][n]) + (x2 * policy_w5[k + 2u][n]) + (x3 * policy_w5[k + 3u][n]);
         }
     }
     #endif

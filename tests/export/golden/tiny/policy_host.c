@@ -56,34 +56,34 @@ static void policy_block(uint32_t rows)
     /* Sub 'normalize.sub' [1x3] -> [1x3] */
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t i = 0u; i < 3u; ++i) {
-            policy_b0[r][i] = policy_bobs[r][i] - policy_w0_mean[i];
+            policy_b0[r][i] = policy_bobs[r][i] - policy_w0[i];
         }
     }
     /* Div 'normalize.div' [1x3] -> [1x3] */
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t i = 0u; i < 3u; ++i) {
-            policy_b0[r][i] = policy_b0[r][i] / policy_w1_std[i];
+            policy_b0[r][i] = policy_b0[r][i] / policy_w1[i];
         }
     }
     /* Gemm 'fc1' [1x3] -> [1x4] transB=1 */
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t n = 0u; n < 4u; ++n) {
-            policy_b1[r][n] = policy_w3_b1[n];
+            policy_b1[r][n] = policy_w3[n];
         }
     }
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t n = 0u; n < 4u; ++n) {
-            policy_b1[r][n] = policy_b1[r][n] + (policy_b0[r][0] * policy_w2_W1[0][n]);
+            policy_b1[r][n] = policy_b1[r][n] + (policy_b0[r][0] * policy_w2[0][n]);
         }
     }
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t n = 0u; n < 4u; ++n) {
-            policy_b1[r][n] = policy_b1[r][n] + (policy_b0[r][1] * policy_w2_W1[1][n]);
+            policy_b1[r][n] = policy_b1[r][n] + (policy_b0[r][1] * policy_w2[1][n]);
         }
     }
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t n = 0u; n < 4u; ++n) {
-            policy_b1[r][n] = policy_b1[r][n] + (policy_b0[r][2] * policy_w2_W1[2][n]);
+            policy_b1[r][n] = policy_b1[r][n] + (policy_b0[r][2] * policy_w2[2][n]);
         }
     }
     /* Relu 'relu1' [1x4] -> [1x4] */
@@ -95,7 +95,7 @@ static void policy_block(uint32_t rows)
     /* Gemm 'fc2' [1x4] -> [1x2] transB=1 */
     for (uint32_t r = 0u; r < rows; ++r) {
         for (uint32_t n = 0u; n < 2u; ++n) {
-            policy_b0[r][n] = policy_w6_b2[n];
+            policy_b0[r][n] = policy_w6[n];
         }
     }
     for (uint32_t k = 0u; k < 4u; k += 4u) {
@@ -105,7 +105,7 @@ static void policy_block(uint32_t rows)
             const float x2 = policy_b1[r][k + 2u];
             const float x3 = policy_b1[r][k + 3u];
             for (uint32_t n = 0u; n < 2u; ++n) {
-                policy_b0[r][n] = policy_b0[r][n] + (x0 * policy_w5_W2[k][n]) + (x1 * policy_w5_W2[k + 1u][n]) + (x2 * policy_w5_W2[k + 2u][n]) + (x3 * policy_w5_W2[k + 3u][n]);
+                policy_b0[r][n] = policy_b0[r][n] + (x0 * policy_w5[k][n]) + (x1 * policy_w5[k + 1u][n]) + (x2 * policy_w5[k + 2u][n]) + (x3 * policy_w5[k + 3u][n]);
             }
         }
     }
