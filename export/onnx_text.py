@@ -63,7 +63,7 @@ def safe_text(model: onnx.ModelProto) -> onnx.ModelProto:
         for attribute in node.attribute:
             attribute.doc_string = ""
     model.doc_string = graph.doc_string = ""
-    graph.name = identifier(graph.name) if graph.name else ""
+    graph.name = identifier(graph.name)
     model.producer_name = c_comment(model.producer_name, PRODUCER_LIMIT)
     model.producer_version = c_comment(model.producer_version, PRODUCER_LIMIT)
     model.domain = identifier(model.domain) if model.domain else ""
