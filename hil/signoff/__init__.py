@@ -55,8 +55,7 @@ def gather(
 
 
 def render(data: dict[str, Any]) -> str:
-    from html import escape
-
+    """The page of gathered facts ``data`` (autoescaped templates: :mod:`embedrl.hil.signoff.page`)."""
     from embedrl.hil.signoff import figures, page, sections
 
     data["figures"] = {
@@ -67,12 +66,16 @@ def render(data: dict[str, Any]) -> str:
     }  # fmt: skip
     export = data["export"]
     source = export["source"]
-    intro = (
-        f"Policy <b>{escape(export['name'])}</b> from <code>{escape(Path(source['path']).name)}</code> "
-        f"(sha256 {source['sha256'][:16]}...), {escape(export['tool'])}, precision "
-        f"{escape(data['verification'][0]['precision'])}; {len(export['ops'])} ops, "
-        f"{export['observation_dim']} observations -> {export['action_dim']} actions."
-    )
+    intro = {
+        "name": export["name"],
+        "source": Path(source["path"]).name,
+        "digest": source["sha256"][:16],
+        "tool": export["tool"],
+        "precision": data["verification"][0]["precision"],
+        "ops": len(export["ops"]),
+        "observations": export["observation_dim"],
+        "actions": export["action_dim"],
+    }
     body = {
         "conditions": sections.conditions(data),
         "interface": sections.interface(data),
