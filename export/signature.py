@@ -38,16 +38,27 @@ class SignatureError(ExportError):
 
 @dataclass(frozen=True)
 class Signature:
+    """What can be said of an export's signature. Trust comes only from the public key the user names
+    (``--key``): without it nothing is verified, and nothing read from the envelope (its key id included) is
+    shown as if it were."""
+
     state: str
-    """``valid``, ``unsigned``, ``unchecked`` (signed, no key given to check it) or ``invalid``."""
+    """``valid`` (checked against the user's key), ``invalid``, ``unsigned`` or ``unchecked`` (an envelope,
+    no key to check it with): the last two are warnings, neither a pass nor a failure."""
     detail: str
 
     @property
     def passed(self) -> bool:
+        """Whether nothing failed (an unchecked or missing signature did not fail: it was not checked)."""
         return self.state != "invalid"
 
+    @property
+    def verified(self) -> bool:
+        """Whether the signature was checked against the user's key and holds: the only PASS."""
+        return self.state == "valid"
+
     def to_json(self) -> dict[str, Any]:
-        return {"state": self.state, "passed": self.passed, "detail": self.detail}
+        return {"state": self.state, "passed": self.passed, "verified": self.verified, "detail": self.detail}
 
 
 def pae(payload_type: str, payload: bytes) -> bytes:
@@ -118,7 +129,7 @@ def check(export_dir: Path, public_key: Any | None) -> Signature:
     if not envelope_file.exists():
         if public_key is not None:
             return Signature("invalid", f"unsigned (no {ENVELOPE}), but a key was given to check it")
-        return Signature("unsigned", f"unsigned (no {ENVELOPE})")
+        return Signature("unsigned", f"not signed (no {ENVELOPE}): nothing vouches for who made this export")
     try:
         payload, keyid, sig = _read_envelope(envelope_file)
     except (ValueError, TypeError, KeyError, OSError, binascii.Error) as exc:
@@ -129,9 +140,9 @@ def check(export_dir: Path, public_key: Any | None) -> Signature:
         return Signature("invalid", f"{MANIFEST} cannot be read ({exc.strerror})")
     if payload != manifest:
         return Signature("invalid", f"{MANIFEST} changed since it was signed (sign the export again)")
-    if public_key is None:
+    if public_key is None:  # the envelope's key id is the envelope's claim: not shown as a fact
         return Signature(
-            "unchecked", f"signed by key {keyid[:16]}..., not checked: give the public key (--key)"
+            "unchecked", "signature not checked: no trusted key given (--key PUB.pem, the signer's public key)"
         )
     if keyid != key_id(public_key):
         return Signature(

@@ -69,6 +69,8 @@ def cmd_report(args: argparse.Namespace) -> int:
     verdict = data["verdict"]
     for check in verdict["checks"]:
         print(f"  {'PASS' if check['passed'] else 'FAIL'}  {check['check']}: {check['detail']}")
+    for warning in verdict.get("warnings", []):
+        print(f"  WARN  {warning}")
     print(f"verdict: {'PASS' if verdict['passed'] else 'FAIL'}")
     return 0 if verdict["passed"] else 1
 

@@ -248,7 +248,7 @@ def traceability(facts: dict[str, Any]) -> Markup:
         export_dir=facts["export_dir"],
         intact=all(c["ok"] for c in facts["chain"]),
         signature=signature["detail"],
-        signature_class=signature.get("state", "ok" if signature["passed"] else "fail"),
+        signature_class={"valid": "ok", "invalid": "fail"}.get(signature["state"], "warn"),
     )
 
 

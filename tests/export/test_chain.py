@@ -67,7 +67,7 @@ def test_the_export_records_every_link_from_the_run_to_the_report(
         f"chain intact: {len(links)} links, from run config to verification report (1 outside the bundle, "
         "digest only)"
     )
-    assert out[-1] == "signature: unsigned (no chain.dsse.json)"
+    assert out[-1].startswith("warning: signature: not signed (no chain.dsse.json)")
 
 
 def test_every_path_is_in_the_bundle_and_the_manifest_is_an_in_toto_statement(traced: Path) -> None:
@@ -348,8 +348,38 @@ def test_a_signed_export_verifies_with_its_public_key(
     assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[-1].startswith("signature: signed by key ") and out[-1].endswith("and valid")
-    assert main(["verify-chain", str(export)]) == 0  # no key: the signature is named, not checked
-    assert capsys.readouterr().out.splitlines()[-1].endswith("not checked: give the public key (--key)")
+    assert main(["verify-chain", str(export)]) == 0  # no key: not checked, and no key id shown as a fact
+    last = capsys.readouterr().out.splitlines()[-1]
+    assert last.startswith("warning: signature: signature not checked: no trusted key given")
+    assert key_id_of(envelope) not in last
+
+
+def key_id_of(envelope: dict[str, Any]) -> str:
+    return str(envelope["signatures"][0]["keyid"][:16])
+
+
+def test_a_forged_envelope_without_a_trusted_key_is_never_a_pass(
+    traced: Path, tmp_path: Path, keys: dict[str, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An envelope with a zero signature over the export's own manifest, naming the owner's key id: without
+    a trusted key it is a warning that says nothing was checked; with the owner's key it fails."""
+    import base64
+
+    export = _copy(traced, tmp_path)
+    owner = _signed(traced, tmp_path / "owner", keys)
+    keyid = json.loads((owner / "chain.dsse.json").read_text())["signatures"][0]["keyid"]
+    forged = {
+        "payloadType": "application/vnd.in-toto+json",
+        "payload": base64.b64encode((export / chain.MANIFEST).read_bytes()).decode(),
+        "signatures": [{"keyid": keyid, "sig": base64.b64encode(bytes(64)).decode()}],
+    }
+    (export / "chain.dsse.json").write_text(json.dumps(forged))
+    assert main(["verify-chain", str(export)]) == 0
+    out = capsys.readouterr().out
+    assert "warning: signature: signature not checked" in out and keyid[:16] not in out
+    assert "signed by" not in out
+    assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 1
+    assert "FAIL signature: the signature does not match" in capsys.readouterr().out
 
 
 def test_a_consistent_rewrite_of_every_manifest_fails_the_signature(
@@ -402,7 +432,9 @@ def test_unsigned_says_so_and_fails_when_a_key_was_given(
 ) -> None:
     export = _copy(traced, tmp_path)
     assert main(["verify-chain", str(export)]) == 0
-    assert capsys.readouterr().out.splitlines()[-1] == "signature: unsigned (no chain.dsse.json)"
+    assert capsys.readouterr().out.splitlines()[-1].startswith(
+        "warning: signature: not signed (no chain.dsse.json)"
+    )
     assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 1
     assert "FAIL signature: unsigned (no chain.dsse.json), but a key was given" in capsys.readouterr().out
 

@@ -48,7 +48,7 @@ def test_the_qdq_export_runs_the_models_own_int8_numbers(qdq_model: Path, qdq_ex
     assert isinstance(section, IntegerSection) and len(section.layers) == 3
     weights = {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
     for layer, index in zip(section.layers, (0, 2, 4), strict=True):
-        own = weights[f"actor.mu.{index}.weight_quantized"]  # [out][in], onnxruntime's int8 weights
+        own = weights[f"actor_mu_{index}_weight_quantized"]  # [out][in], onnxruntime's int8 weights
         assert own.dtype == np.int8 and np.array_equal(layer.weights, own)
     scales = {n.input[0]: weights[n.input[1]] for n in model.graph.node if n.op_type == "QuantizeLinear"}
     assert section.quant.scale == pytest.approx(float(scales["obs"]), rel=1e-7)

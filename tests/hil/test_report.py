@@ -320,7 +320,10 @@ def test_the_hil_report_is_kept_in_the_bundle_so_a_moved_copy_verifies_and_names
     assert kept.read_bytes() == (export.parent / "hil run.json").read_bytes()
     link = chain.read(export)[-1]
     assert (link.name, link.path, link.in_bundle) == ("HIL report hil/hil run.json", "hil/hil run.json", True)
-    assert 'data-key="signature">unsigned (no chain.dsse.json)</span>' in page.read_text()
+    html = page.read_text()
+    assert 'data-key="signature">not signed (no chain.dsse.json)' in html
+    assert 'data-key="check-signature"' not in html  # a warning, not a line of the verdict
+    assert 'class="warn" data-key="warning-1">signature: not signed' in html
     moved = tmp_path / "moved" / "bundle"
     shutil.copytree(export, tmp_path / "copy")
     moved.parent.mkdir()
