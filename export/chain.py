@@ -333,11 +333,64 @@ def _locked(export_dir: Path) -> Iterator[None]:
 
 def verify(export_dir: Path) -> list[TraceCheck]:
     """Every link in order: what the Statement's subjects and steps say of it, its file's hash now against
-    the manifest, then what it records of its parents."""
+    the manifest, then what it records of its parents; then the chain's shape (:func:`layout`): every link
+    an export must have, and a link for every file the export made."""
     manifest = read_manifest(export_dir)
     links = manifest.links
     by_name = {k.name: k for k in links} | {f"file {k.path}": k for k in links if k.in_bundle}
-    return [_check(export_dir, k, by_name, manifest.declared.get(k.name, set())) for k in links]
+    checks = [_check(export_dir, k, by_name, manifest.declared.get(k.name, set())) for k in links]
+    return checks + [
+        TraceCheck(TraceLink(f"layout: {what}", what, ""), False, why)
+        for what, why in layout(export_dir, links)
+    ]
+
+
+REQUIRED_LINKS = ("ONNX", "verification report")
+"""Links every export has, whatever its source, precision and targets."""
+REQUIRED_KINDS = ("C source ", "binary host/")
+"""Link name prefixes of which every export has at least one (the generated C, the host library the
+verification ran)."""
+PRODUCTS = (
+    "policy.onnx",
+    "interface.json",
+    "export_report.json",
+    "c",
+    "can",
+    "can-fd",
+    "test",
+    "bin",
+    PROVENANCE,
+)
+"""What ``embedrl export`` writes into its folder (files, and folders whose every file it wrote): each is a
+link of the chain, so a file of these that no link covers is one the chain says nothing about."""
+
+
+def layout(export_dir: Path, links: list[TraceLink]) -> list[tuple[str, str]]:
+    """What the chain lacks for the shape of an export (in-toto's layout: the steps' expected materials and
+    products), as ``(what, why)``: a required link missing, or a file the export wrote that no link covers."""
+    names = {k.name for k in links}
+    covered = {k.path for k in links if k.in_bundle}
+    problems = [(name, f"the chain has no {name!r} link: every export has one") for name in REQUIRED_LINKS
+                if name not in names]  # fmt: skip
+    problems += [
+        (prefix.strip(), f"the chain has no {prefix.strip()!r} link: every export has one")
+        for prefix in REQUIRED_KINDS
+        if not any(n.startswith(prefix) for n in names)
+    ]
+    for product in PRODUCTS:
+        root = export_dir / product
+        files = (
+            [root]
+            if root.is_file()
+            else sorted(p for p in root.rglob("*") if p.is_file())
+            if root.is_dir()
+            else []
+        )
+        for file in files:
+            relative = file.relative_to(export_dir).as_posix()
+            if relative not in covered:
+                problems.append((relative, f"{relative} is in the export but no link of the chain covers it"))
+    return problems
 
 
 def _check(export_dir: Path, k: TraceLink, by_name: dict[str, TraceLink], declared: set[str]) -> TraceCheck:
@@ -369,6 +422,10 @@ def _check(export_dir: Path, k: TraceLink, by_name: dict[str, TraceLink], declar
             said = "is missing" if not file.is_file() else f"changed (sha256 {sha256(file)[:12]}...)"
             return TraceCheck(k, False, f"{k.path} records {name} (sha256 {recorded[:12]}...), which {said}")
     for parent, recorded in parents.items():
+        if parent.startswith("file ") and parent not in by_name:
+            return TraceCheck(
+                k, False, f"{k.path} records {parent.removeprefix('file ')}, which the chain does not link"
+            )
         if parent in by_name and by_name[parent].sha256 != recorded:
             said = (
                 f"records another {parent.removeprefix('file ')} (sha256 {recorded[:12]}...) than the chain's"

@@ -9,6 +9,7 @@ import shutil
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -457,3 +458,47 @@ def test_a_bad_key_file_is_refused_in_one_line(
     assert main(argv) == 2 and not out.exists()
     err = capsys.readouterr().err.strip()
     assert err.startswith("error: ") and len(err.splitlines()) == 1
+
+
+def _rewrite_without(export: Path, keep: Callable[[chain.TraceLink], bool]) -> None:
+    """chain.json written again with only the links ``keep`` accepts (its steps dropped with them)."""
+    manifest = chain.read_manifest(export)
+    chain.write(export, [k for k in manifest.links if keep(k)], [])
+
+
+def test_a_dropped_link_of_an_edited_file_is_named(
+    traced: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The C's link removed from the manifest and the C edited: the chain no longer covers c/policy.c."""
+    export = _copy(traced, tmp_path)
+    _rewrite_without(export, lambda k: k.path != "c/policy.c")
+    source = export / "c" / "policy.c"
+    source.write_text(source.read_text() + "\n/* edited */\n")
+    assert main(["verify-chain", str(export)]) == 1
+    assert "records c/policy.c, which the chain does not link" in capsys.readouterr().out
+    assert dict(chain.layout(export, chain.read(export)))["c/policy.c"].endswith("no link of the chain covers it")
+
+
+def test_a_chain_cut_to_its_first_link_is_named(
+    traced: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    export = _copy(traced, tmp_path)
+    first = chain.read(export)[0]
+    _rewrite_without(export, lambda k: k.name == first.name)
+    assert main(["verify-chain", str(export)]) == 1
+    out = capsys.readouterr().out
+    assert "the chain has no 'ONNX' link" in out, out
+    problems = dict(chain.layout(export, chain.read(export)))
+    assert {"ONNX", "verification report", "C source", "binary host/", "export_report.json"} <= problems.keys()
+    assert any(p.startswith("bin/cortex-m4/") for p in problems)  # the target's images too
+
+
+def test_a_report_that_records_a_file_the_chain_does_not_link_is_named(
+    traced: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The verification report's record of a file stands only beside the chain's own link of that file."""
+    export = _copy(traced, tmp_path)
+    _rewrite_without(export, lambda k: k.path != "test/test_vectors.c")
+    (export / "test" / "test_vectors.c").unlink()  # so the layout's own rule does not name it first
+    assert main(["verify-chain", str(export)]) == 1
+    assert "records test/test_vectors.c, which the chain does not link" in capsys.readouterr().out
