@@ -21,9 +21,9 @@ from google.protobuf.message import DecodeError
 from onnx import numpy_helper
 
 from embedrl.escape import c_comment
-from embedrl.export.onnx_text import safe_text
 from embedrl.export.errors import InvalidModelError, UnsupportedOpError
 from embedrl.export.ir import AttrValue, Graph, Node
+from embedrl.export.onnx_text import safe_text
 from embedrl.export.ops import EMITTERS
 
 MIN_OPSET = 13

@@ -441,7 +441,11 @@ def _load(staging: Path, opts: ExportOptions, log: Callable[[str], None]) -> Loa
         log(f"      with the normalisation statistics {vecnorm_path}")
     onnx_path = staging / "policy.onnx"  # saved by _lower, with the interface in its metadata
     return Loaded(
-        safe_text(build_onnx(loaded, tool_version())), onnx_path, loaded, vecnorm_path, {"policy.onnx": onnx_path}
+        safe_text(build_onnx(loaded, tool_version())),
+        onnx_path,
+        loaded,
+        vecnorm_path,
+        {"policy.onnx": onnx_path},
     )
 
 

@@ -142,7 +142,8 @@ def check(export_dir: Path, public_key: Any | None) -> Signature:
         return Signature("invalid", f"{MANIFEST} changed since it was signed (sign the export again)")
     if public_key is None:  # the envelope's key id is the envelope's claim: not shown as a fact
         return Signature(
-            "unchecked", "signature not checked: no trusted key given (--key PUB.pem, the signer's public key)"
+            "unchecked",
+            "signature not checked: no trusted key given (--key PUB.pem, the signer's public key)",
         )
     if keyid != key_id(public_key):
         return Signature(

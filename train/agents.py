@@ -160,7 +160,9 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
         noise = NormalActionNoise(np.zeros(n), cfg.noise_sigma * np.ones(n))
         if cfg.backend == "jax":
             if cfg.two_branch_critic:
-                raise ValueError("the jax backend trains SB3's standard critic: --set two_branch_critic=false")
+                raise ValueError(
+                    "the jax backend trains SB3's standard critic: --set two_branch_critic=false"
+                )
             from embedrl.train.jax_agents import build_jax_td3
 
             return build_jax_td3(cfg, env, seed, tb, noise)

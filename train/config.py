@@ -127,8 +127,8 @@ class TD3Config(OffPolicyConfig):
     target_policy_noise: float = 0.2
     """Target policy smoothing noise."""
     backend: str = "torch"
-    """Where the updates run: ``torch`` (SB3) or ``jax`` (sbx-rl, :mod:`train.jax_agents`: one compiled program
-    per ``train_freq`` block; the run's models are saved as SB3 torch zips all the same)."""
+    """Where the updates run: ``torch`` (SB3) or ``jax`` (sbx-rl, :mod:`train.jax_agents`: one compiled
+    program per ``train_freq`` block; the run's models are saved as SB3 torch zips all the same)."""
 
 
 @dataclass(frozen=True)

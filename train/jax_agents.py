@@ -1,4 +1,4 @@
-"""TD3 on JAX (sbx-rl, SB3's JAX sibling), saved as an SB3 (torch) TD3 so every later stage reads it unchanged.
+"""TD3 on JAX (sbx-rl, SB3's JAX sibling), saved as an SB3 torch TD3 so every later stage reads it unchanged.
 
 sbx's TD3 is an SB3 ``BaseAlgorithm``: the trainer's callbacks, checkpoints and resume work on it as on SB3's.
 Its updates run as one compiled XLA program per ``train_freq`` block (``gradient_steps`` updates), which on a

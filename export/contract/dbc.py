@@ -71,7 +71,10 @@ def database(interface: Interface, node_id: int = 0, fd: bool = False) -> Databa
     messages = node_messages(interface, node_id, fd=fd)
     nodes = [Node(SIMULATOR, None), Node(NODE, None)]
     return Database(
-        messages, nodes, version=f"embedrl {safe_dbc_text(interface.name)}", dbc_specifics=_fd_bus() if fd else None
+        messages,
+        nodes,
+        version=f"embedrl {safe_dbc_text(interface.name)}",
+        dbc_specifics=_fd_bus() if fd else None,
     )
 
 
@@ -189,7 +192,10 @@ def bus_database(interface: Interface, nodes: int, fd: bool = False) -> Database
         ecus.append(Node(ecu, None))
         messages += node_messages(interface, k, ecu, suffix, fd)
     return Database(
-        messages, ecus, version=f"embedrl {safe_dbc_text(interface.name)} x{nodes}", dbc_specifics=_fd_bus() if fd else None
+        messages,
+        ecus,
+        version=f"embedrl {safe_dbc_text(interface.name)} x{nodes}",
+        dbc_specifics=_fd_bus() if fd else None,
     )
 
 

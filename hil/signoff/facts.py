@@ -85,7 +85,29 @@ def load_hil(path: Path, export_dir: Path) -> dict[str, Any]:
     for name, recorded in data["export_files"].items():
         if not (export_dir / name).is_file() or sha256(export_dir / name) != recorded:
             raise HilError(f"{path} was made on another export: its {name} differs from {export_dir}'s")
+    missing = missing_files(data["node"], export_dir, data["export_files"])
+    if missing:
+        raise HilError(
+            f"{path} does not name the export files it ran with: {', '.join(missing)} missing from its "
+            "export_files (a run records every file its verdict is about)"
+        )
     return dict(data)
+
+
+def missing_files(node: str, export_dir: Path, recorded: dict[str, str]) -> list[str]:
+    """The export's files a HIL run of node kind ``node`` must record and ``recorded`` lacks: those every
+    run's verdict is about (where the export has them), and for a node built from C the CAN code of one of
+    the folders (``can/`` or ``can-fd/``) complete."""
+    from embedrl.export.contract import sources as can_sources
+    from embedrl.hil.node_kinds import NODE_KINDS
+    from embedrl.hil.run import CHAINED_FILES
+
+    missing = [name for name in CHAINED_FILES if (export_dir / name).is_file() and name not in recorded]
+    if NODE_KINDS[node].builds_c and (export_dir / INTERFACE_FILE).is_file():
+        sets = [[f"{can_sources.folder(fd)}/{name}" for name in can_sources.C_FILES] for fd in (False, True)]
+        if not any(all(name in recorded for name in names) for names in sets):
+            missing.append("the CAN code it was built from (can/ or can-fd/)")
+    return missing
 
 
 def _on_firmware(hil: dict[str, Any]) -> bool:
@@ -117,6 +139,7 @@ def _check_hil(data: Any) -> None:
     if node not in NODE_KINDS:
         raise ValueError(f"'node' is {node!r}, not one of {', '.join(NODE_KINDS)}")
     expect(data, "target", (str, type(None)), "a target's name or null")
+    _check_counts(data, expect)
     expect(data, "simulation", (dict, type(None)), "an object or null")
     image = NODE_KINDS[node].firmware_image
     firmware = expect(data, "firmware", (dict,) if image else (dict, type(None)), "an object")
@@ -126,6 +149,28 @@ def _check_hil(data: Any) -> None:
         if step is not None:
             expect(step, "estimated_step_us", (int, float), "a number")
             expect(step, "margin_s", (int, float), "a number")
+
+
+OUTCOME_COUNTS = {"successes": "success", "collisions": "collision", "timeouts": "timeout"}
+"""A HIL report's counts and the per-episode outcome each one counts."""
+
+
+def _check_counts(data: dict[str, Any], expect: Any) -> None:
+    """The report's counts against its own rows: episodes, successes, collisions and timeouts recounted from
+    ``per_episode``, the success rate recomputed (a report is a file anyone can edit)."""
+    rows = expect(data, "per_episode", (list,), "a list of episodes")
+    if not all(isinstance(r, dict) and isinstance(r.get("outcome"), str) for r in rows):
+        raise ValueError("'per_episode' is not a list of episodes with their outcomes")
+    episodes = expect(data, "episodes", (int,), "a number of episodes")
+    if episodes != len(rows):
+        raise ValueError(f"'episodes' is {episodes} but 'per_episode' has {len(rows)} rows")
+    for key, outcome in OUTCOME_COUNTS.items():
+        counted = sum(r["outcome"] == outcome for r in rows)
+        if expect(data, key, (int,), "a count") != counted:
+            raise ValueError(f"'{key}' is {data[key]} but {counted} of its episodes ended in {outcome}")
+    rate = expect(data, "success_rate", (int, float), "a number")
+    if rows and abs(rate - data["successes"] / len(rows)) > 1e-9:
+        raise ValueError(f"'success_rate' is {rate}, not its successes over its episodes")
 
 
 def interface_facts(export: dict[str, Any], export_dir: Path) -> dict[str, Any]:

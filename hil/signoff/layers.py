@@ -4,7 +4,8 @@ generated C holds for it, the RAM of its output and its share of each target's e
 
 The weight bytes are read from the deployed file, not computed from a precision's layout: each ``static
 const`` array of ``c/<name>.c`` is attributed to the node whose name or constant input it is named after
-(the identifier that starts the comment the generator writes above each ``<name>_w<k>``); an array named after none stays unattributed, in its own
+(the identifier that starts the comment the generator writes above each ``<name>_w<k>``); an array
+named after none stays unattributed, in its own
 row, and the total is checked against the generated header's own count.
 """
 
@@ -79,7 +80,8 @@ def layer_table(export_dir: Path, export: dict[str, Any]) -> dict[str, Any]:
 
 def const_arrays(source: str, name: str) -> list[tuple[str, int]]:
     """(key, bytes) of each ``static const`` weight array of a generated ``<name>.c`` (``key``: the
-    identifier the generator's comment above ``<name>_w<k>`` starts with) as a Cortex-M target compiles it, as the
+    identifier the generator's comment above ``<name>_w<k>`` starts with) as a Cortex-M target compiles it,
+    as the
     header's count does: the host's own layouts of the weights (input-major float rows, int16 rows for AVX2)
     are left out. The safe action is not a weight."""
     out = []

@@ -22,7 +22,8 @@ h1 { font-size: 1.6em; } h2 { border-bottom: 2px solid #ccc; margin-top: 2em; } 
 table { border-collapse: collapse; margin: 0.6em 0; font-size: 0.9em; }
 th, td { border: 1px solid #ccc; padding: 3px 8px; text-align: left; vertical-align: top; }
 th { background: #f0f0f0; } td.num { text-align: right; font-variant-numeric: tabular-nums; }
-.ok { color: #1a7f37; font-weight: bold; } .warn { color: #9a4b00; font-weight: bold; } .fail { color: #c62828; font-weight: bold; }
+.ok { color: #1a7f37; font-weight: bold; } .fail { color: #c62828; font-weight: bold; }
+.warn { color: #9a4b00; font-weight: bold; }
 .note { color: #555; font-size: 0.9em; } code { font-size: 0.9em; }
 nav a { margin-right: 1em; } svg { max-width: 100%; height: auto; }
 .pair { display: flex; gap: 2em; align-items: flex-start; }
@@ -94,14 +95,17 @@ def svg(figure: str) -> Markup:
 
 def page(title: str, intro: dict[str, Any], sections: dict[str, Markup], verdict: Markup) -> str:
     """The whole page: a title, a line of facts, the verdict, a table of contents and each section."""
-    return str(
-        fragment(
-            "page.html",
-            title=title,
-            intro=intro,
-            css=Markup(CSS),
-            verdict=verdict,
-            sections=SECTIONS,
-            bodies=sections,
+    return (
+        str(
+            fragment(
+                "page.html",
+                title=title,
+                intro=intro,
+                css=Markup(CSS),
+                verdict=verdict,
+                sections=SECTIONS,
+                bodies=sections,
+            )
         )
-    ) + "\n"
+        + "\n"
+    )

@@ -13,7 +13,13 @@ from embedrl.hil.signoff.page import cell, fragment, svg
 def interface(facts: dict[str, Any]) -> Markup:
     i = facts["interface"]
     fields = [
-        [cell(f["name"]), cell(_plain(f["description"])), cell(f["unit"] or "-"), cell(f["low"]), cell(f["high"])]
+        [
+            cell(f["name"]),
+            cell(_plain(f["description"])),
+            cell(f["unit"] or "-"),
+            cell(f["low"]),
+            cell(f["high"]),
+        ]
         for f in i["observation"]
     ]
     actions = [
@@ -66,7 +72,10 @@ def closed_loop(facts: dict[str, Any]) -> Markup:
         for r in facts["closed_loop"]
     ]  # fmt: skip
     return fragment(
-        "closed_loop.html", rows=rows, any_hil=bool(facts["hil_reports"]), figure=svg(facts["figures"]["closed_loop"])
+        "closed_loop.html",
+        rows=rows,
+        any_hil=bool(facts["hil_reports"]),
+        figure=svg(facts["figures"]["closed_loop"]),
     )
 
 
@@ -149,9 +158,10 @@ def coding_standard(facts: dict[str, Any]) -> Markup:
     for r in c["by_rule_and_file"]:
         per_rule.setdefault(r["rule"], []).append(f"{r['file']} ({r['count']})")
     category = c.get("categories", {})
+    ordered = sorted(per_rule.items(), key=lambda item: _rule_order(item[0]))
     by_rule = [[cell(rule), cell(_category(category.get(rule))),
                 cell(sum(int(f.rsplit("(", 1)[1][:-1]) for f in files)), cell(", ".join(files))]
-               for rule, files in sorted(per_rule.items(), key=lambda item: _rule_order(item[0]))]  # fmt: skip
+               for rule, files in ordered]  # fmt: skip
     log = [
         [cell(d["rule"]), cell(", ".join(d["files"])), cell(_log_count(d)), cell(d["why"])]
         for d in sorted(c["deviations"], key=lambda d: _rule_order(d["rule"]))

@@ -6,10 +6,10 @@ from __future__ import annotations
 import json
 import multiprocessing
 import shutil
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict
 from pathlib import Path
-from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -433,8 +433,10 @@ def test_unsigned_says_so_and_fails_when_a_key_was_given(
 ) -> None:
     export = _copy(traced, tmp_path)
     assert main(["verify-chain", str(export)]) == 0
-    assert capsys.readouterr().out.splitlines()[-1].startswith(
-        "warning: signature: not signed (no chain.dsse.json)"
+    assert (
+        capsys.readouterr()
+        .out.splitlines()[-1]
+        .startswith("warning: signature: not signed (no chain.dsse.json)")
     )
     assert main(["verify-chain", str(export), "--key", str(keys["public"])]) == 1
     assert "FAIL signature: unsigned (no chain.dsse.json), but a key was given" in capsys.readouterr().out
@@ -476,7 +478,9 @@ def test_a_dropped_link_of_an_edited_file_is_named(
     source.write_text(source.read_text() + "\n/* edited */\n")
     assert main(["verify-chain", str(export)]) == 1
     assert "records c/policy.c, which the chain does not link" in capsys.readouterr().out
-    assert dict(chain.layout(export, chain.read(export)))["c/policy.c"].endswith("no link of the chain covers it")
+    assert dict(chain.layout(export, chain.read(export)))["c/policy.c"].endswith(
+        "no link of the chain covers it"
+    )
 
 
 def test_a_chain_cut_to_its_first_link_is_named(
@@ -489,7 +493,13 @@ def test_a_chain_cut_to_its_first_link_is_named(
     out = capsys.readouterr().out
     assert "the chain has no 'ONNX' link" in out, out
     problems = dict(chain.layout(export, chain.read(export)))
-    assert {"ONNX", "verification report", "C source", "binary host/", "export_report.json"} <= problems.keys()
+    assert {
+        "ONNX",
+        "verification report",
+        "C source",
+        "binary host/",
+        "export_report.json",
+    } <= problems.keys()
     assert any(p.startswith("bin/cortex-m4/") for p in problems)  # the target's images too
 
 

@@ -25,7 +25,7 @@ from embedrl.train.interface import Field, Interface, InterfaceError
 from tests.export.test_golden import tiny_model
 
 PAYLOADS = (
-    "*/ __attribute__((constructor)) static void p(void) { system(\"id\"); } /*",
+    '*/ __attribute__((constructor)) static void p(void) { system("id"); } /*',
     "a\nb\\\n#define X 1",
     "??/ trigraph ??= ??(",
     "\x00nul\x00",
@@ -141,7 +141,17 @@ def test_the_payload_compiles_to_the_plain_program(tmp_path: Path) -> None:
                 (folder / name).write_text(source)
         obj = folder / "policy.o"
         subprocess.run(
-            ["gcc", "-std=c99", "-Wall", "-Wextra", "-Werror", "-c", str(folder / "policy.c"), "-o", str(obj)],
+            [
+                "gcc",
+                "-std=c99",
+                "-Wall",
+                "-Wextra",
+                "-Werror",
+                "-c",
+                str(folder / "policy.c"),
+                "-o",
+                str(obj),
+            ],
             check=True,
         )
         symbols = subprocess.run(["nm", str(obj)], check=True, capture_output=True, text=True).stdout
