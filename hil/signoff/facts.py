@@ -20,6 +20,7 @@ from embedrl.common import owned_temporary_folder, read_json, sha256
 from embedrl.export.contract.dbc import frame_rows
 from embedrl.export.contract.interface_file import load_interface
 from embedrl.export.contract.layout import WATCHDOG_MS
+from embedrl.export.report_schema import check_export_report
 from embedrl.hil.errors import HilError
 from embedrl.train.interface import INTERFACE_FILE
 
@@ -44,7 +45,7 @@ def load_export(export_dir: Path) -> dict[str, Any]:
         )
     try:
         data = read_json(report)
-        data["interface"]["observation"]
+        check_export_report(data)
     except (ValueError, KeyError, TypeError) as exc:
         raise HilError(f"{report}: not an export report ({exc})") from None
     name = data.get("name")

@@ -4,6 +4,7 @@ ran with, or whose counts do not add up to its own rows, is refused in one line 
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -89,4 +90,32 @@ def test_the_report_command_refuses_a_forged_report_before_writing_anything(
     assert main(["report", str(export), "--hil", str(forged), "--out", str(page)]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1
+    assert not page.exists()
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda r: r["source"].update(sha256="<!--" + "0" * 60), "source/sha256"),
+        (lambda r: r["source"].update(sha256='<img src="//evil.example/x">'), "source/sha256"),
+        (lambda r: r.update(observation_dim="6"), "observation_dim: '6' is not allowed (type"),
+        (lambda r: r["verification"].update(tolerance="1e-5"), "verification/tolerance"),
+        (lambda r: r.update(ops=["Gemm<script>"]), "ops/0"),
+        (lambda r: r.update(targets={"<b>m4</b>": {}}), "targets"),
+        (lambda r: r["files"].update({"../../etc/passwd": "0" * 64}), "files"),
+        (lambda r: r["compiler"].update(command="cc\n<script>"), "compiler/command"),
+    ],
+)
+def test_an_edited_export_report_is_refused_before_anything_is_rendered(
+    export: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str], edit: Any, message: str
+) -> None:
+    folder = tmp_path / "export"
+    shutil.copytree(export, folder)
+    report = json.loads((folder / "export_report.json").read_text())
+    edit(report)
+    (folder / "export_report.json").write_text(json.dumps(report))
+    page = tmp_path / "report.html"
+    assert main(["report", str(folder), "--out", str(page)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and message in err, err
     assert not page.exists()
