@@ -104,8 +104,8 @@ def _generated(
     from embedrl.export.pipeline import tool_version
     from embedrl.export.qdq import lowered
     from embedrl.export.quantize import plan_section
-    from embedrl.export.report_schema import check_export_report
     from embedrl.export.reference import check_scheme
+    from embedrl.export.report_schema import check_export_report
 
     report: dict[str, Any] = read_json(export_dir / "export_report.json")
     check_export_report(report)

@@ -35,7 +35,7 @@ EXPORT_REPORT: dict[str, Any] = {
         "compiler",
         "verification",
         "files",
-    ],  # fmt: skip
+    ],
     "properties": {
         "tool": {"type": "string", "pattern": "^embedrl [0-9A-Za-z.+_-]{1,64}$"},
         "source": {
@@ -76,7 +76,7 @@ EXPORT_REPORT: dict[str, Any] = {
                     "instructions_per_inference": NUMBER,
                     "estimated_cycles_per_inference": NUMBER,
                     "estimated_inference_us": NUMBER,
-                },  # fmt: skip
+                },
             },
         },
         "files": {

@@ -1,5 +1,6 @@
 """A HIL report is evidence the deployment report copies into its bundle: one that does not name the files it
-ran with, or whose counts do not add up to its own rows, is refused in one line before anything is gathered."""
+ran with, or whose counts do not add up to its own rows, is refused in one line before anything is
+gathered."""
 
 from __future__ import annotations
 
