@@ -165,7 +165,7 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
                 )
             from embedrl.train.jax_agents import build_jax_td3
 
-            return build_jax_td3(cfg, env, seed, tb, noise)
+            return build_jax_td3(cfg, env, seed, tb, noise)  # type: ignore[no-any-return]
         return TD3(
             deterministic_policy,
             env,

@@ -117,6 +117,7 @@ def test_hostile_text_changes_only_comments(tmp_path: Path, texts: list[str]) ->
 def _same_database(hostile: str, plain: str) -> None:
     """The same messages and signals, bit for bit; only comments, units and the version string differ."""
     a, b = cantools.database.load_string(hostile), cantools.database.load_string(plain)
+    assert isinstance(a, cantools.database.can.Database) and isinstance(b, cantools.database.can.Database)
     assert [(m.name, m.frame_id, m.length) for m in a.messages] == [
         (m.name, m.frame_id, m.length) for m in b.messages
     ]
