@@ -17,6 +17,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
+from embedrl.cli import main
 from embedrl.common import owned_temporary_folder
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -342,3 +343,22 @@ def test_an_onnx_with_a_fixed_batch_of_one_exports_and_verifies(tmp_path: Path) 
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((out / "export_report.json").read_text())
     assert report["verification"]["c_vs_onnxruntime_max_abs_error"] <= 1e-5
+
+
+def test_the_walker_has_no_reward_field(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "field.png"
+    assert main(["reward-field", "--scenario", "walker", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: the walker has no map") and err.count("\n") == 1
+    assert not out.exists()
+
+
+def test_a_network_too_big_for_a_microcontroller_is_refused_before_the_run_folder(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "run"
+    argv = ["train", "--scenario", "walker", "--set", "net_arch=100000,100000", "--out", str(run)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "at most 8 layers of at most 4096 units" in err and err.count("\n") == 1
+    assert not run.exists()

@@ -94,6 +94,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 def cmd_reward_field(args: argparse.Namespace) -> int:
     from embedrl.train.plots import plot_reward_field
 
+    from embedrl.train.scenarios import WALKER
+
+    if args.scenario == WALKER.name:
+        raise UsageError(
+            "the walker has no map: its reward is the deck's per-step sum (docs/walker.md); reward-field draws "
+            "the warehouse scenarios' potential field"
+        )
     if args.out.suffix.lower() != ".png":
         raise UsageError(f"cannot write {args.out}: use a .png file name")
     plot_reward_field(args.scenario, args.out)
@@ -106,6 +113,14 @@ def cmd_bench_env(args: argparse.Namespace) -> int:
     from embedrl.train.env_throughput import run
 
     print_measurement(run(args.steps, args.seed), args.json)
+    return 0
+
+
+def cmd_bench_train(args: argparse.Namespace) -> int:
+    from embedrl.common import print_measurement
+    from embedrl.train.train_throughput import run
+
+    print_measurement(run(args.steps, args.seed, args.scenario), args.json)
     return 0
 
 
@@ -382,6 +397,15 @@ def register(sub: Any) -> None:
     add_scenario_argument(p)
     p.add_argument("--out", type=Path, required=True, help="file.png")
     p.set_defaults(func=cmd_reward_field)
+
+    p = sub.add_parser(
+        "bench-train", help="TD3's env steps per CPU second while learning: SB3's torch against sbx-rl's JAX"
+    )
+    p.add_argument("--scenario", choices=["walker"], default="walker")
+    p.add_argument("--steps", type=_positive, default=5_000, help="learning steps per backend (default 5000)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", type=Path, help="write the result here")
+    p.set_defaults(func=cmd_bench_train)
 
     p = sub.add_parser("bench-env", help="benchmark env steps per second (random actions, one core)")
     p.add_argument("--steps", type=_positive, default=50_000, help="env steps to time")
