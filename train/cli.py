@@ -93,7 +93,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def cmd_reward_field(args: argparse.Namespace) -> int:
     from embedrl.train.plots import plot_reward_field
-
     from embedrl.train.scenarios import WALKER
 
     if args.scenario == WALKER.name:
