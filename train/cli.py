@@ -97,8 +97,8 @@ def cmd_reward_field(args: argparse.Namespace) -> int:
 
     if args.scenario == WALKER.name:
         raise UsageError(
-            "the walker has no map: its reward is the deck's per-step sum (docs/walker.md); reward-field draws "
-            "the warehouse scenarios' potential field"
+            "the walker has no map: its reward is the deck's per-step sum (docs/walker.md); reward-field "
+            "draws the warehouse scenarios' potential field"
         )
     if args.out.suffix.lower() != ".png":
         raise UsageError(f"cannot write {args.out}: use a .png file name")
