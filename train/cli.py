@@ -194,6 +194,8 @@ def cmd_train(args: argparse.Namespace) -> int:
 
     if (args.resume is None) == (args.out is None):
         raise UsageError("give --out DIR for a new run or --resume DIR to continue one (not both)")
+    if args.workers is not None:
+        return _train_with_workers(args)
     if args.portable:
         from embedrl.train.portable import restart_portable
 
@@ -264,6 +266,31 @@ def cmd_train(args: argparse.Namespace) -> int:
     print(f"wrote {out}/ ({', '.join(written)})")
     if summary["untrained"]:
         _warn(f"{out / 'model.zip'} is an untrained policy: it never had a training update")
+    return 0
+
+
+def _train_with_workers(args: argparse.Namespace) -> int:
+    """``train --workers N``: TD3 with Ray experience workers (:mod:`train.parallel`)."""
+    from embedrl.train.config import Budget
+    from embedrl.train.parallel import train_parallel
+    from embedrl.train.sweep import check_ray_address
+
+    if args.resume is not None or args.algo not in (None, "td3") or args.portable:
+        raise UsageError("--workers trains TD3 in a new run (--out DIR): no --resume, --algo or --portable")
+    check_ray_address(args.ray)
+    given = {k: getattr(args, k) for k in TRAIN_DEFAULTS if getattr(args, k) is not None}
+    values = {**TRAIN_DEFAULTS, **given}
+    budget = Budget(
+        max_steps=values["max_steps"], eval_every=values["eval_every"], eval_episodes=values["eval_episodes"],
+        stop="budget",
+    )  # fmt: skip
+    summary = train_parallel(
+        values["preset"], values["seed"], args.out, budget, args.workers, args.block, args.ray,
+        values["scenario"], args.set,
+    )  # fmt: skip
+    for key, value in summary.items():
+        print(f"{key:<36}  {value}")
+    print(f"wrote {args.out}/ ({', '.join(sorted(p.name for p in args.out.iterdir()))})")
     return 0
 
 
@@ -456,6 +483,16 @@ def _register_train(sub: Any) -> None:
     )
     p.add_argument("--keep-training", action="store_true", help="the same as --stop budget")
     p.add_argument("--portable", action="store_true", help=PORTABLE_HELP)
+    p.add_argument(
+        "--workers", type=_positive,
+        help="TD3 with N asynchronous experience workers (Ray actors) and one learner, as the deck's "
+        "parallel training; a new run only",
+    )  # fmt: skip
+    p.add_argument("--block", type=_positive, default=32, help="transitions a worker sends at a time (32)")
+    p.add_argument(
+        "--ray", default="local", metavar="ADDRESS",
+        help="with --workers: local (Ray on this machine) or a running cluster's address (HOST:PORT, auto)",
+    )  # fmt: skip
     p.set_defaults(func=cmd_train)
 
 

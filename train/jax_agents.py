@@ -93,8 +93,8 @@ def _copy(layers: list[tuple[np.ndarray, np.ndarray]], linears: list[Any]) -> No
         raise ValueError(f"{len(layers)} Flax layers against {len(linears)} torch layers")
     with torch.no_grad():
         for (kernel, bias), linear in zip(layers, linears, strict=True):
-            linear.weight.copy_(torch.from_numpy(np.ascontiguousarray(kernel.T)))
-            linear.bias.copy_(torch.from_numpy(bias))
+            linear.weight.copy_(torch.from_numpy(np.array(kernel.T)))
+            linear.bias.copy_(torch.from_numpy(np.array(bias)))
 
 
 def to_torch_td3(model: Any) -> Any:

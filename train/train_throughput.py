@@ -45,6 +45,7 @@ def run(steps: int, seed: int, scenario: str = WALKER.name) -> dict[str, Any]:
     """Both backends on ``steps`` learning steps each; their rates and the ratio jax / torch."""
     torch.set_num_threads(1)
     cfg = preset("td3", "tuned", scenario)
+    assert isinstance(cfg, TD3Config)
     rates = {}
     for backend in tqdm(BACKENDS, desc=f"TD3 on each backend, {steps:,} steps", disable=not on_terminal()):
         rates[backend] = steps_per_cpu_second(backend, steps, seed, scenario)
