@@ -94,6 +94,7 @@ def _consumers(graph: onnx.GraphProto) -> dict[str, list[onnx.NodeProto]]:
 def _dequantized(node: onnx.NodeProto, constants: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """A constant's float value and scales: ``(q - zero) * scale`` in float32 along the node's axis."""
     q = constants[node.input[0]]
+    _check_scale(node, constants[node.input[1]])
     scale = np.asarray(constants[node.input[1]], np.float32)
     zero = np.asarray(constants[node.input[2]]) if len(node.input) > 2 and node.input[2] else np.zeros(1)
     if q.dtype not in (np.int8, np.int32) or np.any(zero != 0):
@@ -109,6 +110,23 @@ def _dequantized(node: onnx.NodeProto, constants: dict[str, np.ndarray]) -> tupl
     return value, scale.reshape(-1)
 
 
+def _check_scale(node: onnx.NodeProto, scale: np.ndarray) -> None:
+    """A scale the integer C can use: float32, finite and positive (a zero or negative step has no integer
+    meaning; a float16 scale is refused rather than silently widened)."""
+    kind = "QuantizeLinear" if node.op_type == QUANTIZE else "DequantizeLinear"
+    if scale.dtype != np.float32:
+        raise UnsupportedOpError(
+            f"{kind} node '{node.name}': its scale is {scale.dtype}; the int8 export takes float32 scales "
+            "(quantise the model again with float32 scales)"
+        )
+    if not (np.all(np.isfinite(scale)) and np.all(scale > 0)):
+        bad = scale[~(np.isfinite(scale) & (scale > 0))].reshape(-1)[:3].tolist()
+        raise UnsupportedOpError(
+            f"{kind} node '{node.name}': its scales must be finite and positive, got {bad} (a zero or "
+            "negative step size quantises nothing)"
+        )
+
+
 def _activation_pair(
     node: onnx.NodeProto,
     constants: dict[str, np.ndarray],
@@ -117,6 +135,8 @@ def _activation_pair(
     rename: dict[str, str],
 ) -> list[onnx.NodeProto]:
     """Record a QuantizeLinear -> DequantizeLinear pair's quantisation; the ReLU it implies, if any."""
+    if node.input[1] in constants:
+        _check_scale(node, constants[node.input[1]])
     scale = np.asarray(constants.get(node.input[1], np.zeros(0)), np.float32)
     zero = np.asarray(constants.get(node.input[2], np.zeros(0)) if len(node.input) > 2 else np.zeros(0))
     if scale.size != 1 or zero.size != 1 or zero.dtype != np.int8:
@@ -169,8 +189,15 @@ def compare(
     for name in names:
         probe.graph.output.append(helper.make_tensor_value_info(name, onnx.TensorProto.INT8, None))
     session = ort.InferenceSession(probe.SerializeToString(), providers=["CPUExecutionProvider"])
-    inputs = {probe.graph.input[0].name: np.asarray(samples, np.float32)}
-    ints = [np.asarray(v, np.int64) for v in session.run(names, inputs)]
+    rows = np.asarray(samples, np.float32)
+    name = session.get_inputs()[0].name
+    if (
+        session.get_inputs()[0].shape[0] == 1
+    ):  # a file that fixes its batch at 1 (torch.onnx.export's default)
+        runs = [session.run(names, {name: rows[i : i + 1]}) for i in range(len(rows))]
+        ints = [np.concatenate([np.asarray(r[j], np.int64) for r in runs]) for j in range(len(names))]
+    else:
+        ints = [np.asarray(v, np.int64) for v in session.run(names, {name: rows})]
     activations = [section.quant, *(_given_activation(model, t) for t in tensors[1:])]
     layer_steps = [float(np.max(np.abs(quantize_input(samples, section.quant) - ints[0])))]
     for j, layer in enumerate(section.layers):

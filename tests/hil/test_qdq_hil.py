@@ -21,7 +21,8 @@ def qdq_export(exported: Callable[..., Path], tmp_path_factory: pytest.TempPathF
 
 
 @pytest.mark.parametrize(
-    "node", ["python", pytest.param("c", marks=pytest.mark.sandbox)]  # the C node runs in the guest
+    "node",
+    ["python", pytest.param("c", marks=pytest.mark.sandbox)],  # the C node runs in the guest
 )
 def test_a_qdq_export_passes_hil_on_every_node(
     node: str, qdq_export: Path, tmp_path: Path, request: pytest.FixtureRequest
