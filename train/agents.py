@@ -136,7 +136,15 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
         "gradient_steps": cfg.gradient_steps,
         "policy_kwargs": policy_kwargs,
     }
+    return _off_policy(cfg, env, common, off, policy_kwargs)
+
+
+def _off_policy(
+    cfg: Any, env: VecEnv, common: dict[str, Any], off: dict[str, Any], policy_kwargs: dict[str, Any]
+) -> BaseAlgorithm:
+    """DDPG, TD3 (SB3's, or sbx's on JAX) or SAC with their noise and the study's structures."""
     n = env.action_space.shape[0]  # type: ignore[index]
+    seed, tb = common["seed"], common["tensorboard_log"]
     # The study's structures need embedrl's classes; without them models stay plain SB3 files.
     deterministic_policy: Any = "MlpPolicy"
     if cfg.two_branch_critic and not isinstance(cfg, SACConfig):
@@ -165,7 +173,7 @@ def build_model(algo: str, cfg: Any, env: VecEnv, seed: int, tb: Path | None) ->
                 )
             from embedrl.train.jax_agents import build_jax_td3
 
-            return build_jax_td3(cfg, env, seed, tb, noise)  # type: ignore[no-any-return]
+            return build_jax_td3(cfg, env, seed, Path(tb) if tb else None, noise)  # type: ignore[no-any-return]
         return TD3(
             deterministic_policy,
             env,

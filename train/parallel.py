@@ -124,10 +124,6 @@ def train_parallel(
     """Train TD3 with ``workers`` Ray experience workers into ``out``; its summary."""
     import ray
 
-    from embedrl.train.agents import build_model, env_kwargs, make_env
-    from embedrl.train.jax_agents import is_jax_model, save_as_torch
-    from embedrl.train.models import stamp_model
-
     if not 1 <= workers <= MAX_WORKERS:
         raise UsageError(f"--workers must be within 1..{MAX_WORKERS}, got {workers}")
     if out.exists() and any(out.iterdir()):
@@ -137,117 +133,131 @@ def train_parallel(
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     assert isinstance(cfg, TD3Config)
-    spec = SCENARIOS[scenario]
     out.mkdir(parents=True)
-    (out / "config.json").write_text(
-        json.dumps(
-            {
-                "algo": "td3",
-                "preset": preset_name,
-                "seed": seed,
-                "scenario": scenario,
-                "workers": workers,
-                "block": block,
-                "ray": address,
-                "hyperparameters": to_dict(cfg),
-                "budget": vars(budget),
-                "overrides": list(overrides),
-                "provenance": provenance(),
-            },
-            indent=2,
-        )
-    )
+    record = {"algo": "td3", "preset": preset_name, "seed": seed, "scenario": scenario, "workers": workers,
+              "block": block, "ray": address, "hyperparameters": to_dict(cfg), "budget": vars(budget),
+              "overrides": list(overrides), "provenance": provenance()}  # fmt: skip
+    (out / "config.json").write_text(json.dumps(record, indent=2))
     local = address == "local"
     if not ray.is_initialized():  # before JAX starts its threads: Ray forks its own processes
         ray.init(
             address=None if local else address, num_cpus=workers + 1 if local else None,
             include_dashboard=False, log_to_driver=False, configure_logging=False,
         )  # fmt: skip
-    from stable_baselines3.common.logger import configure
-
-    learner: Any = build_model(
-        "td3", replace(cfg, learning_starts=0), make_env(False, seed, scenario, cfg), seed, None
-    )
-    learner.set_logger(configure(None, []))
+    learner = _Learner(cfg, seed, scenario, out, budget, log)
     remote: Any = ray.remote(num_cpus=1)(ExperienceWorker)
-    kwargs = env_kwargs(cfg)
     pool: list[Any] = [
-        remote.remote(spec.env_id, kwargs, seed + (k + 1) * WORKER_SEED_STRIDE, cfg.noise_sigma)
+        remote.remote(SCENARIOS[scenario].env_id, learner.env_kwargs, seed + (k + 1) * WORKER_SEED_STRIDE,
+                      cfg.noise_sigma)
         for k in range(workers)
-    ]
-    curve = (out / "curve.csv").open("w", newline="")
-    writer = csv.writer(curve)
-    writer.writerow(("episode", "steps", "return", "length", "worker"))
-    evaluations: list[tuple[int, float, float]] = []
-    steps, episodes, learner_s, best = 0, 0, 0.0, None
-    started = time.monotonic()
-    next_eval = budget.eval_every
-    busy: dict[int, float] = {}
+    ]  # fmt: skip
 
     def request(k: int) -> Any:
-        layers = None if steps < cfg.learning_starts else actor_layers(learner)
-        return pool[k].collect.remote(layers, block)
+        warm = learner.steps < cfg.learning_starts
+        return pool[k].collect.remote(None if warm else actor_layers(learner.model), block)
 
     pending = {request(k): k for k in range(workers)}
     try:
-        while pending:
+        while pending:  # the first block to arrive, whichever worker sent it
             ready, _ = ray.wait(list(pending), num_returns=1)
             k = pending.pop(ready[0])
-            batch = ray.get(ready[0])
-            busy[k] = batch["busy_s"]
-            n = len(batch["reward"])
-            for i in range(n):
-                learner.replay_buffer.add(
-                    batch["obs"][i : i + 1], batch["next_obs"][i : i + 1], batch["action"][i : i + 1],
-                    batch["reward"][i : i + 1], batch["done"][i : i + 1], [{}],
-                )  # fmt: skip
-            steps += n
-            for episode_return, length in batch["episodes"]:
-                episodes += 1
-                writer.writerow((episodes, steps, f"{episode_return:.6f}", length, k))
-            if steps > cfg.learning_starts:
-                t0 = time.process_time()
-                learner.train(gradient_steps=n, batch_size=cfg.batch_size)
-                learner_s += time.process_time() - t0
-            learner.num_timesteps = steps
-            if steps >= next_eval or steps >= budget.max_steps:
-                next_eval += budget.eval_every
-                success, mean_return = _validate(learner, budget, spec, kwargs)
-                evaluations.append((steps, success, mean_return))
-                log(f"{steps:,} steps: validation success {success:.0%}, mean return {mean_return:.1f}")
-                if best is None or (success, mean_return) > (best["success"], best["mean_return"]):
-                    best = {"step": steps, "success": success, "mean_return": mean_return}
-                    _save(learner, out / "best_model.zip", is_jax_model, save_as_torch, stamp_model, scenario)
-            if steps + block * len(pending) < budget.max_steps:
+            learner.take(ray.get(ready[0]), k)
+            if learner.steps + block * len(pending) < budget.max_steps:
                 pending[request(k)] = k
     finally:
-        curve.close()
+        learner.curve.close()
         if local:
             ray.shutdown()
-    wall_s = time.monotonic() - started
-    _save(learner, out / "last_model.zip", is_jax_model, save_as_torch, stamp_model, scenario)
-    chosen = out / ("best_model.zip" if best is not None and budget.select_best else "last_model.zip")
-    (out / "model.zip").write_bytes(chosen.read_bytes())
-    with (out / "evaluations.csv").open("w", newline="") as f:
-        csv.writer(f).writerows([("steps", "success_rate", "mean_return"), *evaluations])
-    throughput = {
-        "workers": workers,
-        "block": block,
-        "steps": steps,
-        "wall_s": round(wall_s, 1),
-        "steps_per_wall_s": round(steps / wall_s, 1),
-        "learner_updates_per_s": round(learner._n_updates / learner_s, 1) if learner_s else None,
-        "worker_steps_per_s": {str(k): round(steps / workers / s, 1) for k, s in sorted(busy.items()) if s},
-    }
-    (out / THROUGHPUT_FILE).write_text(json.dumps(throughput, indent=2) + "\n")
-    summary = {
-        "algo": "td3", "scenario": scenario, "preset": preset_name, "seed": seed, "workers": workers,
-        "selected": "best validation" if chosen.name == "best_model.zip" else "last", "best_validation": best,
-        "total_steps": steps, "total_episodes": episodes, "updates": int(learner._n_updates),
-        **{k: v for k, v in throughput.items() if k not in ("workers", "block", "steps")},
-    }  # fmt: skip
-    (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    return summary
+    return learner.finish(workers, block)
+
+
+class _Learner:
+    """The run's TD3, its replay buffer, its logs and its counters."""
+
+    def __init__(
+        self, cfg: TD3Config, seed: int, scenario: str, out: Path, budget: Budget, log: Callable[[str], None]
+    ) -> None:
+        from stable_baselines3.common.logger import configure
+
+        from embedrl.train.agents import build_model, env_kwargs, make_env
+
+        self.cfg, self.scenario, self.out, self.budget, self.log = cfg, scenario, out, budget, log
+        self.env_kwargs = env_kwargs(cfg)
+        env = make_env(False, seed, scenario, cfg)
+        self.model: Any = build_model("td3", replace(cfg, learning_starts=0), env, seed, None)
+        self.model.set_logger(configure(None, []))
+        self.curve = (out / "curve.csv").open("w", newline="")
+        self.writer = csv.writer(self.curve)
+        self.writer.writerow(("episode", "steps", "return", "length", "worker"))
+        self.evaluations: list[tuple[int, float, float]] = []
+        self.steps, self.episodes, self.learner_s = 0, 0, 0.0
+        self.best: dict[str, Any] | None = None
+        self.next_eval = budget.eval_every
+        self.busy: dict[int, float] = {}
+        self.started = time.monotonic()
+
+    def take(self, batch: dict[str, Any], worker: int) -> None:
+        """Worker ``worker``'s block into the buffer, one update per transition, a validation when due."""
+        self.busy[worker] = batch["busy_s"]
+        n = len(batch["reward"])
+        for i in range(n):
+            self.model.replay_buffer.add(
+                batch["obs"][i : i + 1], batch["next_obs"][i : i + 1], batch["action"][i : i + 1],
+                batch["reward"][i : i + 1], batch["done"][i : i + 1], [{}],
+            )  # fmt: skip
+        self.steps += n
+        for episode_return, length in batch["episodes"]:
+            self.episodes += 1
+            self.writer.writerow((self.episodes, self.steps, f"{episode_return:.6f}", length, worker))
+        if self.steps > self.cfg.learning_starts:
+            start = time.process_time()
+            self.model.train(gradient_steps=n, batch_size=self.cfg.batch_size)
+            self.learner_s += time.process_time() - start
+        self.model.num_timesteps = self.steps
+        if self.steps >= self.next_eval or self.steps >= self.budget.max_steps:
+            self.next_eval += self.budget.eval_every
+            success, mean_return = _validate(
+                self.model, self.budget, SCENARIOS[self.scenario], self.env_kwargs
+            )
+            self.evaluations.append((self.steps, success, mean_return))
+            self.log(f"{self.steps:,} steps: validation success {success:.0%}, mean return {mean_return:.1f}")
+            if self.best is None or (success, mean_return) > (self.best["success"], self.best["mean_return"]):
+                self.best = {"step": self.steps, "success": success, "mean_return": mean_return}
+                _save(self.model, self.out / "best_model.zip", self.scenario)
+
+    def finish(self, workers: int, block: int) -> dict[str, Any]:
+        """The last and the selected model, evaluations.csv, throughput.json and summary.json."""
+        out, best = self.out, self.best
+        wall_s = time.monotonic() - self.started
+        _save(self.model, out / "last_model.zip", self.scenario)
+        chosen = out / (
+            "best_model.zip" if best is not None and self.budget.select_best else "last_model.zip"
+        )
+        (out / "model.zip").write_bytes(chosen.read_bytes())
+        with (out / "evaluations.csv").open("w", newline="") as f:
+            csv.writer(f).writerows([("steps", "success_rate", "mean_return"), *self.evaluations])
+        updates = int(self.model._n_updates)
+        throughput = {
+            "workers": workers,
+            "block": block,
+            "steps": self.steps,
+            "wall_s": round(wall_s, 1),
+            "steps_per_wall_s": round(self.steps / wall_s, 1),
+            "learner_updates_per_s": round(updates / self.learner_s, 1) if self.learner_s else None,
+            "worker_steps_per_s": {
+                str(k): round(self.steps / workers / s, 1) for k, s in sorted(self.busy.items()) if s
+            },
+        }
+        (out / THROUGHPUT_FILE).write_text(json.dumps(throughput, indent=2) + "\n")
+        summary = {
+            "algo": "td3", "scenario": self.scenario, "workers": workers,
+            "selected": "best validation" if chosen.name == "best_model.zip" else "last",
+            "best_validation": best,
+            "total_steps": self.steps, "total_episodes": self.episodes, "updates": updates,
+            **{k: v for k, v in throughput.items() if k not in ("workers", "block", "steps")},
+        }  # fmt: skip
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        return summary
 
 
 def _validate(learner: Any, budget: Budget, spec: Any, kwargs: dict[str, Any]) -> tuple[float, float]:
@@ -263,10 +273,13 @@ def _validate(learner: Any, budget: Budget, spec: Any, kwargs: dict[str, Any]) -
     return report.success_rate, report.mean_return
 
 
-def _save(model: Any, path: Path, is_jax: Any, save_as_torch: Any, stamp: Any, scenario: str) -> None:
+def _save(model: Any, path: Path, scenario: str) -> None:
     """The model as an SB3 torch zip, stamped with its scenario (no normalisation)."""
-    if is_jax(model):
+    from embedrl.train.jax_agents import is_jax_model, save_as_torch
+    from embedrl.train.models import stamp_model
+
+    if is_jax_model(model):
         save_as_torch(model, path)
     else:
         model.save(path)
-    stamp(path, None, scenario, len(SCENARIOS[scenario].observation))
+    stamp_model(path, None, scenario, len(SCENARIOS[scenario].observation))

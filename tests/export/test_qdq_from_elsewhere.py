@@ -47,7 +47,8 @@ def _first_weight_scale(model: onnx.ModelProto) -> onnx.TensorProto:
     inits = {i.name: i for i in model.graph.initializer}
     int8 = {name for name, init in inits.items() if init.data_type == TensorProto.INT8}
     node = next(n for n in model.graph.node if n.op_type == "DequantizeLinear" and n.input[0] in int8)
-    return inits[node.input[1]]
+    scale: onnx.TensorProto = inits[node.input[1]]
+    return scale
 
 
 @pytest.mark.parametrize(
