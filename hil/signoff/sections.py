@@ -67,8 +67,9 @@ def verification(facts: dict[str, Any]) -> Markup:
 
 def closed_loop(facts: dict[str, Any]) -> Markup:
     rows = [
-        [cell(r["platform"]), cell(r["seed"]), cell(r["episodes"]), cell(r["successes"]),
-         cell(r["collisions"]), cell(r["timeouts"]), cell(r["verdict"])]
+        [cell(r["platform"]), cell(r["seed"]), cell(r.get("success")), cell(r["collisions"]),
+         cell(r["timeouts"]), cell(r["verdict"]), cell(r.get("matches_simulation")),
+         cell(r.get("meets_sample_time")), cell(r.get("task_succeeds")), cell(r.get("where"))]
         for r in facts["closed_loop"]
     ]  # fmt: skip
     return fragment(
