@@ -19,7 +19,7 @@ def test_the_wilson_interval(successes: int, episodes: int, low: float, high: fl
 
 
 def _hil(**changes: Any) -> dict[str, Any]:
-    report = {
+    report: dict[str, Any] = {
         "node": "c", "target": None, "sandbox": "uml", "episodes": 3, "successes": 3, "collisions": 0,
         "timeouts": 0, "seed": 0, "verdict": {"passed": True}, "outcomes_differing_from_simulation": [],
         "latency_us": {"p99": 5_000.0}, "sample_time_s": 0.008, "simulation": None,
