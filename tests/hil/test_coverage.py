@@ -161,3 +161,20 @@ def test_every_gap_of_a_quantised_policy_has_its_reason(exported: Exported, prec
         precision == "int8-weights"
     )
     assert coverage.check(summary)[0]
+
+
+def test_a_npy_file_as_coverage_obs_is_refused_in_one_line(tmp_path: Path) -> None:
+    """A ``.npy`` file holds a header before its rows: read as raw floats, the header would be observations."""
+    obs = tmp_path / "obs.npy"
+    np.save(obs, np.zeros((1, 6), dtype="<f4"))
+    result = subprocess.run(
+        ["make", "--no-print-directory", "-C", str(RUNTIME_C), "coverage", f"POLICY_DIR={tmp_path}",
+         f"COVERAGE_OBS={obs}", f"BUILD_DIR={tmp_path / 'b'}", f"PYTHON={sys.executable}"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert result.returncode == 2
+    assert result.stderr.splitlines()[0] == (
+        f"COVERAGE_OBS {obs} is a .npy file (a header, then the rows): give raw float32 rows, e.g. "
+        "numpy.load(FILE).astype('float32').tofile('obs.f32')"
+    )
+    assert not (tmp_path / "b").exists()
