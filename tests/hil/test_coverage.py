@@ -164,7 +164,7 @@ def test_every_gap_of_a_quantised_policy_has_its_reason(exported: Exported, prec
 
 
 def test_a_npy_file_as_coverage_obs_is_refused_in_one_line(tmp_path: Path) -> None:
-    """A ``.npy`` file holds a header before its rows: read as raw floats, the header would be observations."""
+    """A ``.npy`` file holds a header before its rows: read as raw floats, its header would be rows."""
     obs = tmp_path / "obs.npy"
     np.save(obs, np.zeros((1, 6), dtype="<f4"))
     result = subprocess.run(
