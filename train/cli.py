@@ -427,9 +427,9 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "bench-train", help="TD3's env steps per CPU second while learning: SB3's torch against sbx-rl's JAX"
     )
-    p.add_argument("--scenario", choices=["walker"], default="walker")
+    p.add_argument("--scenario", choices=["walker"], default="walker", help="the scenario (default walker)")
     p.add_argument("--steps", type=_positive, default=5_000, help="learning steps per backend (default 5000)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="the runs' seed (default 0)")
     p.add_argument("--json", type=Path, help="write the result here")
     p.set_defaults(func=cmd_bench_train)
 

@@ -22,7 +22,13 @@ from tests.conftest import Exported
 SHIPPED_TD3 = Path(__file__).resolve().parents[2] / "policies" / "static" / "td3.zip"
 BUILD_TOOLS = ("make", "sh", "cc", "gcc", "as", "ld", "mkdir")
 """What ``make -C runtime_c node`` runs on the host: make, the shell of its recipes and the C toolchain."""
-CROSS_TOOLS = ("arm-none-eabi-gcc", "arm-none-eabi-as", "arm-none-eabi-ld")
+CROSS_TOOLS = (
+    "arm-none-eabi-gcc",
+    "arm-none-eabi-as",
+    "arm-none-eabi-ld",
+    "arm-none-eabi-objcopy",
+    "arm-none-eabi-size",
+)
 
 
 @pytest.fixture

@@ -541,7 +541,7 @@ def test_int8_full_stores_a_layers_biases_as_int16_where_every_one_fits(tmp_path
     text = (tmp_path / "c" / "policy.c").read_text()
     for layer, ctype in zip(section.layers, ("int16_t", "int32_t", "int32_t"), strict=True):
         assert re.search(
-            rf"/\* {re.escape(layer.name)} bias in accumulator units \*/\nstatic const {ctype} ", text
+            rf"/\* \w+: {re.escape(layer.name)} bias in accumulator units \*/\nstatic const {ctype} ", text
         )
     x = rng.normal(scale=3.0, size=(2000, 6)).astype(np.float32)
     assert verify.bitwise_mismatches(policy.rows(x)[0], quantize.evaluate(to_ir(model), x, section)) == 0
