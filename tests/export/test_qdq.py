@@ -60,13 +60,22 @@ def test_the_qdq_export_is_verified_against_onnxruntime_running_it(qdq_export: P
     assert quantization["model_mismatches"] == 0  # the C equals its integer model bit for bit
     found = quantization["qdq"]
     assert found["reference"] == "onnxruntime running the QDQ model"
-    assert found["layers"] == ["obs", "actor.mu.0", "actor.mu.2", "actor.mu.4"]
+    assert found["layers"] == ["obs", "actor_mu_0", "actor_mu_2", "actor_mu_4"]  # names as identifiers
     assert max(found["max_layer_steps"]) <= found["tolerance_steps"] == qdq.MAX_LAYER_STEPS == 1.0
     assert found["max_layer_steps"][0] == 0  # the input is quantised as the model quantises it
     assert 0 < found["end_to_end_max_output_steps"] < 3
-    assert quantization["worst_action_error_vs_float"] < 0.2  # against the QDQ model's actions
+    if _vnni():  # against the QDQ model's actions as onnxruntime computes them
+        assert quantization["worst_action_error_vs_float"] < 0.2
+    else:  # onnxruntime's u8 x s8 kernel without VNNI (vpmaddubsw) saturates pair sums at int16
+        assert quantization["worst_action_error_vs_float"] < 2.0
     loop = json.loads((qdq_export / "export_report.json").read_text())["closed_loop"]
     assert loop["episodes"] == 10 and loop["differing_outcomes"] == 0
+
+
+def _vnni() -> bool:
+    """Whether this CPU has VNNI (AVX512-VNNI or AVX-VNNI): onnxruntime's int8 GEMM then sums exactly."""
+    flags = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
+    return "avx512_vnni" in flags or "avx_vnni" in flags
 
 
 def test_the_qdq_exports_c_is_generated_again_byte_for_byte(qdq_export: Path) -> None:
