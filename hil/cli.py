@@ -91,7 +91,7 @@ def cmd_doctor(args: argparse.Namespace) -> int:
     from embedrl.common import write_json
     from embedrl.hil.doctor import doctor, print_table
 
-    report = doctor(say=print, mode=args.sandbox)
+    report = doctor(say=print, mode=args.sandbox, every=args.all)
     print_table(report)
     if args.json:
         write_json(report, args.json)
@@ -296,6 +296,10 @@ def _register_doctor(hil_sub: Any) -> None:
     d.add_argument(
         "--sandbox", choices=MODES, default=AUTO, help=f"check only this provider's candidates ({AUTO}: all)"
     )
+    d.add_argument(
+        "--all", action="store_true",
+        help="check every provider, not only up to the first that works (a QEMU guest's boot takes minutes)",
+    )  # fmt: skip
     d.set_defaults(func=cmd_doctor)
 
 

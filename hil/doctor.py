@@ -69,22 +69,37 @@ def _progress(say: Callable[[str], None], label: str, every_s: float) -> Iterato
 
 
 def doctor(
-    say: Callable[[str], None] = print, mode: str = "auto", progress_s: float = PROGRESS_S
+    say: Callable[[str], None] = print,
+    mode: str = "auto",
+    progress_s: float = PROGRESS_S,
+    every: bool = False,
 ) -> dict[str, Any]:
-    """Check every provider of ``mode`` (``auto``: all, in the order ``auto`` tries them); the report
-    with ``first_working`` (what ``--sandbox mode`` picks). A line every ``progress_s`` while one boots."""
+    """Check the providers of ``mode`` in the order ``--sandbox mode`` tries them, up to the first that works
+    (what it picks), or every one with ``every``; the report with ``first_working`` and the providers left
+    unchecked (``not_checked``: a QEMU guest's emulated boot takes minutes). A line every ``progress_s``
+    while one boots."""
     info = machine()
     say(f"machine: {info['cpu']}, AMX {'yes' if info['amx'] else 'no'}, host kernel {info['host_kernel']}")
-    checks = []
+    checks: list[dict[str, Any]] = []
+    not_checked: list[str] = []
     with owned_temporary_folder("embedrl-doctor-") as tmp:
         for provider in sandbox.providers(mode):
+            if not every and any(c["works"] for c in checks):
+                not_checked.append(provider.label)
+                continue
             say(f"checking {provider.label} ...")
             start = time.monotonic()
             with _progress(say, provider.label, progress_s):
                 result = sandbox.check(provider, Path(tmp))
             checks.append({**asdict(result), "check_s": round(time.monotonic() - start, 2)})
     first = next((c["label"] for c in checks if c["works"]), None)
-    return {"machine": info, "mode": mode, "providers": checks, "first_working": first}
+    return {
+        "machine": info,
+        "mode": mode,
+        "providers": checks,
+        "first_working": first,
+        "not_checked": not_checked,
+    }
 
 
 def print_table(report: dict[str, Any], say: Callable[[str], None] = print) -> None:
@@ -95,5 +110,7 @@ def print_table(report: dict[str, Any], say: Callable[[str], None] = print) -> N
     widths = [max(len(r[i]) for r in rows) for i in range(3)]
     for r in rows:
         say(f"{r[0]:<{widths[0]}}  {r[1]:<{widths[1]}}  {r[2]:>{widths[2]}}  {r[3]}")
+    for label in report.get("not_checked", []):
+        say(f"{label}: not checked (one before it works; `embedrl hil doctor --all` boots every provider)")
     first = report["first_working"]
     say(f"--sandbox {report['mode']} uses: {first}" if first else "no provider works: see the reasons above")

@@ -80,3 +80,41 @@ def test_the_doctor_says_a_provider_is_still_booting(monkeypatch: pytest.MonkeyP
     assert said[1] == "checking slow (test) ..." and 3 <= len(ticks) <= 5, said
     assert said.index(ticks[0]) == 2 and len(said) == 2 + len(ticks)  # between its start and its row
     assert report["providers"][0]["works"] is False and report["first_working"] is None
+
+
+class _Named(Provider):
+    """A provider that only has a name: ``sandbox.check`` is replaced in the test that uses it."""
+
+    name = "uml"
+
+    def __init__(self, label: str) -> None:
+        self.label = label
+
+    def missing(self) -> str | None:
+        return None
+
+    def boot(self, workdir: Path) -> Guest:
+        raise AssertionError("not booted in this test")
+
+
+@pytest.mark.parametrize("every", [False, True])
+def test_the_doctor_stops_at_the_first_provider_that_works_unless_told_all(
+    monkeypatch: pytest.MonkeyPatch, every: bool
+) -> None:
+    from embedrl.hil.sandbox import ProviderCheck
+
+    works = {"a": False, "b": True, "c": True}
+    monkeypatch.setattr(sandbox, "providers", lambda mode: [_Named(label) for label in works])
+    monkeypatch.setattr(
+        sandbox,
+        "check",
+        lambda p, w: ProviderCheck(
+            p.name, p.label, works[p.label], 1.0 if works[p.label] else None, "ok" if works[p.label] else "no"
+        ),
+    )
+    said: list[str] = []
+    report = doctor.doctor(say=said.append, every=every)
+    doctor.print_table(report, said.append)
+    assert [c["label"] for c in report["providers"]] == (["a", "b", "c"] if every else ["a", "b"])
+    assert report["not_checked"] == ([] if every else ["c"]) and report["first_working"] == "b"
+    assert any(line.startswith("c: not checked") for line in said) != every
