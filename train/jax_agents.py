@@ -7,8 +7,8 @@ small network is several times the env steps per CPU second of SB3's torch TD3 (
 What leaves a run (``model.zip``, ``best_model.zip``, ``last_model.zip``) is an SB3 TD3 zip with the same
 actor and critic weights (Flax's ``Dense`` kernel is the transpose of torch's ``Linear`` weight), checked at
 save time: the torch actor's actions on a batch of observations drawn from the observation space match the
-JAX actor's own within :data:`ACTION_TOLERANCE`, or the save fails. Export, evaluation and HIL therefore meet
-the same file kind as for a torch run; the JAX checkpoint itself stays in ``checkpoint/`` for ``--resume``.
+JAX actor's own within :data:`ACTION_TOLERANCE` (1e-4), or the save fails. Export, evaluation and HIL
+therefore meet the same file kind as for a torch run; the JAX checkpoint itself stays in ``checkpoint/`` for ``--resume``.
 """
 
 from __future__ import annotations
@@ -24,8 +24,9 @@ os.environ.setdefault("XLA_FLAGS", "--xla_cpu_multi_thread_eigen=false intra_op_
 
 BACKENDS = ("torch", "jax")
 """Where TD3's updates run: SB3's torch, or sbx-rl's JAX."""
-ACTION_TOLERANCE = 1e-5
-"""The most a converted torch actor's action may differ from the JAX actor's (float32 on both sides)."""
+ACTION_TOLERANCE = 1e-4
+"""The most a converted torch actor's action may differ from the JAX actor's: float32 sums in another order
+(XLA's and torch's) over the whole observation box differ by ~1e-5; a wrong layout differs by O(1)."""
 CHECK_SAMPLES = 256
 """Observations drawn to check a conversion."""
 
