@@ -8,7 +8,8 @@ What leaves a run (``model.zip``, ``best_model.zip``, ``last_model.zip``) is an 
 actor and critic weights (Flax's ``Dense`` kernel is the transpose of torch's ``Linear`` weight), checked at
 save time: the torch actor's actions on a batch of observations drawn from the observation space match the
 JAX actor's own within :data:`ACTION_TOLERANCE` (1e-4), or the save fails. Export, evaluation and HIL
-therefore meet the same file kind as for a torch run; the JAX checkpoint itself stays in ``checkpoint/`` for ``--resume``.
+therefore meet the same file kind as for a torch run; the JAX checkpoint itself stays in ``checkpoint/`` for
+``--resume``.
 """
 
 from __future__ import annotations
