@@ -45,12 +45,17 @@ def _parsed(html: str) -> _Markup:
     return parser
 
 
+KEPT = ("target",)
+"""A target's name: one of the known targets, which the export report's schema checks (a name it refuses
+cannot reach the page)."""
+
+
 def _poisoned(value: Any) -> Any:
-    """``value`` with every string in it (not the keys) replaced by the payload."""
+    """``value`` with every string in it (not the keys, nor a target's name) replaced by the payload."""
     if isinstance(value, str):
         return PAYLOAD
     if isinstance(value, dict):
-        return {k: _poisoned(v) for k, v in value.items()}
+        return {k: v if k in KEPT else _poisoned(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [_poisoned(v) for v in value]
     return value
