@@ -188,9 +188,11 @@ def test_vecnormalize_statistics_go_into_the_graph(tmp_path: Path) -> None:
     stats = VecNormalize.load(str(folder / "vecnormalize.pkl"), DummyVecEnv([lambda: gym.make(train.ENV_ID)]))
     rms: Any = stats.obs_rms  # SB3 types it as a dict for Dict spaces; here it is one RunningMeanStd
     assert isinstance(rms, RunningMeanStd)
-    np.testing.assert_array_equal(inits["normalize.mean"], rms.mean.astype(np.float32))
-    np.testing.assert_array_equal(inits["normalize.std"], np.sqrt(rms.var + stats.epsilon).astype(np.float32))
-    assert float(inits["normalize.high"]) == 5.0
+    np.testing.assert_array_equal(
+        inits["normalize_mean"], rms.mean.astype(np.float32)
+    )  # names as identifiers
+    np.testing.assert_array_equal(inits["normalize_std"], np.sqrt(rms.var + stats.epsilon).astype(np.float32))
+    assert float(inits["normalize_high"]) == 5.0
 
 
 def test_action_unscaling_on_an_env_with_a_wider_action_space(tmp_path: Path) -> None:

@@ -249,7 +249,7 @@ def test_int8_study_actor_meets_the_flash_and_cycle_targets_on_the_m4f(tmp_path:
     assert m4["estimated_cycles_per_inference"] <= INT8_CYCLES_TARGET
     text = (out / "c" / "policy.c").read_text()
     assert "int32_t policy_w0[150]" in text  # 100 rows x (one word + half a tail word)
-    assert "actor.mu.0 shifts */" not in text and "actor.mu.2 shifts */" not in text
+    assert "actor_mu_0 shifts */" not in text and "actor_mu_2 shifts */" not in text
 
 
 def test_int8_folded_normalisation_is_bit_exact_on_the_m4f(tmp_path: Path) -> None:
