@@ -74,17 +74,17 @@ def doctor(
     progress_s: float = PROGRESS_S,
     every: bool = False,
 ) -> dict[str, Any]:
-    """Check the providers of ``mode`` in the order ``--sandbox mode`` tries them, up to the first that works
-    (what it picks), or every one with ``every``; the report with ``first_working`` and the providers left
-    unchecked (``not_checked``: a QEMU guest's emulated boot takes minutes). A line every ``progress_s``
-    while one boots."""
+    """Check the providers of ``mode`` in the order ``--sandbox mode`` tries them: for ``auto`` up to the
+    first that works (what it picks) unless ``every``, for a named provider every candidate; the report with
+    ``first_working`` and the providers left unchecked (``not_checked``: a QEMU guest's emulated boot takes
+    minutes). A line every ``progress_s`` while one boots."""
     info = machine()
     say(f"machine: {info['cpu']}, AMX {'yes' if info['amx'] else 'no'}, host kernel {info['host_kernel']}")
     checks: list[dict[str, Any]] = []
     not_checked: list[str] = []
     with owned_temporary_folder("embedrl-doctor-") as tmp:
         for provider in sandbox.providers(mode):
-            if not every and any(c["works"] for c in checks):
+            if not every and mode == sandbox.AUTO and any(c["works"] for c in checks):
                 not_checked.append(provider.label)
                 continue
             say(f"checking {provider.label} ...")

@@ -427,9 +427,11 @@ def register(sub: Any) -> None:
     p = sub.add_parser(
         "bench-train", help="TD3's env steps per CPU second while learning: SB3's torch against sbx-rl's JAX"
     )
-    p.add_argument("--scenario", choices=["walker"], default="walker", help="the scenario (default walker)")
-    p.add_argument("--steps", type=_positive, default=5_000, help="learning steps per backend (default 5000)")
-    p.add_argument("--seed", type=int, default=0, help="the runs' seed (default 0)")
+    p.add_argument("--scenario", choices=["walker"], default="walker", help="the scenario (default: walker)")
+    p.add_argument(
+        "--steps", type=_positive, default=5_000, help="learning steps per backend (default: 5000)"
+    )
+    p.add_argument("--seed", type=int, default=0, help="the runs' seed (default: 0)")
     p.add_argument("--json", type=Path, help="write the result here")
     p.set_defaults(func=cmd_bench_train)
 
@@ -488,10 +490,13 @@ def _register_train(sub: Any) -> None:
         help="TD3 with N asynchronous experience workers (Ray actors) and one learner, as the deck's "
         "parallel training; a new run only",
     )  # fmt: skip
-    p.add_argument("--block", type=_positive, default=32, help="transitions a worker sends at a time (32)")
+    p.add_argument(
+        "--block", type=_positive, default=32, help="transitions a worker sends at a time (default: 32)"
+    )
     p.add_argument(
         "--ray", default="local", metavar="ADDRESS",
-        help="with --workers: local (Ray on this machine) or a running cluster's address (HOST:PORT, auto)",
+        help="with --workers: local (Ray on this machine) or a running cluster's address (HOST:PORT, auto) "
+        "(default: local)",
     )  # fmt: skip
     p.set_defaults(func=cmd_train)
 
